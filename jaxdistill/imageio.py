@@ -1,0 +1,84 @@
+"""Image files through OpenImageIO: float32 HWC arrays, linear light inside the program.
+
+Files: EXR/HDR/TIFF-float hold linear values; PNG/JPG (8/16-bit) hold sRGB-encoded values.
+`read_image` returns linear light for both, `write_image` encodes sRGB for LDR formats.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import OpenImageIO as oiio
+
+LINEAR_EXTENSIONS = (".exr", ".hdr", ".pfm")
+
+
+def is_linear_format(path) -> bool:
+    """True when the file format stores linear light (EXR, HDR, PFM); False for sRGB LDR files."""
+    return Path(path).suffix.lower() in LINEAR_EXTENSIONS
+
+
+def srgb_to_linear(x: np.ndarray) -> np.ndarray:
+    """IEC 61966-2-1 sRGB decode of values in [0, 1] -> linear [0, 1]."""
+    x = np.asarray(x, np.float32)
+    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4).astype(np.float32)
+
+
+def linear_to_srgb(x: np.ndarray) -> np.ndarray:
+    """IEC 61966-2-1 sRGB encode of linear values (clipped to [0, 1]) -> [0, 1]."""
+    x = np.clip(np.asarray(x, np.float32), 0.0, 1.0)
+    return np.where(x <= 0.0031308, x * 12.92, 1.055 * x ** (1 / 2.4) - 0.055).astype(np.float32)
+
+
+def image_size(path) -> tuple[int, int, int]:
+    """(width, height, channels) from the file header, without reading pixels."""
+    inp = oiio.ImageInput.open(os.fspath(path))
+    if inp is None:
+        raise OSError(f"{path}: cannot open image: {oiio.geterror()}")
+    spec = inp.spec()
+    inp.close()
+    return spec.width, spec.height, spec.nchannels
+
+
+def read_image(path, *, linear: bool = True) -> np.ndarray:
+    """(H, W, C) float32 pixels; LDR files are sRGB-decoded to linear unless `linear=False`."""
+    inp = oiio.ImageInput.open(os.fspath(path))
+    if inp is None:
+        raise OSError(f"{path}: cannot open image: {oiio.geterror()}")
+    pixels = inp.read_image(format="float")
+    inp.close()
+    if pixels is None:
+        raise OSError(f"{path}: cannot read pixels: {oiio.geterror()}")
+    pixels = np.asarray(pixels, np.float32)
+    if pixels.ndim == 2:
+        pixels = pixels[:, :, None]
+    if linear and not is_linear_format(path):
+        pixels = srgb_to_linear(pixels)
+    return pixels
+
+
+def write_image(path, pixels: np.ndarray, *, encode_srgb: bool | None = None) -> None:
+    """Writes (H, W) or (H, W, C) linear float pixels; PNG/JPG get sRGB encoding by default.
+
+    EXR is written as float32. For LDR files `encode_srgb=False` writes values as-is
+    (use it for data maps such as normals, roughness, counts already in [0, 1]).
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    pixels = np.asarray(pixels, np.float32)
+    if pixels.ndim == 2:
+        pixels = pixels[:, :, None]
+    linear_file = is_linear_format(path)
+    if encode_srgb is None:
+        encode_srgb = not linear_file
+    if not linear_file:
+        pixels = linear_to_srgb(pixels) if encode_srgb else np.clip(pixels, 0.0, 1.0)
+    ext = path.suffix.lower()
+    dtype = "float" if linear_file else ("uint16" if ext in (".tif", ".tiff") else "uint8")
+    buf = oiio.ImageBuf(np.ascontiguousarray(pixels))
+    tmp = path.with_name(path.name + ".tmp" + path.suffix)
+    if not buf.write(os.fspath(tmp), dtype):
+        raise OSError(f"{path}: cannot write image: {oiio.geterror()}")
+    os.replace(tmp, path)

@@ -1,0 +1,204 @@
+"""Fragment buffers: one primary ray per pixel centre, cast once per view with Embree.
+
+The ray cast (triangle id, barycentrics, distance) is the only expensive part and is cached
+on disk under a key that hashes the mesh geometry, the camera and the resolution. Everything
+else (UV, depth, UV derivatives) is derived exactly from it in float64 NumPy.
+
+Geometry is translated and scaled to a unit box before it reaches Embree (float32), so scenes
+in millimetres or kilometres get the same relative precision. Back faces are hit (cameras
+inside rooms see the inside of walls); zero-area triangles are never hit; misses get id -1.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import os
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from jaxdistill.cameras import Camera
+from jaxdistill.scene import Mesh
+
+CACHE_VERSION = 1
+RAYS_PER_CALL = 1 << 20
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Fragments:
+    """Per-pixel ray hits for one view (pixel centres, row-major).
+
+    triangle (H, W) int32 face id, -1 where the ray misses; barycentric (H, W, 2) float32
+    weights of corners 1 and 2 (corner 0 gets 1 - b1 - b2); depth (H, W) float32 camera z
+    in world units (inf on miss); uv (H, W, 2) float32 in [0, 1], v up; uv_grad (H, W, 2, 2)
+    float32 with uv_grad[..., 0, :] = d(u, v)/dx and uv_grad[..., 1, :] = d(u, v)/dy per
+    pixel (0 on miss); object_id (H, W) int32, -1 on miss.
+    """
+
+    triangle: np.ndarray
+    barycentric: np.ndarray
+    depth: np.ndarray
+    uv: np.ndarray
+    uv_grad: np.ndarray
+    object_id: np.ndarray
+
+    @property
+    def hit(self) -> np.ndarray:
+        """(H, W) bool: the pixel's ray hit a triangle."""
+        return self.triangle >= 0
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.triangle.shape
+
+
+class RayCaster:
+    """Embree scene of a mesh, normalised to a unit box; `intersect` returns first hits."""
+
+    def __init__(self, mesh: Mesh):
+        from embreex import mesh_construction, rtcore_scene
+
+        lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
+        self.center = 0.5 * (lo + hi)
+        self.scale = float(max(np.max(hi - lo), np.finfo(np.float64).tiny))
+        triangles = ((mesh.triangles() - self.center) / self.scale).astype(np.float32)
+        self._scene = rtcore_scene.EmbreeScene()
+        self._mesh = mesh_construction.TriangleMesh(self._scene, triangles)
+
+    def intersect(self, origins: np.ndarray, directions: np.ndarray):
+        """(triangle (N,) int32, barycentric (N, 2) float32, distance (N,) float64) for unit rays."""
+        n = len(origins)
+        triangle = np.empty(n, np.int32)
+        bary = np.empty((n, 2), np.float32)
+        dist = np.empty(n, np.float64)
+        for start in range(0, n, RAYS_PER_CALL):
+            sl = slice(start, min(n, start + RAYS_PER_CALL))
+            o = ((origins[sl] - self.center) / self.scale).astype(np.float32)
+            d = np.ascontiguousarray(directions[sl], np.float32)
+            res = self._scene.run(o, d, output=1)
+            triangle[sl] = res["primID"]
+            bary[sl, 0], bary[sl, 1] = res["u"], res["v"]
+            dist[sl] = np.where(res["primID"] >= 0, res["tfar"].astype(np.float64) * self.scale, np.inf)
+        return triangle, bary, dist
+
+
+def mesh_key(mesh: Mesh) -> str:
+    """Hex digest of the geometry that decides ray hits (vertices and faces)."""
+    h = hashlib.sha256()
+    for array in (mesh.vertices.astype(np.float64), mesh.faces.astype(np.int64)):
+        h.update(str(array.shape).encode())
+        h.update(np.ascontiguousarray(array).tobytes())
+    return h.hexdigest()
+
+
+def view_key(geometry_key: str, camera: Camera) -> str:
+    """Cache key of one view's ray cast: mesh geometry, K, c2w, resolution and cache version."""
+    h = hashlib.sha256(f"v{CACHE_VERSION}:{geometry_key}:{camera.width}x{camera.height}".encode())
+    h.update(np.asarray(camera.K, np.float64).tobytes())
+    h.update(np.asarray(camera.c2w, np.float64).tobytes())
+    return h.hexdigest()[:32]
+
+
+def pixel_directions(camera: Camera) -> np.ndarray:
+    """(H*W, 3) float64 un-normalised world ray directions R K^-1 [x, y, 1] at pixel centres."""
+    xs = np.arange(camera.width, dtype=np.float64) + 0.5
+    ys = np.arange(camera.height, dtype=np.float64) + 0.5
+    x, y = np.meshgrid(xs, ys)
+    pix = np.stack([x.ravel(), y.ravel(), np.ones(x.size)], axis=1)
+    return pix @ (camera.c2w[:3, :3] @ np.linalg.inv(camera.K)).T
+
+
+def cast_view(caster: RayCaster, camera: Camera):
+    """Ray cast of all pixel centres: (triangle (H,W) int32, barycentric (H,W,2) f32, distance (H,W) f64)."""
+    d = pixel_directions(camera)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    o = np.broadcast_to(camera.c2w[:3, 3], d.shape)
+    tri, bary, dist = caster.intersect(o, d)
+    h, w = camera.height, camera.width
+    return tri.reshape(h, w), bary.reshape(h, w, 2), dist.reshape(h, w)
+
+
+def derive_fragments(mesh: Mesh, camera: Camera, triangle: np.ndarray, barycentric: np.ndarray,
+                     distance: np.ndarray) -> Fragments:
+    """Fragments from a ray cast: UV, camera depth and exact analytic UV derivatives per pixel."""
+    h, w = triangle.shape
+    hit = triangle >= 0
+    tri = triangle[hit]
+    b = barycentric[hit].astype(np.float64)
+    corner_uv = mesh.uv[tri]                                       # (N, 3, 2)
+    weights = np.stack([1.0 - b[:, 0] - b[:, 1], b[:, 0], b[:, 1]], axis=1)
+    uv = np.zeros((h, w, 2), np.float32)
+    uv[hit] = np.clip(np.einsum("nk,nkc->nc", weights, corner_uv), 0.0, 1.0)
+
+    d = pixel_directions(camera).reshape(h, w, 3)[hit]
+    forward = camera.c2w[:3, 2]
+    dist = distance[hit]
+    depth = np.full((h, w), np.inf, np.float32)
+    depth[hit] = dist * (d @ forward) / np.linalg.norm(d, axis=1)
+
+    # d(hit point)/d(pixel) on the triangle's plane, then barycentric and UV derivatives.
+    corners = mesh.vertices[mesh.faces[tri]]                       # (N, 3, 3)
+    e1, e2 = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
+    normal = np.cross(e1, e2)
+    t = (dist / np.linalg.norm(d, axis=1))[:, None]                # hit = origin + t * d
+    n_dot_d = np.einsum("nc,nc->n", normal, d)[:, None]
+    step = camera.c2w[:3, :3] @ np.linalg.inv(camera.K)            # columns: d(d)/dx, d(d)/dy
+    g11, g12, g22 = (np.einsum("nc,nc->n", a, b_) for a, b_ in ((e1, e1), (e1, e2), (e2, e2)))
+    det = g11 * g22 - g12 * g12
+    uv_grad = np.zeros((h, w, 2, 2), np.float32)
+    grads = []
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for axis in range(2):
+            dd = step[:, axis][None, :]
+            dp = t * (dd - d * (normal @ step[:, axis])[:, None] / n_dot_d)
+            r1, r2 = np.einsum("nc,nc->n", e1, dp), np.einsum("nc,nc->n", e2, dp)
+            db1 = (g22 * r1 - g12 * r2) / det
+            db2 = (g11 * r2 - g12 * r1) / det
+            duv = db1[:, None] * (corner_uv[:, 1] - corner_uv[:, 0]) + db2[:, None] * (corner_uv[:, 2] - corner_uv[:, 0])
+            grads.append(np.where(np.isfinite(duv), duv, 0.0))
+    uv_grad[hit] = np.stack(grads, axis=1)
+
+    object_id = np.full((h, w), -1, np.int32)
+    object_id[hit] = mesh.face_object[tri]
+    return Fragments(triangle=triangle.astype(np.int32), barycentric=barycentric.astype(np.float32),
+                     depth=depth, uv=uv, uv_grad=uv_grad, object_id=object_id)
+
+
+def default_cache_dir() -> Path:
+    """$JAXDISTILL_CACHE, else $XDG_CACHE_HOME/jaxdistill, else ~/.cache/jaxdistill."""
+    if "JAXDISTILL_CACHE" in os.environ:
+        return Path(os.environ["JAXDISTILL_CACHE"])
+    base = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache"))
+    return base / "jaxdistill"
+
+
+def compute_fragments(mesh: Mesh, cameras: Sequence[Camera], *, cache_dir: Path | None | bool = None,
+                      progress: bool = True) -> list[Fragments]:
+    """Fragments for every camera; ray casts are read from / written to the cache.
+
+    cache_dir: a folder, None for `default_cache_dir()`, or False to disable caching.
+    """
+    cache = None if cache_dir is False else Path(cache_dir or default_cache_dir()) / "fragments"
+    geometry_key = mesh_key(mesh)
+    caster = None
+    out = []
+    bar = tqdm(cameras, desc="fragments", unit="view", disable=not progress, dynamic_ncols=True)
+    for camera in bar:
+        path = cache / f"{view_key(geometry_key, camera)}.npz" if cache else None
+        if path is not None and path.is_file():
+            with np.load(path) as data:
+                cast = data["triangle"], data["barycentric"], data["distance"]
+        else:
+            if caster is None:
+                caster = RayCaster(mesh)
+            cast = cast_view(caster, camera)
+            if path is not None:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                tmp = path.with_name(path.name + f".{os.getpid()}.tmp.npz")
+                np.savez(tmp, triangle=cast[0], barycentric=cast[1], distance=cast[2])
+                os.replace(tmp, path)
+        out.append(derive_fragments(mesh, camera, *cast))
+    return out

@@ -1,0 +1,122 @@
+"""Texture layout: which page each object samples, page resolutions, and the full index space.
+
+Pages are square, power-of-two sized. With `texture_layout="pages"` every object has its own
+page (its UVs span [0, 1] of that page); with "atlas" all objects share page 0. A texel is
+addressed by (page, level, row, col); row 0 is the top of the image (v = 1), so a UV maps to
+continuous texel coordinates x = u * S - 0.5, y = (1 - v) * S - 0.5 at a level of side S.
+The full index space enumerates every texel of every level of every page (int64).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Sequence
+
+import numpy as np
+
+from jaxdistill.errors import InputError
+
+MIN_PAGE_SIZE = 8
+FOOTPRINT_QUANTILE = 0.001  # robust minimum: ignore the smallest 0.1 % of pixel footprints
+
+
+@dataclasses.dataclass(frozen=True)
+class TextureLayout:
+    """Page sizes (square, power of two), the page of each object, and mip levels on/off."""
+
+    page_sizes: tuple[int, ...]
+    object_page: tuple[int, ...]
+    mipmaps: bool = False
+
+    def __post_init__(self):
+        for size in self.page_sizes:
+            if size < 1 or size & (size - 1):
+                raise ValueError(f"page sizes must be powers of two, got {size}")
+
+    @property
+    def num_pages(self) -> int:
+        return len(self.page_sizes)
+
+    def num_levels(self, page: int) -> int:
+        """Mip levels of a page: log2(size) + 1 with mipmaps (down to 1x1), else 1."""
+        return int(math.log2(self.page_sizes[page])) + 1 if self.mipmaps else 1
+
+    @property
+    def max_levels(self) -> int:
+        return max(self.num_levels(p) for p in range(self.num_pages))
+
+    def level_table(self) -> np.ndarray:
+        """(pages, max_levels, 2) int64: full-space offset and side of each (page, level); side 0 = absent."""
+        table = np.zeros((self.num_pages, self.max_levels, 2), np.int64)
+        offset = 0
+        for page, size in enumerate(self.page_sizes):
+            for level in range(self.num_levels(page)):
+                side = size >> level
+                table[page, level] = offset, side
+                offset += side * side
+        return table
+
+    def full_size(self, levels: bool = False) -> int:
+        """Texels in all level-0 pages (or in all levels with `levels=True`)."""
+        if levels:
+            table = self.level_table()
+            return int((table[..., 1] ** 2).sum())
+        return int(sum(s * s for s in self.page_sizes))
+
+
+def pixel_footprint(uv_grad: np.ndarray) -> np.ndarray:
+    """(...,) UV distance covered by one pixel: the longer of |d(u,v)/dx| and |d(u,v)/dy|."""
+    return np.maximum(np.linalg.norm(uv_grad[..., 0, :], axis=-1), np.linalg.norm(uv_grad[..., 1, :], axis=-1))
+
+
+def power_of_two_at_most(x: float) -> int:
+    """Nearest power of two to x in log scale (so a page never exceeds ~1.41x the needed side)."""
+    return 1 << max(0, int(round(math.log2(max(x, 1.0)))))
+
+
+def auto_page_sizes(fragments: Sequence, object_page: Sequence[int], num_pages: int, max_size: int,
+                    min_size: int = MIN_PAGE_SIZE) -> tuple[int, ...]:
+    """Per page, the side at which the closest view sees about one texel per pixel, capped to max_size.
+
+    For every hit pixel the footprint (`pixel_footprint`, UV units per pixel) says how finely
+    that view resolves the page; the page side is 1 / (robust minimum footprint) rounded to a
+    power of two, clamped to [min_size, max_size]. Pages nobody sees get min_size.
+    """
+    object_page = np.asarray(object_page)
+    finest = np.full(num_pages, np.inf)
+    for frag in fragments:
+        hit = frag.object_id >= 0
+        if not hit.any():
+            continue
+        page = object_page[frag.object_id[hit]]
+        foot = pixel_footprint(frag.uv_grad[hit])
+        keep = np.isfinite(foot) & (foot > 0)
+        for p in np.unique(page[keep]):
+            values = foot[keep & (page == p)]
+            finest[p] = min(finest[p], float(np.quantile(values, FOOTPRINT_QUANTILE)))
+    sizes = []
+    for p in range(num_pages):
+        side = min_size if not np.isfinite(finest[p]) else power_of_two_at_most(1.0 / finest[p])
+        sizes.append(int(min(max(side, min_size), max_size)))
+    return tuple(sizes)
+
+
+def make_layout(num_objects: int, texture_layout: str, texture_size, fragments: Sequence, *,
+                max_size: int = 4096, mipmaps: bool = False) -> TextureLayout:
+    """Layout for a scene: `texture_size` is an int (every page that side) or "auto"."""
+    if texture_layout == "pages":
+        object_page = tuple(range(num_objects))
+    elif texture_layout == "atlas":
+        object_page = (0,) * num_objects
+    else:
+        raise InputError.single("scene", "texture_layout", f"unknown layout {texture_layout!r}; use pages or atlas")
+    num_pages = max(object_page) + 1
+    if texture_size == "auto":
+        sizes = auto_page_sizes(fragments, object_page, num_pages, max_size)
+    else:
+        size = int(texture_size)
+        if size < 1 or size & (size - 1):
+            raise InputError.single("flags", "texture_size", f"must be a power of two or 'auto', got {texture_size!r}")
+        sizes = (size,) * num_pages
+    return TextureLayout(page_sizes=tuple(sizes), object_page=object_page, mipmaps=mipmaps)

@@ -1,0 +1,391 @@
+"""Scene model and its on-disk format (`scene.json` + a mesh file + images).
+
+A `Scene` is a triangle mesh with per-corner UVs and an object id per face, a texture
+layout mode, and posed views (canonical OpenCV cameras, see `cameras.py`) with their
+photos and optional per-map target images.
+
+Format, version 1 (paths relative to the folder holding scene.json):
+
+    {
+      "format": "jaxdistill-scene", "version": 1, "name": "bedroom",
+      "mesh": "mesh.glb",                 # any trimesh-readable file: GLB/GLTF, OBJ, PLY, ...
+      "objects": ["floor", "bed", ...],   # optional: mesh node names in object-id order
+      "texture_layout": "pages",          # "pages": one texture page per object (default)
+                                          # "atlas": one page shared by all objects
+      "views": [{
+        "name": "view_000", "width": 384, "height": 288,
+        "K": [[fx, 0, cx], [0, fy, cy], [0, 0, 1]],     # pixels, pixel centres at +0.5
+        "c2w": [[...], [...], [...], [0, 0, 0, 1]],     # OpenCV camera-to-world
+        "photo": "photos/view_000.exr",                 # EXR linear, PNG/JPG sRGB
+        "targets": {"albedo": "targets/albedo/view_000.exr"}   # optional, per map
+      }]
+    }
+
+Mesh files: each geometry node of the file is one object (its node transform applied);
+object ids follow `objects` when given, else sorted node names. UVs are per vertex in the
+file (vertices split at seams, as trimesh does) and become per-corner `uv[faces]`.
+UV convention: u right, v up (OBJ/trimesh; glTF's flipped v is undone by trimesh),
+and every UV must lie in [0, 1]: tiled UVs overlap in texture space and need a re-unwrap.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+from pathlib import Path
+from typing import Mapping
+
+import numpy as np
+
+from jaxdistill import MAP_NAMES
+from jaxdistill import imageio
+from jaxdistill.cameras import Camera, intrinsics_problems, pose_problems
+from jaxdistill.errors import InputError, ProblemList
+
+FORMAT_NAME = "jaxdistill-scene"
+FORMAT_VERSION = 1
+TEXTURE_LAYOUTS = ("pages", "atlas")
+UV_TOLERANCE = 1e-4
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Mesh:
+    """Triangle mesh in world units.
+
+    vertices (Nv, 3) float64; faces (F, 3) int64; uv (F, 3, 2) float64 per corner, in [0, 1],
+    v up; face_object (F,) int32 object id per face; object_names one per object id.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    uv: np.ndarray
+    face_object: np.ndarray
+    object_names: tuple[str, ...]
+
+    @property
+    def num_faces(self) -> int:
+        return int(self.faces.shape[0])
+
+    def triangles(self) -> np.ndarray:
+        """(F, 3, 3) float64 corner positions."""
+        return self.vertices[self.faces]
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class View:
+    """One posed photo: canonical camera, photo path, optional per-map target image paths."""
+
+    name: str
+    camera: Camera
+    photo: Path
+    targets: Mapping[str, Path] = dataclasses.field(default_factory=dict)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Scene:
+    """A mesh, a texture layout mode ('pages' or 'atlas') and posed views; `root` holds the files."""
+
+    name: str
+    mesh: Mesh
+    views: tuple[View, ...]
+    texture_layout: str = "pages"
+    root: Path | None = None
+
+    @property
+    def num_objects(self) -> int:
+        return len(self.mesh.object_names)
+
+
+# ----------------------------------------------------------------------------- validation
+
+
+def mesh_problems(mesh: Mesh, file: str, problems: ProblemList) -> None:
+    """Adds to `problems` what is wrong with `mesh` (non-finite data, bad indices, bad UVs)."""
+    v, f, uv = mesh.vertices, mesh.faces, mesh.uv
+    if v.ndim != 2 or v.shape[1] != 3 or len(v) == 0:
+        problems.add(file, "vertices", f"expected a non-empty (N, 3) array, got shape {v.shape}")
+        return
+    bad = ~np.isfinite(v).all(axis=1)
+    if bad.any():
+        problems.add(file, "vertices", f"{bad.sum()} vertices are NaN/inf (first: vertex {np.argmax(bad)})")
+    if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0:
+        problems.add(file, "faces", f"expected a non-empty (F, 3) triangle array, got shape {f.shape}")
+        return
+    out = (f < 0) | (f >= len(v))
+    if out.any():
+        face = int(np.argmax(out.any(axis=1)))
+        problems.add(file, "faces", f"{out.any(axis=1).sum()} faces index vertices outside [0, {len(v) - 1}] "
+                     f"(first: face {face} = {f[face].tolist()})")
+    if uv.shape != (len(f), 3, 2):
+        problems.add(file, "uv", f"expected per-corner UVs of shape ({len(f)}, 3, 2), got {uv.shape}")
+        return
+    bad = ~np.isfinite(uv).all(axis=(1, 2))
+    if bad.any():
+        problems.add(file, "uv", f"{bad.sum()} faces have NaN/inf UVs (first: face {np.argmax(bad)})")
+    outside = ((uv < -UV_TOLERANCE) | (uv > 1 + UV_TOLERANCE)).any(axis=(1, 2)) & ~bad
+    if outside.any():
+        problems.add(file, "uv", f"{outside.sum()} faces have UVs outside [0, 1] (first: face "
+                     f"{np.argmax(outside)}); tiled UVs overlap in texture space: re-unwrap the mesh "
+                     "(xatlas) so every chart lies inside [0, 1]")
+    if mesh.face_object.shape != (len(f),):
+        problems.add(file, "face_object", f"expected shape ({len(f)},), got {mesh.face_object.shape}")
+    elif len(f) and (mesh.face_object.min() < 0 or mesh.face_object.max() >= len(mesh.object_names)):
+        problems.add(file, "face_object", f"object ids must lie in [0, {len(mesh.object_names) - 1}]")
+
+
+def view_problems(view: View, index: int, file: str, problems: ProblemList, *,
+                  check_pixels: bool = True) -> None:
+    """Adds to `problems` what is wrong with view `index`: camera, photo, targets."""
+    where = f"views[{index}]"
+    cam = view.camera
+    if not (isinstance(cam.width, int) and isinstance(cam.height, int) and cam.width > 0 and cam.height > 0):
+        problems.add(file, f"{where}.width/height", f"must be positive integers, got {cam.width}x{cam.height}")
+    for msg in intrinsics_problems(cam.K):
+        problems.add(file, f"{where}.K", msg)
+    for msg in pose_problems(cam.c2w):
+        problems.add(file, f"{where}.c2w", msg)
+    image_problems(view.photo, f"{where}.photo", cam, file, problems, check_pixels=check_pixels)
+    for map_name, path in view.targets.items():
+        if map_name not in MAP_NAMES:
+            problems.add(file, f"{where}.targets.{map_name}",
+                         f"unknown map name {map_name!r}; known maps: {', '.join(MAP_NAMES)}")
+            continue
+        image_problems(path, f"{where}.targets.{map_name}", cam, file, problems, check_pixels=check_pixels)
+
+
+def image_problems(path: Path, field: str, cam: Camera, file: str, problems: ProblemList, *,
+                   check_pixels: bool) -> None:
+    """Adds a problem when the image is missing, unreadable, of the wrong size or non-finite."""
+    if not Path(path).is_file():
+        problems.add(file, field, f"file not found: {path}")
+        return
+    try:
+        width, height, _ = imageio.image_size(path)
+    except OSError as err:
+        problems.add(file, field, f"cannot read image: {err}")
+        return
+    if (width, height) != (cam.width, cam.height):
+        problems.add(file, field, f"{path} is {width}x{height} but the view is {cam.width}x{cam.height}")
+        return
+    if check_pixels and imageio.is_linear_format(path):
+        pixels = imageio.read_image(path)
+        bad = ~np.isfinite(pixels)
+        if bad.any():
+            row, col = np.argwhere(bad)[0][:2]
+            problems.add(file, field, f"{path} has {bad.any(axis=-1).sum()} NaN/inf pixels "
+                         f"(first at row {row}, column {col})")
+
+
+def validate_scene(scene: Scene, *, scene_file: str = "scene.json", mesh_file: str = "mesh",
+                   check_pixels: bool = True) -> None:
+    """Raises InputError listing every problem of `scene` (each naming file and field)."""
+    problems = ProblemList()
+    if scene.texture_layout not in TEXTURE_LAYOUTS:
+        problems.add(scene_file, "texture_layout",
+                     f"unknown layout {scene.texture_layout!r}; use one of {', '.join(TEXTURE_LAYOUTS)}")
+    mesh_problems(scene.mesh, mesh_file, problems)
+    if not scene.views:
+        problems.add(scene_file, "views", "the scene has no views")
+    names = [v.name for v in scene.views]
+    for i, view in enumerate(scene.views):
+        if names.index(view.name) != i:
+            problems.add(scene_file, f"views[{i}].name", f"duplicate view name {view.name!r}")
+        view_problems(view, i, scene_file, problems, check_pixels=check_pixels)
+    problems.raise_if_any()
+
+
+# ----------------------------------------------------------------------------- mesh I/O
+
+
+def load_mesh(path: Path, object_names: list[str] | None = None) -> Mesh:
+    """Reads a trimesh-readable file; every geometry node becomes one object (transform applied)."""
+    import trimesh
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError.single(path, "mesh", "file not found")
+    try:
+        loaded = trimesh.load(os.fspath(path), force="scene", process=False)
+    except Exception as err:  # trimesh raises many exception types for unreadable files
+        raise InputError.single(path, "mesh", f"trimesh cannot read it: {type(err).__name__}: {err}") from err
+    nodes = {}
+    for node in loaded.graph.nodes_geometry:
+        transform, geom_name = loaded.graph[node]
+        nodes[node] = (np.asarray(transform, np.float64), loaded.geometry[geom_name])
+    if not nodes:
+        raise InputError.single(path, "mesh", "the file contains no triangle geometry")
+    if object_names is None:
+        object_names = sorted(nodes)
+    else:
+        missing = [n for n in object_names if n not in nodes]
+        extra = sorted(set(nodes) - set(object_names))
+        if missing or extra:
+            raise InputError.single(path, "objects", f"object names do not match the mesh nodes: "
+                                    f"missing in mesh {missing}, not listed {extra}; nodes are {sorted(nodes)}")
+    vertices, faces, uvs, face_object = [], [], [], []
+    offset = 0
+    for object_id, name in enumerate(object_names):
+        transform, geom = nodes[name]
+        if not hasattr(geom, "faces"):
+            raise InputError.single(path, f"mesh node {name!r}", "is not a triangle mesh (point cloud or path)")
+        uv = getattr(geom.visual, "uv", None)
+        if uv is None:
+            raise InputError.single(path, f"mesh node {name!r} uv", "has no texture coordinates (TEXCOORD_0/vt); "
+                                    "unwrap the mesh (e.g. xatlas) before building a scene")
+        v = np.asarray(geom.vertices, np.float64)
+        v = v @ transform[:3, :3].T + transform[:3, 3]
+        f = np.asarray(geom.faces, np.int64)
+        vertices.append(v)
+        uv = np.asarray(uv, np.float64)
+        if len(uv) != len(v):
+            raise InputError.single(path, f"mesh node {name!r} uv",
+                                    f"{len(uv)} texture coordinates for {len(v)} vertices")
+        valid = (f >= 0) & (f < len(v))
+        uvs.append(np.where(valid[..., None], uv[np.clip(f, 0, len(v) - 1)], np.nan))
+        faces.append(f + offset)
+        face_object.append(np.full(len(f), object_id, np.int32))
+        offset += len(v)
+    return Mesh(vertices=np.concatenate(vertices), faces=np.concatenate(faces), uv=np.concatenate(uvs),
+                face_object=np.concatenate(face_object), object_names=tuple(object_names))
+
+
+def save_mesh(mesh: Mesh, path: Path) -> None:
+    """Writes one node per object, with vertices split where corner UVs differ (GLB, OBJ, PLY...)."""
+    import trimesh
+
+    scene = trimesh.Scene()
+    for object_id, name in enumerate(mesh.object_names):
+        face_ids = np.nonzero(mesh.face_object == object_id)[0]
+        corners_v = mesh.faces[face_ids].reshape(-1)
+        corners_uv = mesh.uv[face_ids].reshape(-1, 2)
+        key = np.concatenate([corners_v[:, None].astype(np.float64), corners_uv], axis=1)
+        unique, inverse = np.unique(key, axis=0, return_inverse=True)
+        geom = trimesh.Trimesh(vertices=mesh.vertices[unique[:, 0].astype(np.int64)],
+                               faces=inverse.reshape(-1, 3),
+                               visual=trimesh.visual.TextureVisuals(uv=unique[:, 1:]), process=False)
+        scene.add_geometry(geom, geom_name=name, node_name=name)
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    scene.export(os.fspath(path))
+
+
+# ----------------------------------------------------------------------------- scene I/O
+
+
+def _matrix(value, shape, file, field, problems) -> np.ndarray | None:
+    try:
+        array = np.asarray(value, np.float64)
+    except (TypeError, ValueError):
+        problems.add(file, field, f"expected a {shape[0]}x{shape[1]} matrix of numbers")
+        return None
+    if array.shape != shape:
+        problems.add(file, field, f"expected shape {shape}, got {array.shape}")
+        return None
+    return array
+
+
+def read_scene(path, *, check_pixels: bool = True) -> Scene:
+    """Reads and fully validates `scene.json` (or a folder holding it); raises InputError."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / "scene.json"
+    file = os.fspath(path)
+    if not path.is_file():
+        raise InputError.single(file, "(file)", "scene file not found")
+    try:
+        doc = json.loads(path.read_text())
+    except json.JSONDecodeError as err:
+        raise InputError.single(file, f"line {err.lineno}", f"not valid JSON: {err.msg}") from err
+    root = path.parent
+    problems = ProblemList()
+    if doc.get("format") != FORMAT_NAME:
+        problems.add(file, "format", f"expected {FORMAT_NAME!r}, got {doc.get('format')!r}")
+    if doc.get("version") != FORMAT_VERSION:
+        problems.add(file, "version", f"this jaxdistill reads version {FORMAT_VERSION}, got {doc.get('version')!r}")
+    for key in ("mesh", "views"):
+        if key not in doc:
+            problems.add(file, key, "required field is missing")
+    problems.raise_if_any()
+
+    mesh_path = root / doc["mesh"]
+    objects = doc.get("objects")
+    mesh = load_mesh(mesh_path, list(objects) if objects is not None else None)
+
+    views = []
+    if not isinstance(doc["views"], list):
+        problems.add(file, "views", "expected a list of views")
+        problems.raise_if_any()
+    for i, entry in enumerate(doc["views"]):
+        where = f"views[{i}]"
+        missing = [k for k in ("width", "height", "K", "c2w", "photo") if k not in entry]
+        for key in missing:
+            problems.add(file, f"{where}.{key}", "required field is missing")
+        if missing:
+            continue
+        K = _matrix(entry["K"], (3, 3), file, f"{where}.K", problems)
+        c2w = _matrix(entry["c2w"], (4, 4), file, f"{where}.c2w", problems)
+        width, height = entry["width"], entry["height"]
+        if not (isinstance(width, int) and isinstance(height, int) and width > 0 and height > 0):
+            problems.add(file, f"{where}.width/height", f"must be positive integers, got {width!r}x{height!r}")
+            continue
+        if K is None or c2w is None:
+            continue
+        targets = entry.get("targets", {})
+        if not isinstance(targets, dict):
+            problems.add(file, f"{where}.targets", "expected an object {map name: image path}")
+            targets = {}
+        camera = Camera(K=K, c2w=c2w, width=width, height=height)
+        views.append(View(name=str(entry.get("name", f"view_{i:03d}")), camera=camera,
+                          photo=root / entry["photo"], targets={k: root / p for k, p in targets.items()}))
+    problems.raise_if_any()
+    scene = Scene(name=str(doc.get("name", root.name)), mesh=mesh, views=tuple(views),
+                  texture_layout=doc.get("texture_layout", "pages"), root=root)
+    validate_scene(scene, scene_file=file, mesh_file=os.fspath(mesh_path), check_pixels=check_pixels)
+    return scene
+
+
+def _relative(path: Path, root: Path) -> str:
+    return os.path.relpath(os.fspath(path), os.fspath(root)).replace(os.sep, "/")
+
+
+def write_scene(scene: Scene, folder, *, mesh_name: str = "mesh.glb") -> Path:
+    """Writes scene.json and the mesh into `folder`; images must already live under `folder`.
+
+    Image paths are stored relative to `folder`. Returns the path of scene.json.
+    """
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    save_mesh(scene.mesh, folder / mesh_name)
+    views = []
+    for view in scene.views:
+        cam = view.camera
+        entry = {"name": view.name, "width": int(cam.width), "height": int(cam.height),
+                 "K": np.asarray(cam.K, np.float64).tolist(), "c2w": np.asarray(cam.c2w, np.float64).tolist(),
+                 "photo": _relative(view.photo, folder)}
+        if view.targets:
+            entry["targets"] = {k: _relative(p, folder) for k, p in view.targets.items()}
+        views.append(entry)
+    doc = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "name": scene.name, "mesh": mesh_name,
+           "objects": list(scene.mesh.object_names), "texture_layout": scene.texture_layout, "views": views}
+    out = folder / "scene.json"
+    tmp = out.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(doc, indent=1))
+    os.replace(tmp, out)
+    return out
+
+
+def triangle_areas(mesh: Mesh) -> np.ndarray:
+    """(F,) float64 world-space triangle areas (0 for degenerate triangles)."""
+    tri = mesh.triangles()
+    return 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+
+
+def uv_areas(mesh: Mesh) -> np.ndarray:
+    """(F,) float64 UV-space triangle areas (fractions of a unit page)."""
+    e1, e2 = mesh.uv[:, 1] - mesh.uv[:, 0], mesh.uv[:, 2] - mesh.uv[:, 0]
+    return 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+
+
+def is_power_of_two(n: int) -> bool:
+    return n > 0 and (n & (n - 1)) == 0 and math.log2(n).is_integer()

@@ -1,0 +1,74 @@
+"""Procedural meshes with exact, non-overlapping UVs, for tests and benchmarks.
+
+Every quad patch is one object whose UVs span [0, 1]: u along `edge_u`, v along `edge_v`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from jaxdistill.scene import Mesh
+
+
+def quad_patch(origin, edge_u, edge_v, subdivisions: int = 1):
+    """(vertices (N,3), faces (F,3), corner uv (F,3,2)) of a grid on the parallelogram origin + u*edge_u + v*edge_v."""
+    n = int(subdivisions)
+    s = np.linspace(0.0, 1.0, n + 1)
+    u, v = np.meshgrid(s, s, indexing="xy")
+    uv = np.stack([u.ravel(), v.ravel()], axis=1)
+    verts = np.asarray(origin, np.float64) + uv[:, :1] * np.asarray(edge_u, np.float64) + uv[:, 1:] * np.asarray(edge_v, np.float64)
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="xy")
+    a = (j * (n + 1) + i).ravel()
+    b, c, d = a + 1, a + n + 1, a + n + 2
+    faces = np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
+    return verts, faces, uv[faces]
+
+
+def mesh_from_patches(patches) -> Mesh:
+    """A Mesh with one object per (name, origin, edge_u, edge_v, subdivisions) patch."""
+    vertices, faces, uvs, face_object, names = [], [], [], [], []
+    offset = 0
+    for object_id, (name, origin, edge_u, edge_v, n) in enumerate(patches):
+        v, f, uv = quad_patch(origin, edge_u, edge_v, n)
+        vertices.append(v)
+        faces.append(f + offset)
+        uvs.append(uv)
+        face_object.append(np.full(len(f), object_id, np.int32))
+        names.append(name)
+        offset += len(v)
+    return Mesh(vertices=np.concatenate(vertices), faces=np.concatenate(faces).astype(np.int64),
+                uv=np.concatenate(uvs), face_object=np.concatenate(face_object), object_names=tuple(names))
+
+
+def box_patches(name: str, lo, hi, subdivisions: int = 1):
+    """Six patches of the axis-aligned box [lo, hi] (floor/ceiling/walls when seen from inside)."""
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    dx, dy, dz = np.diag(hi - lo)
+    x0, y0, z0 = lo
+    n = subdivisions
+    return [
+        (f"{name}_floor", lo, dx, dz, n),                               # y = lo (y up)
+        (f"{name}_ceiling", np.array([x0, hi[1], z0]), dz, dx, n),
+        (f"{name}_wall_z0", lo, dy, dx, n),
+        (f"{name}_wall_z1", np.array([x0, y0, hi[2]]), dx, dy, n),
+        (f"{name}_wall_x0", lo, dz, dy, n),
+        (f"{name}_wall_x1", np.array([hi[0], y0, z0]), dy, dz, n),
+    ]
+
+
+def plane(size: float = 2.0, subdivisions: int = 1, height: float = 0.0) -> Mesh:
+    """A square on y = height spanning [-size/2, size/2] in x and z; u along +x, v along -z."""
+    h = size / 2
+    return mesh_from_patches([("plane", (-h, height, h), (size, 0, 0), (0, 0, -size), subdivisions)])
+
+
+def box_room(size=(6.0, 3.0, 5.0), subdivisions: int = 4, furniture: bool = False, furniture_subdivisions: int = 2) -> Mesh:
+    """A room [0, size] (y up) of six patches, optionally with a bed, a table and a wardrobe as boxes."""
+    sx, sy, sz = size
+    patches = box_patches("room", (0, 0, 0), size, subdivisions)
+    if furniture:
+        n = furniture_subdivisions
+        patches += box_patches("bed", (0.3, 0.0, 0.3), (0.3 + 0.4 * sx, 0.18 * sy, 0.3 + 0.4 * sz), n)
+        patches += box_patches("table", (0.62 * sx, 0.0, 0.55 * sz), (0.85 * sx, 0.25 * sy, 0.8 * sz), n)
+        patches += box_patches("wardrobe", (0.8 * sx, 0.0, 0.05 * sz), (0.97 * sx, 0.7 * sy, 0.35 * sz), n)
+    return mesh_from_patches(patches)

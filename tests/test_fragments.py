@@ -1,0 +1,160 @@
+"""Fragment buffers against analytic ray-plane and ray-box intersections."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from conftest import look_at_camera
+from jaxdistill import synthetic
+from jaxdistill.render import fragments as fr
+from jaxdistill.scene import Mesh
+
+
+def analytic_plane(camera, size, subdivisions, height=0.0):
+    """Per pixel: hit, t, uv and triangle id of the plane built by `synthetic.plane`, solved in closed form."""
+    d = fr.pixel_directions(camera)
+    o = camera.c2w[:3, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (height - o[1]) / d[:, 1]
+    p = o + t[:, None] * d
+    h = size / 2
+    u = (p[:, 0] + h) / size
+    v = (h - p[:, 2]) / size
+    hit = (t > 0) & (u >= 0) & (u <= 1) & (v >= 0) & (v <= 1)
+    n = subdivisions
+    i = np.clip(np.floor(u * n), 0, n - 1)
+    j = np.clip(np.floor(v * n), 0, n - 1)
+    fu, fv = u * n - i, v * n - j
+    cell = (j * n + i).astype(np.int64)
+    tri = np.where(fu >= fv, cell, n * n + cell)
+    shape = (camera.height, camera.width)
+    depth = t * (d @ camera.c2w[:3, 2])
+    return (hit.reshape(shape), np.stack([u, v], 1).reshape(*shape, 2), np.where(hit, tri, -1).reshape(shape),
+            depth.reshape(shape))
+
+
+def test_plane_matches_analytic_projection(cache_dir):
+    size, n = 2.0, 8
+    mesh = synthetic.plane(size, n)
+    camera = look_at_camera((0.3, 1.5, 2.2), (0.1, 0.0, -0.2), width=64, height=48, fx=50.0, cx=30.0, cy=26.0)
+    (frag,) = fr.compute_fragments(mesh, [camera], cache_dir=cache_dir, progress=False)
+    hit, uv, tri, depth = analytic_plane(camera, size, n)
+    both = hit & frag.hit
+    hit_agree = (hit == frag.hit).mean()
+    tri_agree = (tri[both] == frag.triangle[both]).mean()
+    print(f"plane: hit agreement {hit_agree:.5f}, triangle agreement {tri_agree:.5f} over {both.sum()} pixels")
+    assert hit.sum() > 800 and hit_agree > 0.995 and tri_agree > 0.995
+    np.testing.assert_allclose(frag.uv[both], uv[both], atol=2e-6)
+    np.testing.assert_allclose(frag.depth[both], depth[both], rtol=1e-5)
+    assert np.all(np.isinf(frag.depth[~frag.hit])) and np.all(frag.triangle[~frag.hit] == -1)
+
+
+def test_uv_derivatives_match_finite_differences():
+    size = 2.0
+    mesh = synthetic.plane(size, 1)
+    camera = look_at_camera((0.0, 1.0, 1.5), (0.0, 0.0, 0.0), width=40, height=30, fx=35.0)
+    (frag,) = fr.compute_fragments(mesh, [camera], cache_dir=False, progress=False)
+
+    def uv_at(px, py):
+        d = (camera.c2w[:3, :3] @ np.linalg.inv(camera.K) @ np.array([px, py, 1.0]))
+        o = camera.c2w[:3, 3]
+        p = o + (-o[1] / d[1]) * d
+        return np.array([(p[0] + 1) / size, (1 - p[2]) / size])
+
+    rows, cols = np.nonzero(frag.hit)
+    for r, c in list(zip(rows, cols))[:: max(1, len(rows) // 50)]:
+        x, y, eps = c + 0.5, r + 0.5, 1e-3
+        ddx = (uv_at(x + eps, y) - uv_at(x - eps, y)) / (2 * eps)
+        ddy = (uv_at(x, y + eps) - uv_at(x, y - eps)) / (2 * eps)
+        np.testing.assert_allclose(frag.uv_grad[r, c, 0], ddx, rtol=1e-4, atol=1e-7)
+        np.testing.assert_allclose(frag.uv_grad[r, c, 1], ddy, rtol=1e-4, atol=1e-7)
+
+
+def test_camera_inside_box_room_sees_walls_everywhere():
+    size = np.array([4.0, 2.5, 3.0])
+    mesh = synthetic.box_room(tuple(size), subdivisions=3)
+    camera = look_at_camera((1.0, 1.2, 0.8), (3.5, 0.7, 2.6), width=48, height=36, fx=20.0)
+    (frag,) = fr.compute_fragments(mesh, [camera], cache_dir=False, progress=False)
+    assert frag.hit.all(), "a closed room seen from inside must cover every pixel"
+    # Independent: nearest of the six planes along each ray.
+    d = fr.pixel_directions(camera)
+    o = camera.c2w[:3, 3]
+    with np.errstate(divide="ignore"):
+        t_lo, t_hi = (0 - o) / d, (size - o) / d
+    t_exit = np.where(d > 0, t_hi, t_lo)
+    axis = np.argmin(t_exit, axis=1)
+    positive = np.take_along_axis(d, axis[:, None], 1)[:, 0] > 0
+    # object order of synthetic.box_patches: floor(y lo), ceiling(y hi), z0, z1, x0, x1
+    expected = np.select([(axis == 1) & ~positive, (axis == 1) & positive, (axis == 2) & ~positive,
+                          (axis == 2) & positive, (axis == 0) & ~positive], [0, 1, 2, 3, 4], 5)
+    agree = (expected.reshape(frag.shape) == frag.object_id).mean()
+    print(f"box room: object agreement {agree:.5f}")
+    assert agree > 0.99
+    np.testing.assert_allclose(frag.depth.ravel(), np.min(t_exit, 1) * (d @ camera.c2w[:3, 2]), rtol=1e-5)
+
+
+def test_back_faces_and_misses():
+    mesh = synthetic.plane(2.0, 1)
+    below = look_at_camera((0.0, -1.0, 0.01), (0.0, 0.0, 0.0), fx=10.0, up=(0, 0, 1))
+    away = look_at_camera((0.0, 1.0, 0.0), (0.0, 2.0, 0.5), fx=10.0)
+    f_below, f_away = fr.compute_fragments(mesh, [below, away], cache_dir=False, progress=False)
+    assert f_below.hit.mean() > 0.5
+    assert not f_away.hit.any()
+    assert np.all(f_away.uv == 0) and np.all(f_away.uv_grad == 0) and np.all(np.isinf(f_away.depth))
+
+
+def test_degenerate_triangles_are_never_hit_and_stay_finite():
+    base = synthetic.plane(2.0, 2)
+    # Append zero-area triangles (repeated vertex, collinear vertices) lying inside the plane.
+    verts = np.concatenate([base.vertices, [[0.1, 0.0, 0.1], [0.5, 0.0, 0.1], [0.9, 0.0, 0.1]]])
+    k = len(base.vertices)
+    degenerate = np.array([[k, k, k + 1], [k, k + 1, k + 2]])
+    mesh = Mesh(vertices=verts, faces=np.concatenate([base.faces, degenerate]),
+                uv=np.concatenate([base.uv, np.full((2, 3, 2), 0.5)]),
+                face_object=np.zeros(len(base.faces) + 2, np.int32), object_names=("plane",))
+    camera = look_at_camera((0.2, 1.0, 0.3), (0.3, 0.0, 0.1), width=64, height=64, fx=200.0)
+    (frag,) = fr.compute_fragments(mesh, [camera], cache_dir=False, progress=False)
+    assert frag.hit.all()
+    assert not np.isin(frag.triangle, [len(base.faces), len(base.faces) + 1]).any()
+    assert np.isfinite(frag.uv_grad).all() and np.isfinite(frag.uv).all()
+
+
+@pytest.mark.parametrize("scale", [1e-3, 1e3])
+def test_scale_invariance_mm_and_km(scale):
+    mesh = synthetic.plane(2.0, 4)
+    camera = look_at_camera((0.3, 1.0, 0.9), (0.0, 0.0, 0.0), width=32, height=32, fx=30.0)
+    scaled = Mesh(vertices=mesh.vertices * scale, faces=mesh.faces, uv=mesh.uv, face_object=mesh.face_object,
+                  object_names=mesh.object_names)
+    c2w = camera.c2w.copy()
+    c2w[:3, 3] *= scale
+    scaled_cam = type(camera)(K=camera.K, c2w=c2w, width=camera.width, height=camera.height)
+    a, b = fr.compute_fragments(mesh, [camera], cache_dir=False, progress=False) + \
+        fr.compute_fragments(scaled, [scaled_cam], cache_dir=False, progress=False)
+    assert (a.triangle == b.triangle).mean() > 0.999
+    np.testing.assert_allclose(a.uv, b.uv, atol=1e-5)
+    np.testing.assert_allclose(a.depth * scale, b.depth, rtol=1e-5)
+
+
+def test_cache_is_reused_and_keyed_on_mesh_and_camera(cache_dir, monkeypatch):
+    mesh = synthetic.plane(2.0, 2)
+    camera = look_at_camera((0.0, 1.0, 1.0), (0.0, 0.0, 0.0))
+    (first,) = fr.compute_fragments(mesh, [camera], cache_dir=cache_dir, progress=False)
+    assert len(list((cache_dir / "fragments").glob("*.npz"))) == 1
+
+    def no_ray_casting(*_, **__):
+        raise AssertionError("ray cast although a cached result exists")
+
+    monkeypatch.setattr(fr, "RayCaster", no_ray_casting)
+    (again,) = fr.compute_fragments(mesh, [camera], cache_dir=cache_dir, progress=False)
+    np.testing.assert_array_equal(first.triangle, again.triangle)
+    np.testing.assert_array_equal(first.uv, again.uv)
+
+    moved = Mesh(vertices=mesh.vertices + [0.0, 0.1, 0.0], faces=mesh.faces, uv=mesh.uv,
+                 face_object=mesh.face_object, object_names=mesh.object_names)
+    turned = look_at_camera((0.0, 1.0, 1.0), (0.1, 0.0, 0.0))
+    with pytest.raises(AssertionError, match="ray cast"):
+        fr.compute_fragments(moved, [camera], cache_dir=cache_dir, progress=False)
+    with pytest.raises(AssertionError, match="ray cast"):
+        fr.compute_fragments(mesh, [turned], cache_dir=cache_dir, progress=False)
+    assert fr.mesh_key(moved) != fr.mesh_key(mesh)

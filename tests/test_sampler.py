@@ -1,0 +1,200 @@
+"""Gather sampler against an independent NumPy/SciPy reference, and its exact transpose."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from conftest import look_at_camera
+from jaxdistill import synthetic
+from jaxdistill.render import fragments as fr
+from jaxdistill.render.gather_plan import build_gather_plans, build_texel_space
+from jaxdistill.render.layout import TextureLayout, make_layout
+from jaxdistill.render.sampler import compact, coverage, expand, render
+
+
+def reference_sample(page, uv):
+    """Bilinear, clamp-to-edge sampling of an (S, S, C) page at uv (N, 2) with v up, via SciPy."""
+    size = page.shape[0]
+    x = uv[:, 0] * size - 0.5
+    y = (1.0 - uv[:, 1]) * size - 0.5
+    return np.stack([ndimage.map_coordinates(page[..., c], [y, x], order=1, mode="nearest")
+                     for c in range(page.shape[-1])], axis=-1)
+
+
+def reference_pyramid(page):
+    """Levels of a 2x2-mean mip pyramid down to 1x1."""
+    levels = [page]
+    while levels[-1].shape[0] > 1:
+        p = levels[-1]
+        s = p.shape[0] // 2
+        levels.append(p.reshape(s, 2, s, 2, -1).mean(axis=(1, 3)))
+    return levels
+
+
+def reference_render(pages, layout, frag, trilinear):
+    """(H, W, C) image sampled pixel by pixel from full pages, as nvdiffrast's texture would."""
+    h, w = frag.shape
+    channels = pages[0].shape[-1]
+    out = np.zeros((h * w, channels))
+    hit = frag.object_id.ravel() >= 0
+    page_of = np.asarray(layout.object_page)[frag.object_id.ravel()]
+    uv = frag.uv.reshape(-1, 2).astype(np.float64)
+    grad = frag.uv_grad.reshape(-1, 2, 2).astype(np.float64)
+    for p in range(layout.num_pages):
+        sel = hit & (page_of == p)
+        if not sel.any():
+            continue
+        if not trilinear:
+            out[sel] = reference_sample(pages[p], uv[sel])
+            continue
+        pyramid = reference_pyramid(pages[p].astype(np.float64))
+        size = pages[p].shape[0]
+        a = (grad[sel, 0] ** 2).sum(-1) * size ** 2
+        b = (grad[sel, 1] ** 2).sum(-1) * size ** 2
+        with np.errstate(divide="ignore"):
+            lam = np.clip(0.5 * np.log2(np.maximum(a, b)), 0, len(pyramid) - 1)
+        lo = np.floor(lam).astype(int)
+        frac = lam - lo
+        vals = np.zeros((sel.sum(), channels))
+        for i, (level, f) in enumerate(zip(lo, frac)):
+            s0 = reference_sample(pyramid[level], uv[sel][i:i + 1])[0]
+            s1 = reference_sample(pyramid[min(level + 1, len(pyramid) - 1)], uv[sel][i:i + 1])[0]
+            vals[i] = (1 - f) * s0 + f * s1
+        out[sel] = vals
+    return out.reshape(h, w, channels)
+
+
+def scene_views(width=40, height=30):
+    mesh = synthetic.box_room((4.0, 2.5, 3.0), subdivisions=2, furniture=True)
+    cams = [look_at_camera((1.0, 1.4, 0.7), (3.5, 0.4, 2.6), width, height, fx=22.0),
+            look_at_camera((3.2, 1.0, 2.5), (0.5, 0.9, 0.4), width, height, fx=30.0, cx=18.0, cy=16.5),
+            look_at_camera((2.0, 2.2, 1.5), (2.1, 0.0, 1.4), width, height, fx=15.0, up=(0, 0, 1))]
+    return mesh, fr.compute_fragments(mesh, cams, cache_dir=False, progress=False)
+
+
+@pytest.fixture(scope="module")
+def room():
+    return scene_views()
+
+
+@pytest.mark.parametrize("sampler", ["bilinear", "trilinear"])
+def test_render_matches_reference_from_full_pages(room, sampler):
+    mesh, frags = room
+    trilinear = sampler == "trilinear"
+    layout = TextureLayout(page_sizes=tuple(16 if i % 3 else 32 for i in range(len(mesh.object_names))),
+                           object_page=tuple(range(len(mesh.object_names))), mipmaps=trilinear)
+    space = build_texel_space(frags, layout, sampler)
+    plan = build_gather_plans(frags, space, sampler)
+    rng = np.random.default_rng(0)
+    pages = [rng.uniform(-1, 1, (s, s, 3)).astype(np.float32) for s in layout.page_sizes]
+    images = np.asarray(jax.jit(render)(jnp.asarray(compact(pages, space)), plan))
+    for v, frag in enumerate(frags):
+        np.testing.assert_allclose(images[v], reference_render(pages, layout, frag, trilinear), atol=2e-5)
+    # Untouched texels must not matter: scramble every texel that is not a parameter.
+    scrambled = [np.where(m[..., None], p, 99.0) for p, m in zip(pages, coverage(space))]
+    for v, frag in enumerate(frags[:1]):
+        np.testing.assert_allclose(images[v], reference_render(scrambled, layout, frag, trilinear), atol=2e-5)
+    if trilinear:  # the grazing and distant pixels must actually use coarse levels
+        assert len(space.level_ids) > 2 and len(plan.chain.children) == len(space.level_ids) - 1
+
+
+def test_plane_at_grazing_angle_trilinear():
+    mesh = synthetic.plane(20.0, 4)
+    camera = look_at_camera((0.0, 0.15, 9.5), (0.0, 0.0, -10.0), width=48, height=32, fx=40.0)
+    frags = fr.compute_fragments(mesh, [camera], cache_dir=False, progress=False)
+    layout = TextureLayout(page_sizes=(64,), object_page=(0,), mipmaps=True)
+    space = build_texel_space(frags, layout, "trilinear")
+    plan = build_gather_plans(frags, space, "trilinear")
+    page = np.random.default_rng(1).uniform(0, 1, (64, 64, 1)).astype(np.float32)
+    image = np.asarray(render(jnp.asarray(compact([page], space)), plan))[0]
+    np.testing.assert_allclose(image, reference_render([page], layout, frags[0], True), atol=2e-5)
+    weights = np.asarray(plan.weight[0])
+    np.testing.assert_allclose(weights.sum(-1)[frags[0].hit.ravel()], 1.0, atol=1e-5)
+    assert np.isfinite(image).all() and frags[0].hit.mean() > 0.3
+
+
+def test_gradient_is_exact_transpose(room):
+    mesh, frags = room
+    layout = make_layout(len(mesh.object_names), "pages", 16, frags, mipmaps=True)
+    space = build_texel_space(frags, layout, "trilinear")
+    plan = build_gather_plans(frags, space, "trilinear")
+    rng = np.random.default_rng(2)
+    with jax.enable_x64(True):
+        plan64 = plan.replace(weight=plan.weight.astype(jnp.float64))
+        x = jnp.asarray(rng.normal(size=(space.num_texels, 2)))
+        y = jnp.asarray(rng.normal(size=(len(frags), plan.height, plan.width, 2)))
+        out, transpose = jax.vjp(lambda t: render(t, plan64), x)
+        (xt,) = transpose(y)
+        lhs, rhs = float(jnp.vdot(out, y)), float(jnp.vdot(x, xt))
+        assert abs(lhs - rhs) <= 1e-10 * max(1.0, abs(lhs))
+        # Finite differences on a few texels (render is linear, so they are exact up to rounding).
+        loss = lambda t: jnp.sum(render(t, plan64) * y)
+        grad = jax.grad(loss)(x)
+        for i in rng.choice(space.num_texels, 8, replace=False):
+            e = jnp.zeros_like(x).at[i, 0].set(1e-3)
+            fd = (loss(x + e) - loss(x - e)) / 2e-3
+            np.testing.assert_allclose(float(grad[i, 0]), float(fd), rtol=1e-7, atol=1e-9)
+
+
+def test_every_parameter_is_touched_by_some_view(room):
+    mesh, frags = room
+    layout = make_layout(len(mesh.object_names), "pages", 32, frags, mipmaps=True)
+    space = build_texel_space(frags, layout, "trilinear")
+    plan = build_gather_plans(frags, space, "trilinear")
+    ones = jnp.ones((len(frags), plan.height, plan.width, 1))
+    _, transpose = jax.vjp(lambda t: render(t, plan), jnp.zeros((space.num_texels, 1)))
+    (reach,) = transpose(ones)
+    assert float(reach.min()) > 0, "a parameter no view reads"
+    assert space.num_texels < layout.full_size()
+
+
+def test_batched_render_equals_per_view(room):
+    mesh, frags = room
+    layout = make_layout(len(mesh.object_names), "pages", 16, frags)
+    space = build_texel_space(frags, layout, "bilinear")
+    plan = build_gather_plans(frags, space, "bilinear")
+    texels = jnp.asarray(np.random.default_rng(3).normal(size=(space.num_texels, 3)), jnp.float32)
+    batch = render(texels, plan)
+    for v in range(len(frags)):
+        np.testing.assert_array_equal(np.asarray(render(texels, plan.select(v))), np.asarray(batch[v]))
+    two = render(texels, plan.select(jnp.array([2, 0])))
+    np.testing.assert_array_equal(np.asarray(two[0]), np.asarray(batch[2]))
+
+
+def test_compact_expand_round_trip_and_dilation(room):
+    mesh, frags = room
+    layout = make_layout(len(mesh.object_names), "pages", 32, frags)
+    space = build_texel_space(frags, layout, "bilinear")
+    texels = np.random.default_rng(4).uniform(-1, 1, (space.num_texels, 3)).astype(np.float32)
+    pages = expand(texels, space, fill=(-1.0, 0.0, 1.0), dilation=0)
+    np.testing.assert_array_equal(compact(pages, space), texels)
+    masks = coverage(space)
+    for page, mask in zip(pages, masks):
+        assert np.all(page[~mask] == [-1.0, 0.0, 1.0])
+    dilated = expand(texels, space, fill=0.0, dilation=2)
+    np.testing.assert_array_equal(compact(dilated, space), texels)
+    for page, mask in zip(dilated, masks):
+        if mask.all() or not mask.any():
+            continue
+        ring = ndimage.binary_dilation(mask, structure=np.ones((3, 3))) & ~mask
+        r, c = np.argwhere(ring)[0]
+        nb = mask[max(r - 1, 0):r + 2, max(c - 1, 0):c + 2]
+        vals = page[max(r - 1, 0):r + 2, max(c - 1, 0):c + 2][nb]
+        np.testing.assert_allclose(page[r, c], vals.mean(axis=0), rtol=1e-5)
+        far = ~ndimage.binary_dilation(mask, structure=np.ones((3, 3)), iterations=2)
+        assert np.all(page[far] == 0.0)
+
+
+def test_auto_texture_size_follows_closest_view():
+    # A plane facing the camera at distance d: one pixel spans d / fx world units, i.e.
+    # d / (fx * size) in UV, so about fx * size / d texels resolve it.
+    mesh = synthetic.plane(2.0, 1)
+    for distance, fx, expected in ((2.0, 200.0, 256), (1.0, 200.0, 512), (1.0, 2000.0, 1024)):
+        camera = look_at_camera((0.0, distance, 0.0), (0.0, 0.0, 0.0), 64, 64, fx=fx, up=(0, 0, -1))
+        frags = fr.compute_fragments(mesh, [camera], cache_dir=False, progress=False)
+        layout = make_layout(1, "pages", "auto", frags, max_size=1024)
+        assert layout.page_sizes == (expected,), (distance, fx, layout.page_sizes)
