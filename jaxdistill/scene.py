@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import os
 from pathlib import Path
 from typing import Mapping
@@ -179,20 +178,26 @@ def image_problems(path: Path, field: str, cam: Camera, file: str, problems: Pro
 
 
 def validate_scene(scene: Scene, *, scene_file: str = "scene.json", mesh_file: str = "mesh",
-                   check_pixels: bool = True) -> None:
-    """Raises InputError listing every problem of `scene` (each naming file and field)."""
-    problems = ProblemList()
+                   check_pixels: bool = True, problems: ProblemList | None = None,
+                   view_index: list[int] | None = None) -> None:
+    """Raises InputError listing every problem of `scene` (each naming file and field).
+
+    `problems` may carry problems found earlier (e.g. while parsing) to report them together;
+    `view_index[i]` is the position of `scene.views[i]` in the file (when some were skipped).
+    """
+    problems = problems if problems is not None else ProblemList()
     if scene.texture_layout not in TEXTURE_LAYOUTS:
         problems.add(scene_file, "texture_layout",
                      f"unknown layout {scene.texture_layout!r}; use one of {', '.join(TEXTURE_LAYOUTS)}")
     mesh_problems(scene.mesh, mesh_file, problems)
-    if not scene.views:
+    if not scene.views and view_index is None:
         problems.add(scene_file, "views", "the scene has no views")
     names = [v.name for v in scene.views]
     for i, view in enumerate(scene.views):
+        index = view_index[i] if view_index is not None else i
         if names.index(view.name) != i:
-            problems.add(scene_file, f"views[{i}].name", f"duplicate view name {view.name!r}")
-        view_problems(view, i, scene_file, problems, check_pixels=check_pixels)
+            problems.add(scene_file, f"views[{index}].name", f"duplicate view name {view.name!r}")
+        view_problems(view, index, scene_file, problems, check_pixels=check_pixels)
     problems.raise_if_any()
 
 
@@ -208,6 +213,8 @@ def load_mesh(path: Path, object_names: list[str] | None = None) -> Mesh:
         raise InputError.single(path, "mesh", "file not found")
     try:
         loaded = trimesh.load(os.fspath(path), force="scene", process=False)
+    except IndexError as err:  # trimesh indexes UVs/vertices by face while loading
+        raise InputError.single(path, "faces", f"a face indexes a vertex or UV that does not exist ({err})") from err
     except Exception as err:  # trimesh raises many exception types for unreadable files
         raise InputError.single(path, "mesh", f"trimesh cannot read it: {type(err).__name__}: {err}") from err
     nodes = {}
@@ -312,12 +319,15 @@ def read_scene(path, *, check_pixels: bool = True) -> Scene:
     objects = doc.get("objects")
     mesh = load_mesh(mesh_path, list(objects) if objects is not None else None)
 
-    views = []
+    views, view_index = [], []
     if not isinstance(doc["views"], list):
         problems.add(file, "views", "expected a list of views")
         problems.raise_if_any()
     for i, entry in enumerate(doc["views"]):
         where = f"views[{i}]"
+        if not isinstance(entry, dict):
+            problems.add(file, where, "expected an object with width, height, K, c2w, photo")
+            continue
         missing = [k for k in ("width", "height", "K", "c2w", "photo") if k not in entry]
         for key in missing:
             problems.add(file, f"{where}.{key}", "required field is missing")
@@ -335,13 +345,29 @@ def read_scene(path, *, check_pixels: bool = True) -> Scene:
         if not isinstance(targets, dict):
             problems.add(file, f"{where}.targets", "expected an object {map name: image path}")
             targets = {}
+        for map_name in [m for m in targets if m not in MAP_NAMES]:
+            problems.add(file, f"{where}.targets.{map_name}",
+                         f"unknown map name {map_name!r}; known maps: {', '.join(MAP_NAMES)}")
+            targets.pop(map_name)
+        camera_problems = [(f"{where}.K", m) for m in intrinsics_problems(K)]
+        camera_problems += [(f"{where}.c2w", m) for m in pose_problems(c2w)]
+        for field, message in camera_problems:
+            problems.add(file, field, message)
+        if camera_problems:  # still report missing images; their size needs a valid view
+            for field, rel in [("photo", entry["photo"])] + [(f"targets.{k}", p) for k, p in targets.items()]:
+                if not (root / rel).is_file():
+                    problems.add(file, f"{where}.{field}", f"file not found: {root / rel}")
+            continue
         camera = Camera(K=K, c2w=c2w, width=width, height=height)
+        view_index.append(i)
         views.append(View(name=str(entry.get("name", f"view_{i:03d}")), camera=camera,
                           photo=root / entry["photo"], targets={k: root / p for k, p in targets.items()}))
-    problems.raise_if_any()
     scene = Scene(name=str(doc.get("name", root.name)), mesh=mesh, views=tuple(views),
                   texture_layout=doc.get("texture_layout", "pages"), root=root)
-    validate_scene(scene, scene_file=file, mesh_file=os.fspath(mesh_path), check_pixels=check_pixels)
+    if not doc["views"]:
+        problems.add(file, "views", "the scene has no views")
+    validate_scene(scene, scene_file=file, mesh_file=os.fspath(mesh_path), check_pixels=check_pixels,
+                   problems=problems, view_index=view_index)
     return scene
 
 
@@ -374,18 +400,3 @@ def write_scene(scene: Scene, folder, *, mesh_name: str = "mesh.glb") -> Path:
     os.replace(tmp, out)
     return out
 
-
-def triangle_areas(mesh: Mesh) -> np.ndarray:
-    """(F,) float64 world-space triangle areas (0 for degenerate triangles)."""
-    tri = mesh.triangles()
-    return 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-
-
-def uv_areas(mesh: Mesh) -> np.ndarray:
-    """(F,) float64 UV-space triangle areas (fractions of a unit page)."""
-    e1, e2 = mesh.uv[:, 1] - mesh.uv[:, 0], mesh.uv[:, 2] - mesh.uv[:, 0]
-    return 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
-
-
-def is_power_of_two(n: int) -> bool:
-    return n > 0 and (n & (n - 1)) == 0 and math.log2(n).is_integer()
