@@ -24,12 +24,20 @@ def quad_patch(origin, edge_u, edge_v, subdivisions: int = 1):
     return verts, faces, uv[faces]
 
 
-def mesh_from_patches(patches) -> Mesh:
-    """A Mesh with one object per (name, origin, edge_u, edge_v, subdivisions) patch."""
+def mesh_from_patches(patches, atlas: bool = False) -> Mesh:
+    """A Mesh with one object per (name, origin, edge_u, edge_v, subdivisions) patch.
+
+    atlas=True packs the patches' UVs into the cells of a square grid (with a margin of 1/16
+    cell) so that all objects can share one texture page (`texture_layout="atlas"`).
+    """
     vertices, faces, uvs, face_object, names = [], [], [], [], []
     offset = 0
+    grid = int(np.ceil(np.sqrt(len(patches))))
     for object_id, (name, origin, edge_u, edge_v, n) in enumerate(patches):
         v, f, uv = quad_patch(origin, edge_u, edge_v, n)
+        if atlas:
+            cell = np.array([object_id % grid, object_id // grid], np.float64)
+            uv = (cell + 1 / 16 + uv * (1 - 2 / 16)) / grid
         vertices.append(v)
         faces.append(f + offset)
         uvs.append(uv)
@@ -62,8 +70,10 @@ def plane(size: float = 2.0, subdivisions: int = 1, height: float = 0.0) -> Mesh
     return mesh_from_patches([("plane", (-h, height, h), (size, 0, 0), (0, 0, -size), subdivisions)])
 
 
-def box_room(size=(6.0, 3.0, 5.0), subdivisions: int = 4, furniture: bool = False, furniture_subdivisions: int = 2) -> Mesh:
-    """A room [0, size] (y up) of six patches, optionally with a bed, a table and a wardrobe as boxes."""
+def box_room(size=(6.0, 3.0, 5.0), subdivisions: int = 4, furniture: bool = False, furniture_subdivisions: int = 2,
+             atlas: bool = False) -> Mesh:
+    """A room [0, size] (y up) of six patches, optionally with a bed, a table and a wardrobe as
+    boxes; atlas=True packs all UVs into one page (see `mesh_from_patches`)."""
     sx, sy, sz = size
     patches = box_patches("room", (0, 0, 0), size, subdivisions)
     if furniture:
@@ -71,4 +81,4 @@ def box_room(size=(6.0, 3.0, 5.0), subdivisions: int = 4, furniture: bool = Fals
         patches += box_patches("bed", (0.3, 0.0, 0.3), (0.3 + 0.4 * sx, 0.18 * sy, 0.3 + 0.4 * sz), n)
         patches += box_patches("table", (0.62 * sx, 0.0, 0.55 * sz), (0.85 * sx, 0.25 * sy, 0.8 * sz), n)
         patches += box_patches("wardrobe", (0.8 * sx, 0.0, 0.05 * sz), (0.97 * sx, 0.7 * sy, 0.35 * sz), n)
-    return mesh_from_patches(patches)
+    return mesh_from_patches(patches, atlas=atlas)

@@ -26,12 +26,14 @@ def test_counts_match_brute_force_bilinear(tmp_path):
     plan = build_gather_plans(frags, space, "bilinear")
     counts = view_counts(plan, space.num_texels)
     brute = np.zeros(space.num_texels, np.int32)
-    for frag in frags:  # full-space taps with positive weight, one vote per view
-        full, weight, _ = view_taps(frag, layout, "bilinear")
-        seen = np.unique(full[weight > 0])
-        brute[np.searchsorted(space.texel_ids, seen)] += 1
+    for frag in frags:  # level-0 taps with positive weight, one vote per view
+        page, _, row, col, weight = view_taps(frag, layout, "bilinear")
+        used = weight > 0
+        seen = np.unique(space.texel_index(page[used], row[used], col[used]))
+        assert seen.min() >= 0
+        brute[seen] += 1
     np.testing.assert_array_equal(counts, brute)
-    assert counts.min() >= 1 and counts.max() <= len(frags)
+    assert counts.max() <= len(frags) and (counts == 0).any()  # tiles hold unread texels too
 
     weights = np.asarray(pixel_weights(plan, counts))
     hit = np.stack([f.hit for f in frags])
@@ -50,5 +52,4 @@ def test_trilinear_counts_cover_coarse_taps():
     space = build_texel_space(frags, layout, "trilinear")
     plan = build_gather_plans(frags, space, "trilinear")
     counts = view_counts(plan, space.num_texels)
-    assert counts.min() >= 1, "every parameter is read by at least one view"
-    assert counts.max() <= len(frags)
+    assert counts.max() <= len(frags) and (counts > 0).mean() > 0.5

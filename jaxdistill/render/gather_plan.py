@@ -6,11 +6,15 @@ mip pyramid, the level chosen from the pixel's UV footprint as nvdiffrast's `tex
 edge. Taps of weight 0 (exact texel centres, lambda <= 0, misses) point at index 0 and never
 make a texel a parameter.
 
-Compact texel space: only texels that some tap of some view touches exist. A tap on level L
-touches its level-(L-1) children (the pyramid is built from them), and so on down to level 0;
-the level-0 texels reached this way are the parameters. The compact pyramid array stores level
-0 (the parameters, sorted by full index) first, then every needed coarser texel, each defined
-as the mean of 4 earlier entries (`MipChain.children`).
+Compact texel space (sparse tiles, like GPU sparse-residency textures): pages are cut into
+B x B tiles; a tile is a parameter block when some tap of some view reads it, directly or
+through a coarser mip level built from it. Texels are stored tile after tile, row-major inside
+a tile: `texels[(t * B + r) * B + c]`. The compact pyramid array that plans index is
+
+    [tile levels 0..k (B = 2^k), each (N_tiles, B >> l, B >> l) flattened] +
+    [coarse levels above one tile, only entries some tap needs, each the mean of 4 earlier ones]
+
+so in-tile levels are dense reshape-means and only the few coarse entries use index chains.
 """
 
 from __future__ import annotations
@@ -30,10 +34,14 @@ SAMPLERS = ("bilinear", "trilinear")
 
 @flax.struct.dataclass
 class MipChain:
-    """children[L-1]: (N_L, 4) int32 indices into the compact pyramid of each level-L texel's children."""
+    """How the compact pyramid is built from compact texels (N_tiles * B * B, C).
+
+    children[j]: (N, 4) int32 indices into the pyramid of the coarse entries of level k+1+j.
+    """
 
     children: tuple = ()
-    num_texels: int = flax.struct.field(pytree_node=False, default=0)
+    tile: int = flax.struct.field(pytree_node=False, default=1)
+    in_tile_levels: int = flax.struct.field(pytree_node=False, default=1)
 
 
 @flax.struct.dataclass
@@ -62,70 +70,76 @@ class GatherPlan:
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class TexelSpace:
-    """The compact texel set of a scene (NumPy, outside jit).
+    """The compact tile set of a scene (NumPy, outside jit).
 
-    texel_ids (N0,) int64 full level-0 indices of the parameters, sorted; texel_page,
-    texel_row, texel_col (N0,) their address; level_ids[L] the sorted full indices of the
-    compact level-L entries (level_ids[0] is texel_ids); level_start[L] their first position
-    in the compact pyramid.
+    tile_page, tile_row, tile_col (N_tiles,) int64: page and tile-grid position of each tile,
+    sorted by (page, row, col). tile_map[p]: (S_p / B, S_p / B) int64 compact tile id or -1.
+    coarse_maps[p][j]: compact pyramid index of each level-(k+1+j) entry of page p, or -1.
     """
 
     layout: TextureLayout
-    level_ids: tuple[np.ndarray, ...]
-    level_start: tuple[int, ...]
-    texel_page: np.ndarray
-    texel_row: np.ndarray
-    texel_col: np.ndarray
+    tile_page: np.ndarray
+    tile_row: np.ndarray
+    tile_col: np.ndarray
+    tile_map: tuple
+    coarse_maps: tuple
+    children: tuple
 
     @property
-    def texel_ids(self) -> np.ndarray:
-        return self.level_ids[0]
+    def tile(self) -> int:
+        return self.layout.tile
+
+    @property
+    def num_tiles(self) -> int:
+        return int(len(self.tile_page))
 
     @property
     def num_texels(self) -> int:
-        return int(len(self.level_ids[0]))
+        return self.num_tiles * self.tile * self.tile
+
+    @property
+    def in_tile_levels(self) -> int:
+        """Levels stored inside a tile: log2(B) + 1 with mipmaps, else 1."""
+        return int(np.log2(self.tile)) + 1 if self.layout.mipmaps else 1
 
     @property
     def pyramid_size(self) -> int:
-        return int(sum(len(ids) for ids in self.level_ids))
+        fine = sum(self.num_tiles * (self.tile >> lv) ** 2 for lv in range(self.in_tile_levels))
+        return int(fine + sum(len(c) for c in self.children))
 
-    def compact_index(self, level: int, full_ids: np.ndarray) -> np.ndarray:
-        """Compact pyramid positions of level-`level` full indices (which must be in the set)."""
-        pos = np.searchsorted(self.level_ids[level], full_ids)
-        return (self.level_start[level] + pos).astype(np.int32)
+    def level_offset(self, level: int) -> int:
+        """Start of in-tile level `level` in the compact pyramid."""
+        return int(sum(self.num_tiles * (self.tile >> lv) ** 2 for lv in range(level)))
 
-
-def decode(layout: TextureLayout, full_ids: np.ndarray):
-    """(page, level, row, col) int64 arrays of full-space indices."""
-    table = layout.level_table()
-    offsets = table[..., 0].ravel()
-    sides = table[..., 1].ravel()
-    present = np.nonzero(sides > 0)[0]
-    order = present[np.argsort(offsets[present], kind="stable")]
-    slot = order[np.searchsorted(offsets[order], full_ids, side="right") - 1]
-    page, level = np.divmod(slot, layout.max_levels)
-    local = full_ids - offsets[slot]
-    row, col = np.divmod(local, sides[slot])
-    return page, level, row, col
+    def texel_index(self, page, row, col) -> np.ndarray:
+        """Compact level-0 texel index of (page, row, col) arrays; -1 where not a parameter."""
+        page, row, col = (np.asarray(a, np.int64) for a in (page, row, col))
+        b = self.tile
+        out = np.full(page.shape, -1, np.int64)
+        for p in np.unique(page):
+            sel = page == p
+            t = self.tile_map[p][row[sel] // b, col[sel] // b]
+            out[sel] = np.where(t >= 0, (t * b + row[sel] % b) * b + col[sel] % b, -1)
+        return out
 
 
 def view_taps(frag: Fragments, layout: TextureLayout, sampler: str):
-    """Full-space taps of one view: (full (P, T) int64, weight (P, T) float32, level (P, T) int64)."""
+    """Taps of one view, each (P, T): page, level, row, col (int64) and weight (float32)."""
     if sampler not in SAMPLERS:
         raise ValueError(f"unknown sampler {sampler!r}; use one of {SAMPLERS}")
+    if sampler == "trilinear" and not layout.mipmaps:
+        raise ValueError("the trilinear sampler needs a layout with mipmaps=True")
     hit = frag.object_id.ravel() >= 0
-    p_count = hit.size
     taps = 4 if sampler == "bilinear" else 8
-    full = np.zeros((p_count, taps), np.int64)
-    weight = np.zeros((p_count, taps), np.float32)
-    level_out = np.zeros((p_count, taps), np.int64)
+    shape = (hit.size, taps)
+    page_out, level_out, row_out, col_out = (np.zeros(shape, np.int64) for _ in range(4))
+    weight = np.zeros(shape, np.float32)
     if not hit.any():
-        return full, weight, level_out
+        return page_out, level_out, row_out, col_out, weight
     page = np.asarray(layout.object_page)[frag.object_id.ravel()[hit]]
     uv = frag.uv.reshape(-1, 2)[hit].astype(np.float64)
     size = np.asarray(layout.page_sizes, np.int64)[page]
     levels = np.array([layout.num_levels(p) for p in range(layout.num_pages)])[page]
-    table = layout.level_table()
     if sampler == "bilinear":
         plan = [(np.zeros_like(page), np.ones(len(page)))]
     else:
@@ -139,7 +153,7 @@ def view_taps(frag: Fragments, layout: TextureLayout, sampler: str):
         base = np.minimum(base, levels - 1)
         plan = [(base, 1.0 - frac), (np.minimum(base + 1, levels - 1), frac)]
     for slot, (level, level_weight) in enumerate(plan):
-        offset, side = table[page, level, 0], table[page, level, 1]
+        side = size >> level
         x = uv[:, 0] * side - 0.5
         y = (1.0 - uv[:, 1]) * side - 0.5
         x0, y0 = np.floor(x), np.floor(y)
@@ -147,72 +161,124 @@ def view_taps(frag: Fragments, layout: TextureLayout, sampler: str):
         x0, y0 = x0.astype(np.int64), y0.astype(np.int64)
         corners = ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy), (1, 1, fx * fy))
         for k, (dx, dy, w) in enumerate(corners):
-            col = np.clip(x0 + dx, 0, side - 1)
-            row = np.clip(y0 + dy, 0, side - 1)
-            full[hit, 4 * slot + k] = offset + row * side + col
-            weight[hit, 4 * slot + k] = w * level_weight
-            level_out[hit, 4 * slot + k] = level
-    full[weight == 0] = 0
-    level_out[weight == 0] = 0
-    return full, weight, level_out
+            j = 4 * slot + k
+            page_out[hit, j], level_out[hit, j] = page, level
+            col_out[hit, j] = np.clip(x0 + dx, 0, side - 1)
+            row_out[hit, j] = np.clip(y0 + dy, 0, side - 1)
+            weight[hit, j] = w * level_weight
+    unused = weight == 0
+    for a in (page_out, level_out, row_out, col_out):
+        a[unused] = 0
+    return page_out, level_out, row_out, col_out, weight
+
+
+def _upsample(mask: np.ndarray) -> np.ndarray:
+    return np.repeat(np.repeat(mask, 2, axis=0), 2, axis=1)
 
 
 def build_texel_space(fragments: Sequence[Fragments], layout: TextureLayout, sampler: str) -> TexelSpace:
-    """The compact texel set touched by all views' taps (and the children of coarse taps)."""
-    touched = [[] for _ in range(layout.max_levels)]
+    """The compact tiles read by all views' taps, directly or through coarse mip entries."""
+    b = layout.tile
+    k = int(np.log2(b))
+    # need[p][j]: bool grid of level k+j entries of page p (j = 0: the tile grid).
+    need = [[np.zeros((s >> (k + j), s >> (k + j)), bool) for j in range(layout.num_levels(p) - k if layout.mipmaps else 1)]
+            for p, s in enumerate(layout.page_sizes)]
     for frag in fragments:
-        full, weight, level = view_taps(frag, layout, sampler)
+        page, level, row, col, weight = view_taps(frag, layout, sampler)
         used = weight > 0
-        for lv in np.unique(level[used]):
-            touched[lv].append(np.unique(full[used & (level == lv)]))
-    level_ids = [np.unique(np.concatenate(t)) if t else np.zeros(0, np.int64) for t in touched]
-    table = layout.level_table()
-    for lv in range(layout.max_levels - 1, 0, -1):
-        if len(level_ids[lv]) == 0:
-            continue
-        page, _, row, col = decode(layout, level_ids[lv])
-        offset, side = table[page, lv - 1, 0], table[page, lv - 1, 1]
-        kids = [offset + (2 * row + dy) * side + (2 * col + dx) for dy in (0, 1) for dx in (0, 1)]
-        level_ids[lv - 1] = np.union1d(level_ids[lv - 1], np.concatenate(kids))
-    while len(level_ids) > 1 and len(level_ids[-1]) == 0:
-        level_ids.pop()
-    starts = np.concatenate([[0], np.cumsum([len(ids) for ids in level_ids])[:-1]]).astype(np.int64)
-    page, _, row, col = decode(layout, level_ids[0])
-    return TexelSpace(layout=layout, level_ids=tuple(level_ids), level_start=tuple(int(s) for s in starts),
-                      texel_page=page, texel_row=row, texel_col=col)
-
-
-def mip_chain(space: TexelSpace) -> MipChain:
-    """Children indices (compact) of every compact texel above level 0."""
-    layout = space.layout
-    table = layout.level_table()
+        page, level, row, col = page[used], level[used], row[used], col[used]
+        fine = level <= k
+        coarse = ~fine
+        shift = np.where(fine, k - level, 0)
+        for p in np.unique(page):
+            sel = page == p
+            grid = need[p][0]
+            grid[row[sel & fine] >> shift[sel & fine], col[sel & fine] >> shift[sel & fine]] = True
+            for lv in np.unique(level[sel & coarse]):
+                s2 = sel & coarse & (level == lv)
+                need[p][lv - k][row[s2], col[s2]] = True
+    for grids in need:  # a needed coarse entry needs its 4 children, down to the tiles
+        for j in range(len(grids) - 1, 0, -1):
+            grids[j - 1] |= _upsample(grids[j])
+    tile_page, tile_row, tile_col, tile_map = [], [], [], []
+    count = 0
+    for p, grids in enumerate(need):
+        rows, cols = np.nonzero(grids[0])
+        ids = np.full(grids[0].shape, -1, np.int64)
+        ids[rows, cols] = np.arange(count, count + len(rows))
+        count += len(rows)
+        tile_page.append(np.full(len(rows), p, np.int64))
+        tile_row.append(rows.astype(np.int64))
+        tile_col.append(cols.astype(np.int64))
+        tile_map.append(ids)
+    num_tiles = count
+    in_tile_levels = k + 1 if layout.mipmaps else 1
+    start = sum(num_tiles * (b >> lv) ** 2 for lv in range(in_tile_levels))
+    coarsest_tile_level = start - num_tiles if layout.mipmaps else None  # level k: one entry per tile
+    coarse_maps = [[] for _ in need]
     children = []
-    for lv in range(1, len(space.level_ids)):
-        page, _, row, col = decode(layout, space.level_ids[lv])
-        offset, side = table[page, lv - 1, 0], table[page, lv - 1, 1]
-        kids = np.stack([offset + (2 * row + dy) * side + (2 * col + dx) for dy in (0, 1) for dx in (0, 1)], axis=1)
-        children.append(jnp.asarray(space.compact_index(lv - 1, kids)))
-    return MipChain(children=tuple(children), num_texels=space.num_texels)
+    max_j = max(len(g) for g in need)
+    prev_maps = tile_map  # level k + j - 1 index maps, into compact entries of that level
+    for j in range(1, max_j):
+        kids, maps = [], []
+        for p, grids in enumerate(need):
+            if j >= len(grids):
+                maps.append(None)
+                continue
+            rows, cols = np.nonzero(grids[j])
+            ids = np.full(grids[j].shape, -1, np.int64)
+            ids[rows, cols] = np.arange(start, start + len(rows))
+            start += len(rows)
+            below = prev_maps[p]
+            quad = np.stack([below[2 * rows + dy, 2 * cols + dx] for dy in (0, 1) for dx in (0, 1)], axis=1)
+            if j == 1:
+                quad = coarsest_tile_level + quad  # tile ids -> level-k entries of the tiles
+            kids.append(quad)
+            maps.append(ids)
+            coarse_maps[p].append(ids)
+        children.append(np.concatenate(kids).astype(np.int32) if kids else np.zeros((0, 4), np.int32))
+        prev_maps = maps
+    return TexelSpace(layout=layout, tile_page=np.concatenate(tile_page), tile_row=np.concatenate(tile_row),
+                      tile_col=np.concatenate(tile_col), tile_map=tuple(tile_map),
+                      coarse_maps=tuple(tuple(m) for m in coarse_maps), children=tuple(children))
+
+
+def tap_indices(space: TexelSpace, page, level, row, col, weight) -> np.ndarray:
+    """Compact pyramid index of each tap (0 where weight is 0)."""
+    b = space.tile
+    k = int(np.log2(b))
+    out = np.zeros(page.shape, np.int64)
+    used = weight > 0
+    for p in np.unique(page[used]):
+        for lv in np.unique(level[used & (page == p)]):
+            sel = used & (page == p) & (level == lv)
+            r, c = row[sel], col[sel]
+            if lv <= k:
+                side = b >> lv
+                t = space.tile_map[p][r // side, c // side]
+                out[sel] = space.level_offset(lv) + (t * side + r % side) * side + c % side
+            else:
+                out[sel] = space.coarse_maps[p][lv - k - 1][r, c]
+    if (out[used] < 0).any():
+        raise AssertionError("a tap reads a texel outside the compact space (plan and space disagree)")
+    return out
 
 
 def build_gather_plans(fragments: Sequence[Fragments], space: TexelSpace, sampler: str) -> GatherPlan:
-    """Batched gather plan of all views, indexing the compact pyramid of `space`."""
+    """Batched gather plan of all views (same resolution), indexing the compact pyramid of `space`."""
     if not fragments:
         raise ValueError("no views to plan")
-    heights = {f.shape for f in fragments}
-    if len(heights) != 1:
-        raise ValueError(f"all views of one plan must share a resolution, got {sorted(heights)}")
+    shapes = {f.shape for f in fragments}
+    if len(shapes) != 1:
+        raise ValueError(f"all views of one plan must share a resolution, got {sorted(shapes)}")
     height, width = fragments[0].shape
     index, weight, hit = [], [], []
     for frag in fragments:
-        full, w, level = view_taps(frag, space.layout, sampler)
-        idx = np.zeros(full.shape, np.int32)
-        for lv in np.unique(level[w > 0]):
-            sel = (w > 0) & (level == lv)
-            idx[sel] = space.compact_index(int(lv), full[sel])
-        index.append(idx)
+        page, level, row, col, w = view_taps(frag, space.layout, sampler)
+        index.append(tap_indices(space, page, level, row, col, w).astype(np.int32))
         weight.append(w)
         hit.append(frag.object_id.ravel() >= 0)
+    chain = MipChain(children=tuple(jnp.asarray(c) for c in space.children), tile=space.tile,
+                     in_tile_levels=space.in_tile_levels)
     return GatherPlan(index=jnp.asarray(np.stack(index)), weight=jnp.asarray(np.stack(weight)),
-                      hit=jnp.asarray(np.stack(hit)), chain=mip_chain(space), height=height, width=width)
-
+                      hit=jnp.asarray(np.stack(hit)), chain=chain, height=height, width=width)

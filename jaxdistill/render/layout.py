@@ -4,7 +4,7 @@ Pages are square, power-of-two sized. With `texture_layout="pages"` every object
 page (its UVs span [0, 1] of that page); with "atlas" all objects share page 0. A texel is
 addressed by (page, level, row, col); row 0 is the top of the image (v = 1), so a UV maps to
 continuous texel coordinates x = u * S - 0.5, y = (1 - v) * S - 0.5 at a level of side S.
-The full index space enumerates every texel of every level of every page (int64).
+Parameters are allocated in B x B tiles (see gather_plan.py).
 """
 
 from __future__ import annotations
@@ -28,11 +28,17 @@ class TextureLayout:
     page_sizes: tuple[int, ...]
     object_page: tuple[int, ...]
     mipmaps: bool = False
+    tile_size: int = 16
 
     def __post_init__(self):
-        for size in self.page_sizes:
+        for size in tuple(self.page_sizes) + (self.tile_size,):
             if size < 1 or size & (size - 1):
-                raise ValueError(f"page sizes must be powers of two, got {size}")
+                raise ValueError(f"page and tile sizes must be powers of two, got {size}")
+
+    @property
+    def tile(self) -> int:
+        """Side B of the sparse tiles parameters are allocated in: tile_size, or the smallest page."""
+        return min(self.tile_size, min(self.page_sizes))
 
     @property
     def num_pages(self) -> int:
@@ -46,22 +52,8 @@ class TextureLayout:
     def max_levels(self) -> int:
         return max(self.num_levels(p) for p in range(self.num_pages))
 
-    def level_table(self) -> np.ndarray:
-        """(pages, max_levels, 2) int64: full-space offset and side of each (page, level); side 0 = absent."""
-        table = np.zeros((self.num_pages, self.max_levels, 2), np.int64)
-        offset = 0
-        for page, size in enumerate(self.page_sizes):
-            for level in range(self.num_levels(page)):
-                side = size >> level
-                table[page, level] = offset, side
-                offset += side * side
-        return table
-
-    def full_size(self, levels: bool = False) -> int:
-        """Texels in all level-0 pages (or in all levels with `levels=True`)."""
-        if levels:
-            table = self.level_table()
-            return int((table[..., 1] ** 2).sum())
+    def full_size(self) -> int:
+        """Texels in all full level-0 pages."""
         return int(sum(s * s for s in self.page_sizes))
 
 
@@ -103,7 +95,7 @@ def auto_page_sizes(fragments: Sequence, object_page: Sequence[int], num_pages: 
 
 
 def make_layout(num_objects: int, texture_layout: str, texture_size, fragments: Sequence, *,
-                max_size: int = 4096, mipmaps: bool = False) -> TextureLayout:
+                max_size: int = 4096, mipmaps: bool = False, tile_size: int = 16) -> TextureLayout:
     """Layout for a scene: `texture_size` is an int (every page that side) or "auto"."""
     if texture_layout == "pages":
         object_page = tuple(range(num_objects))
@@ -119,4 +111,4 @@ def make_layout(num_objects: int, texture_layout: str, texture_size, fragments: 
         if size < 1 or size & (size - 1):
             raise InputError.single("flags", "texture_size", f"must be a power of two or 'auto', got {texture_size!r}")
         sizes = (size,) * num_pages
-    return TextureLayout(page_sizes=tuple(sizes), object_page=object_page, mipmaps=mipmaps)
+    return TextureLayout(page_sizes=tuple(sizes), object_page=object_page, mipmaps=mipmaps, tile_size=tile_size)

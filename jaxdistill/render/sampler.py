@@ -15,8 +15,16 @@ from jaxdistill.render.gather_plan import GatherPlan, MipChain, TexelSpace
 
 
 def build_pyramid(texels: jnp.ndarray, chain: MipChain) -> jnp.ndarray:
-    """(N_total, C): the compact texels followed by every needed coarser level (2x2 means)."""
-    pyramid = texels
+    """(N_pyramid, C): in-tile levels 0..k of the compact texels (dense 2x2 means inside each
+    tile), then the coarse entries above one tile (means of 4 earlier entries)."""
+    b, channels = chain.tile, texels.shape[-1]
+    level = texels.reshape(-1, b, b, channels)
+    parts = [texels]
+    for _ in range(1, chain.in_tile_levels):
+        n, side = level.shape[0], level.shape[1] // 2
+        level = level.reshape(n, side, 2, side, 2, channels).mean(axis=(2, 4))
+        parts.append(level.reshape(-1, channels))
+    pyramid = jnp.concatenate(parts, axis=0) if len(parts) > 1 else texels
     for children in chain.children:
         pyramid = jnp.concatenate([pyramid, jnp.mean(pyramid[children], axis=1)], axis=0)
     return pyramid
@@ -33,22 +41,29 @@ def render(texels: jnp.ndarray, plan: GatherPlan) -> jnp.ndarray:
     return image.reshape(*plan.index.shape[:-2], plan.height, plan.width, texels.shape[-1])
 
 
+def _tile_view(page: np.ndarray, b: int) -> np.ndarray:
+    """(S/B, S/B, B, B, C) view of an (S, S, C) page."""
+    g = page.shape[0] // b
+    return page.reshape(g, b, g, b, -1).swapaxes(1, 2)
+
+
 def compact(pages, space: TexelSpace) -> np.ndarray:
     """(N, C) texels read from full pages (a list of (S, S, C) arrays, one per page)."""
+    b = space.tile
     channels = np.asarray(pages[0]).shape[-1]
-    out = np.zeros((space.num_texels, channels), np.float32)
+    out = np.zeros((space.num_tiles, b, b, channels), np.float32)
     for page in range(space.layout.num_pages):
-        sel = space.texel_page == page
-        out[sel] = np.asarray(pages[page])[space.texel_row[sel], space.texel_col[sel]]
-    return out
+        sel = space.tile_page == page
+        out[sel] = _tile_view(np.asarray(pages[page], np.float32), b)[space.tile_row[sel], space.tile_col[sel]]
+    return out.reshape(-1, channels)
 
 
 def coverage(space: TexelSpace) -> list[np.ndarray]:
-    """Per page, (S, S) bool: the texel is a parameter (observed by some view)."""
-    masks = [np.zeros((s, s), bool) for s in space.layout.page_sizes]
-    for page, mask in enumerate(masks):
-        sel = space.texel_page == page
-        mask[space.texel_row[sel], space.texel_col[sel]] = True
+    """Per page, (S, S) bool: the texel is a parameter (lies in a compact tile)."""
+    masks = []
+    for page, size in enumerate(space.layout.page_sizes):
+        grid = space.tile_map[page] >= 0
+        masks.append(np.repeat(np.repeat(grid, space.tile, axis=0), space.tile, axis=1))
     return masks
 
 
@@ -77,24 +92,32 @@ def dilate(page: np.ndarray, known: np.ndarray, iterations: int) -> np.ndarray:
     return page
 
 
-def expand(texels, space: TexelSpace, fill, *, dilation: int = 8) -> list[np.ndarray]:
+def expand(texels, space: TexelSpace, fill, *, observed=None, dilation: int = 8) -> list[np.ndarray]:
     """Full pages (S, S, C) float32 from compact texels (N, C).
 
-    Unobserved texels get `fill` (scalar or (C,)), except within `dilation` texels of an
-    observed one, where seam dilation copies neighbouring values so that bilinear and mip
-    sampling across chart borders in other renderers does not bleed the fill colour in.
+    Texels outside `observed` ((N,) bool, e.g. view count > 0; default: every parameter) get
+    `fill` (scalar or (C,)), except within `dilation` texels of an observed one, where seam
+    dilation copies neighbouring values so that bilinear and mip sampling across chart borders
+    in other renderers does not bleed the fill colour in.
     """
+    b = space.tile
     texels = np.asarray(texels, np.float32)
     channels = texels.shape[-1]
     fill = np.broadcast_to(np.asarray(fill, np.float32), (channels,))
+    tiles = texels.reshape(-1, b, b, channels)
+    seen = np.ones(len(texels), bool) if observed is None else np.asarray(observed, bool)
+    seen_tiles = seen.reshape(-1, b, b)
     pages = []
-    for page, mask in enumerate(coverage(space)):
-        size = space.layout.page_sizes[page]
+    for page, size in enumerate(space.layout.page_sizes):
         image = np.empty((size, size, channels), np.float32)
         image[:] = fill
-        sel = space.texel_page == page
-        image[space.texel_row[sel], space.texel_col[sel]] = texels[sel]
+        known = np.zeros((size, size), bool)
+        sel = space.tile_page == page
+        rows, cols = space.tile_row[sel], space.tile_col[sel]
+        view, known_view = _tile_view(image, b), _tile_view(known[..., None], b)[..., 0]
+        view[rows, cols] = np.where(seen_tiles[sel][..., None], tiles[sel], fill)
+        known_view[rows, cols] = seen_tiles[sel]
         if dilation > 0:
-            image = dilate(image, mask, dilation)
+            image = dilate(image, known, dilation)
         pages.append(image)
     return pages
