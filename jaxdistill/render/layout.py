@@ -28,7 +28,7 @@ class TextureLayout:
     page_sizes: tuple[int, ...]
     object_page: tuple[int, ...]
     mipmaps: bool = False
-    tile_size: int = 16
+    tile_size: int = 1
 
     def __post_init__(self):
         for size in tuple(self.page_sizes) + (self.tile_size,):
@@ -95,8 +95,14 @@ def auto_page_sizes(fragments: Sequence, object_page: Sequence[int], num_pages: 
 
 
 def make_layout(num_objects: int, texture_layout: str, texture_size, fragments: Sequence, *,
-                max_size: int = 4096, mipmaps: bool = False, tile_size: int = 16) -> TextureLayout:
-    """Layout for a scene: `texture_size` is an int (every page that side) or "auto"."""
+                max_size: int = 4096, mipmaps: bool = False, tile_size: int | None = None) -> TextureLayout:
+    """Layout for a scene: `texture_size` is an int (every page that side) or "auto".
+
+    tile_size (parameter allocation granularity) defaults to 1 (texel-exact) without mipmaps
+    and 16 with them: scripts/bench_render.py measured these as the smallest and the fastest.
+    """
+    if tile_size is None:
+        tile_size = 16 if mipmaps else 1
     if texture_layout == "pages":
         object_page = tuple(range(num_objects))
     elif texture_layout == "atlas":
