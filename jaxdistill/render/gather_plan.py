@@ -12,7 +12,8 @@ through a coarser mip level built from it. Texels are stored tile after tile, ro
 a tile: `texels[(t * B + r) * B + c]`. The compact pyramid array that plans index is
 
     [tile levels 0..k (B = 2^k), each (N_tiles, B >> l, B >> l) flattened] +
-    [coarse levels above one tile, only entries some tap needs, each the mean of 4 earlier ones]
+    [coarse levels above one tile, only entries some tap needs, each the mean of 4 entries of
+     the level below]
 
 so in-tile levels are dense reshape-means and only the few coarse entries use index chains.
 """
@@ -36,7 +37,8 @@ SAMPLERS = ("bilinear", "trilinear")
 class MipChain:
     """How the compact pyramid is built from compact texels (N_tiles * B * B, C).
 
-    children[j]: (N, 4) int32 indices into the pyramid of the coarse entries of level k+1+j.
+    children[j]: (N, 4) int32 indices of the children of level k+1+j's entries, counted within
+    level k+j (level k: one entry per tile, so tile ids).
     """
 
     children: tuple = ()
@@ -74,7 +76,8 @@ class TexelSpace:
 
     tile_page, tile_row, tile_col (N_tiles,) int64: page and tile-grid position of each tile,
     sorted by (page, row, col). tile_map[p]: (S_p / B, S_p / B) int64 compact tile id or -1.
-    coarse_maps[p][j]: compact pyramid index of each level-(k+1+j) entry of page p, or -1.
+    coarse_maps[p][j]: index of each level-(k+1+j) entry of page p within that level, or -1;
+    children[j]: (N, 4) indices, within level k+j, of the children of level k+1+j's entries.
     """
 
     layout: TextureLayout
@@ -110,6 +113,10 @@ class TexelSpace:
     def level_offset(self, level: int) -> int:
         """Start of in-tile level `level` in the compact pyramid."""
         return int(sum(self.num_tiles * (self.tile >> lv) ** 2 for lv in range(level)))
+
+    def coarse_offset(self, j: int) -> int:
+        """Start of coarse level k + j (j >= 1) in the compact pyramid."""
+        return self.level_offset(self.in_tile_levels) + int(sum(len(c) for c in self.children[:j - 1]))
 
     def texel_index(self, page, row, col) -> np.ndarray:
         """Compact level-0 texel index of (page, row, col) arrays; -1 where not a parameter."""
@@ -212,28 +219,23 @@ def build_texel_space(fragments: Sequence[Fragments], layout: TextureLayout, sam
         tile_col.append(cols.astype(np.int64))
         tile_map.append(ids)
     num_tiles = count
-    in_tile_levels = k + 1 if layout.mipmaps else 1
-    start = sum(num_tiles * (b >> lv) ** 2 for lv in range(in_tile_levels))
-    coarsest_tile_level = start - num_tiles if layout.mipmaps else None  # level k: one entry per tile
+    # Coarse levels k+1, k+2, ...: entries numbered within their level; children index the
+    # level below (level k has one entry per tile, in tile order, so tile ids index it).
     coarse_maps = [[] for _ in need]
     children = []
-    max_j = max(len(g) for g in need)
-    prev_maps = tile_map  # level k + j - 1 index maps, into compact entries of that level
-    for j in range(1, max_j):
-        kids, maps = [], []
+    prev_maps = tile_map
+    for j in range(1, max(len(g) for g in need)):
+        kids, maps, count = [], [], 0
         for p, grids in enumerate(need):
             if j >= len(grids):
                 maps.append(None)
                 continue
             rows, cols = np.nonzero(grids[j])
             ids = np.full(grids[j].shape, -1, np.int64)
-            ids[rows, cols] = np.arange(start, start + len(rows))
-            start += len(rows)
+            ids[rows, cols] = np.arange(count, count + len(rows))
+            count += len(rows)
             below = prev_maps[p]
-            quad = np.stack([below[2 * rows + dy, 2 * cols + dx] for dy in (0, 1) for dx in (0, 1)], axis=1)
-            if j == 1:
-                quad = coarsest_tile_level + quad  # tile ids -> level-k entries of the tiles
-            kids.append(quad)
+            kids.append(np.stack([below[2 * rows + dy, 2 * cols + dx] for dy in (0, 1) for dx in (0, 1)], axis=1))
             maps.append(ids)
             coarse_maps[p].append(ids)
         children.append(np.concatenate(kids).astype(np.int32) if kids else np.zeros((0, 4), np.int32))
@@ -258,7 +260,8 @@ def tap_indices(space: TexelSpace, page, level, row, col, weight) -> np.ndarray:
                 t = space.tile_map[p][r // side, c // side]
                 out[sel] = space.level_offset(lv) + (t * side + r % side) * side + c % side
             else:
-                out[sel] = space.coarse_maps[p][lv - k - 1][r, c]
+                entry = space.coarse_maps[p][lv - k - 1][r, c]
+                out[sel] = np.where(entry >= 0, space.coarse_offset(lv - k) + entry, -1)
     if (out[used] < 0).any():
         raise AssertionError("a tap reads a texel outside the compact space (plan and space disagree)")
     return out

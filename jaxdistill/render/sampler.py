@@ -16,7 +16,8 @@ from jaxdistill.render.gather_plan import GatherPlan, MipChain, TexelSpace
 
 def build_pyramid(texels: jnp.ndarray, chain: MipChain) -> jnp.ndarray:
     """(N_pyramid, C): in-tile levels 0..k of the compact texels (dense 2x2 means inside each
-    tile), then the coarse entries above one tile (means of 4 earlier entries)."""
+    tile), then the coarse entries above one tile (means of 4 entries of the level below).
+    One concatenation at the end: no level is copied more than once."""
     b, channels = chain.tile, texels.shape[-1]
     level = texels.reshape(-1, b, b, channels)
     parts = [texels]
@@ -24,10 +25,11 @@ def build_pyramid(texels: jnp.ndarray, chain: MipChain) -> jnp.ndarray:
         n, side = level.shape[0], level.shape[1] // 2
         level = level.reshape(n, side, 2, side, 2, channels).mean(axis=(2, 4))
         parts.append(level.reshape(-1, channels))
-    pyramid = jnp.concatenate(parts, axis=0) if len(parts) > 1 else texels
+    below = parts[-1]  # level k: one entry per tile
     for children in chain.children:
-        pyramid = jnp.concatenate([pyramid, jnp.mean(pyramid[children], axis=1)], axis=0)
-    return pyramid
+        below = jnp.mean(below[children], axis=1)
+        parts.append(below)
+    return jnp.concatenate(parts, axis=0) if len(parts) > 1 else texels
 
 
 def render(texels: jnp.ndarray, plan: GatherPlan) -> jnp.ndarray:
