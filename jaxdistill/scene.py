@@ -134,19 +134,13 @@ def mesh_problems(mesh: Mesh, file: str, problems: ProblemList) -> None:
         problems.add(file, "face_object", f"object ids must lie in [0, {len(mesh.object_names) - 1}]")
 
 
-def view_problems(view: View, index: int, file: str, problems: ProblemList, *,
-                  check_pixels: bool = True) -> None:
-    """Adds to `problems` what is wrong with view `index`: camera, photo, targets."""
-    where = f"views[{index}]"
-    cam = view.camera
-    if not (isinstance(cam.width, int) and isinstance(cam.height, int) and cam.width > 0 and cam.height > 0):
-        problems.add(file, f"{where}.width/height", f"must be positive integers, got {cam.width}x{cam.height}")
-    for msg in intrinsics_problems(cam.K):
-        problems.add(file, f"{where}.K", msg)
-    for msg in pose_problems(cam.c2w):
-        problems.add(file, f"{where}.c2w", msg)
-    image_problems(view.photo, f"{where}.photo", cam, file, problems, check_pixels=check_pixels)
-    for map_name, path in view.targets.items():
+def view_problems(photo: Path, targets: Mapping[str, Path], cam: Camera | None, where: str, file: str,
+                  problems: ProblemList, *, check_pixels: bool = True) -> None:
+    """Adds to `problems` what is wrong with a view's images: unknown map names, missing,
+    unreadable or non-finite images, and (given the view's camera) a size that differs from it.
+    The camera itself is valid by construction (`Camera` validates K and c2w)."""
+    image_problems(photo, f"{where}.photo", cam, file, problems, check_pixels=check_pixels)
+    for map_name, path in targets.items():
         if map_name not in MAP_NAMES:
             problems.add(file, f"{where}.targets.{map_name}",
                          f"unknown map name {map_name!r}; known maps: {', '.join(MAP_NAMES)}")
@@ -154,9 +148,9 @@ def view_problems(view: View, index: int, file: str, problems: ProblemList, *,
         image_problems(path, f"{where}.targets.{map_name}", cam, file, problems, check_pixels=check_pixels)
 
 
-def image_problems(path: Path, field: str, cam: Camera, file: str, problems: ProblemList, *,
+def image_problems(path: Path, field: str, cam: Camera | None, file: str, problems: ProblemList, *,
                    check_pixels: bool) -> None:
-    """Adds a problem when the image is missing, unreadable, of the wrong size or non-finite."""
+    """Adds a problem when the image is missing, unreadable, non-finite or (with `cam`) of the wrong size."""
     if not Path(path).is_file():
         problems.add(file, field, f"file not found: {path}")
         return
@@ -165,7 +159,7 @@ def image_problems(path: Path, field: str, cam: Camera, file: str, problems: Pro
     except OSError as err:
         problems.add(file, field, f"cannot read image: {err}")
         return
-    if (width, height) != (cam.width, cam.height):
+    if cam is not None and (width, height) != (cam.width, cam.height):
         problems.add(file, field, f"{path} is {width}x{height} but the view is {cam.width}x{cam.height}")
         return
     if check_pixels and imageio.is_linear_format(path):
@@ -197,7 +191,8 @@ def validate_scene(scene: Scene, *, scene_file: str = "scene.json", mesh_file: s
         index = view_index[i] if view_index is not None else i
         if names.index(view.name) != i:
             problems.add(scene_file, f"views[{index}].name", f"duplicate view name {view.name!r}")
-        view_problems(view, index, scene_file, problems, check_pixels=check_pixels)
+        view_problems(view.photo, view.targets, view.camera, f"views[{index}]", scene_file, problems,
+                      check_pixels=check_pixels)
     problems.raise_if_any()
 
 
@@ -345,23 +340,18 @@ def read_scene(path, *, check_pixels: bool = True) -> Scene:
         if not isinstance(targets, dict):
             problems.add(file, f"{where}.targets", "expected an object {map name: image path}")
             targets = {}
-        for map_name in [m for m in targets if m not in MAP_NAMES]:
-            problems.add(file, f"{where}.targets.{map_name}",
-                         f"unknown map name {map_name!r}; known maps: {', '.join(MAP_NAMES)}")
-            targets.pop(map_name)
+        targets = {k: root / p for k, p in targets.items()}
         camera_problems = [(f"{where}.K", m) for m in intrinsics_problems(K)]
         camera_problems += [(f"{where}.c2w", m) for m in pose_problems(c2w)]
         for field, message in camera_problems:
             problems.add(file, field, message)
-        if camera_problems:  # still report missing images; their size needs a valid view
-            for field, rel in [("photo", entry["photo"])] + [(f"targets.{k}", p) for k, p in targets.items()]:
-                if not (root / rel).is_file():
-                    problems.add(file, f"{where}.{field}", f"file not found: {root / rel}")
+        if camera_problems:  # no Camera to build: check the images without their size
+            view_problems(root / entry["photo"], targets, None, where, file, problems, check_pixels=check_pixels)
             continue
         camera = Camera(K=K, c2w=c2w, width=width, height=height)
         view_index.append(i)
         views.append(View(name=str(entry.get("name", f"view_{i:03d}")), camera=camera,
-                          photo=root / entry["photo"], targets={k: root / p for k, p in targets.items()}))
+                          photo=root / entry["photo"], targets=targets))
     scene = Scene(name=str(doc.get("name", root.name)), mesh=mesh, views=tuple(views),
                   texture_layout=doc.get("texture_layout", "pages"), root=root)
     if not doc["views"]:
