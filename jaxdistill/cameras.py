@@ -167,17 +167,21 @@ class Camera:
         depth = cam[:, 2]
         return (cam @ self.K.T)[:, :2] / depth[:, None], depth
 
-    def pixel_rays(self, pixels=None) -> tuple[np.ndarray, np.ndarray]:
-        """Returns (origins (N, 3), unit directions (N, 3)) through `pixels` (N, 2) (col, row).
+    def pixel_directions(self, pixels=None) -> np.ndarray:
+        """Returns un-normalised world directions R K^-1 [x, y, 1] (N, 3) through `pixels` (N, 2).
 
-        None means every pixel centre, row-major: ray j * W + i passes through (i + .5, j + .5).
+        None means every pixel centre, row-major: row j * W + i passes through (i + .5, j + .5).
         """
         if pixels is None:
             i, j = np.meshgrid(np.arange(self.width) + 0.5, np.arange(self.height) + 0.5)
             pixels = np.stack([i.ravel(), j.ravel()], axis=-1)
         uv = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
         uv1 = np.concatenate([uv, np.ones((len(uv), 1))], axis=-1)
-        d = np.linalg.solve(self.K, uv1.T).T @ self.c2w[:3, :3].T
+        return uv1 @ (self.c2w[:3, :3] @ np.linalg.inv(self.K)).T
+
+    def pixel_rays(self, pixels=None) -> tuple[np.ndarray, np.ndarray]:
+        """Returns (origins (N, 3), unit directions (N, 3)) through `pixels` (see pixel_directions)."""
+        d = self.pixel_directions(pixels)
         d /= np.linalg.norm(d, axis=-1, keepdims=True)
         return np.broadcast_to(self.c2w[:3, 3], d.shape).copy(), d
 

@@ -13,7 +13,7 @@ from jaxdistill.scene import Mesh
 
 def analytic_plane(camera, size, subdivisions, height=0.0):
     """Per pixel: hit, t, uv and triangle id of the plane built by `synthetic.plane`, solved in closed form."""
-    d = fr.pixel_directions(camera)
+    d = camera.pixel_directions()
     o = camera.c2w[:3, 3]
     with np.errstate(divide="ignore", invalid="ignore"):
         t = (height - o[1]) / d[:, 1]
@@ -78,7 +78,7 @@ def test_camera_inside_box_room_sees_walls_everywhere():
     (frag,) = fr.compute_fragments(mesh, [camera], cache_dir=False, progress=False)
     assert frag.hit.all(), "a closed room seen from inside must cover every pixel"
     # Independent: nearest of the six planes along each ray.
-    d = fr.pixel_directions(camera)
+    d = camera.pixel_directions()
     o = camera.c2w[:3, 3]
     with np.errstate(divide="ignore"):
         t_lo, t_hi = (0 - o) / d, (size - o) / d

@@ -102,20 +102,9 @@ def view_key(geometry_key: str, camera: Camera) -> str:
     return h.hexdigest()[:32]
 
 
-def pixel_directions(camera: Camera) -> np.ndarray:
-    """(H*W, 3) float64 un-normalised world ray directions R K^-1 [x, y, 1] at pixel centres."""
-    xs = np.arange(camera.width, dtype=np.float64) + 0.5
-    ys = np.arange(camera.height, dtype=np.float64) + 0.5
-    x, y = np.meshgrid(xs, ys)
-    pix = np.stack([x.ravel(), y.ravel(), np.ones(x.size)], axis=1)
-    return pix @ (camera.c2w[:3, :3] @ np.linalg.inv(camera.K)).T
-
-
 def cast_view(caster: RayCaster, camera: Camera):
     """Ray cast of all pixel centres: (triangle (H,W) int32, barycentric (H,W,2) f32, distance (H,W) f64)."""
-    d = pixel_directions(camera)
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    o = np.broadcast_to(camera.c2w[:3, 3], d.shape)
+    o, d = camera.pixel_rays()
     tri, bary, dist = caster.intersect(o, d)
     h, w = camera.height, camera.width
     return tri.reshape(h, w), bary.reshape(h, w, 2), dist.reshape(h, w)
@@ -133,7 +122,7 @@ def derive_fragments(mesh: Mesh, camera: Camera, triangle: np.ndarray, barycentr
     uv = np.zeros((h, w, 2), np.float32)
     uv[hit] = np.clip(np.einsum("nk,nkc->nc", weights, corner_uv), 0.0, 1.0)
 
-    d = pixel_directions(camera).reshape(h, w, 3)[hit]
+    d = camera.pixel_directions().reshape(h, w, 3)[hit]
     forward = camera.c2w[:3, 2]
     dist = distance[hit]
     depth = np.full((h, w), np.inf, np.float32)
