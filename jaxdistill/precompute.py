@@ -89,12 +89,12 @@ def run(config: PrecomputeConfig) -> dict:
     by_shape: dict[tuple[int, int], list[int]] = {}
     for i, frag in enumerate(frags):
         by_shape.setdefault(frag.shape, []).append(i)
-    for shape, ids in by_shape.items():  # views of one resolution share a batched plan
-        plan = build_gather_plans([frags[i] for i in ids], space, config.sampler)
+    plans = [build_gather_plans([frags[i] for i in ids], space, config.sampler)  # one per resolution
+             for ids in by_shape.values()]
+    for plan in plans:
         counts += view_counts(plan, space.num_texels)
     timings["plans_and_counts_s"] = time.perf_counter() - start
-    for shape, ids in by_shape.items():
-        plan = build_gather_plans([frags[i] for i in ids], space, config.sampler)
+    for plan, ids in zip(plans, by_shape.values()):
         weights = np.asarray(pixel_weights(plan, counts))
         for j, i in enumerate(ids):
             imageio.write_image(out / "weights" / f"{scene.views[i].name}.png", 2.0 * weights[j], encode_srgb=False)

@@ -53,7 +53,7 @@ def room_cameras(num_views: int, size=(6.0, 3.0, 5.0), resolution=512):
     return cams
 
 
-def bench_fragments(mesh, cams, repeats):
+def bench_fragments(mesh, cams):
     out = {}
     start = time.perf_counter()
     caster = fr.RayCaster(mesh)
@@ -117,7 +117,7 @@ def main(argv=None):
                               furniture_subdivisions=args.faces_per_side // 8, atlas=True)
     cams = room_cameras(args.views)
     print(f"\n[1] fragments: {mesh.num_faces / 1e6:.2f}M triangles, {args.views} views of 512x512")
-    frag_stats, frags = bench_fragments(mesh, cams, args.repeats)
+    frag_stats, frags = bench_fragments(mesh, cams)
     casts = frag_stats.pop("casts")
     print(f"  BVH build {frag_stats['bvh_build_s']:.2f} s (once per mesh)")
     print(f"  Embree cast {frag_stats['cast_mrays_per_s']:.2f} Mrays/s | derive {frag_stats['derive_mrays_per_s']:.2f} "

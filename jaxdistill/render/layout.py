@@ -48,10 +48,6 @@ class TextureLayout:
         """Mip levels of a page: log2(size) + 1 with mipmaps (down to 1x1), else 1."""
         return int(math.log2(self.page_sizes[page])) + 1 if self.mipmaps else 1
 
-    @property
-    def max_levels(self) -> int:
-        return max(self.num_levels(p) for p in range(self.num_pages))
-
     def full_size(self) -> int:
         """Texels in all full level-0 pages."""
         return int(sum(s * s for s in self.page_sizes))

@@ -63,7 +63,7 @@ def compact(pages, space: TexelSpace) -> np.ndarray:
 def coverage(space: TexelSpace) -> list[np.ndarray]:
     """Per page, (S, S) bool: the texel is a parameter (lies in a compact tile)."""
     masks = []
-    for page, size in enumerate(space.layout.page_sizes):
+    for page in range(space.layout.num_pages):
         grid = space.tile_map[page] >= 0
         masks.append(np.repeat(np.repeat(grid, space.tile, axis=0), space.tile, axis=1))
     return masks
