@@ -1,0 +1,303 @@
+"""Evaluation of reconstructed per-view maps against ground truth (NumPy, float64, outside jit).
+
+Conventions:
+- Images are (H, W) or (H, W, C) arrays; pred and gt must have the same shape. Everything is
+  computed in float64.
+- `mask` is an (H, W) bool array of the pixels that count (None: all pixels), usually
+  `evaluation_mask(fragments.hit, exclude)`. Values outside the mask never reach a metric,
+  not even through the SSIM windows, and may be anything (NaN included).
+- An empty mask gives NaN, never an error. Mismatched shapes raise ValueError.
+- `psnr` is 10 log10(data_range^2 / mse) and is +inf for identical images; `aggregate` caps
+  PSNR values at `PSNR_CAP_DB` before averaging.
+- `ssim` is Wang et al. (2004): 11x11 Gaussian window, sigma 1.5, K1 0.01, K2 0.03, weighted
+  (population) moments, computed per channel and restricted to the mask by normalisation.
+- Scale-invariant metrics (`si_psnr`, `si_ssim`) first fit one least-squares scale per
+  channel, as the intrinsic-image literature does: albedo and lighting are only known up to
+  a scale.
+- `evaluate_view` takes the maps as the program holds them (albedo linear RGB, normals unit
+  vectors in [-1, 1], irradiance linear HDR) and applies the per-map conventions itself.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from jaxdistill import MAP_NAMES
+
+SSIM_WINDOW = 11
+SSIM_SIGMA = 1.5
+SSIM_K1 = 0.01
+SSIM_K2 = 0.03
+PSNR_CAP_DB = 100.0
+ZERO_NORMAL_LENGTH = 1e-12
+"""Normals at most this long count as zero vectors (angular error 90 degrees)."""
+
+
+# ----------------------------------------------------------------------------- checks
+
+def _image(x, name: str) -> np.ndarray:
+    x = np.asarray(x, np.float64)
+    if x.ndim not in (2, 3):
+        raise ValueError(f"{name} must be (H, W) or (H, W, C), got shape {x.shape}")
+    return x
+
+
+def _pair(pred, gt) -> tuple[np.ndarray, np.ndarray]:
+    """pred and gt as float64 (H, W, C) arrays of the same shape."""
+    pred, gt = _image(pred, "pred"), _image(gt, "gt")
+    if pred.shape != gt.shape:
+        raise ValueError(f"pred shape {pred.shape} does not match gt shape {gt.shape}")
+    if pred.ndim == 2:
+        pred, gt = pred[:, :, None], gt[:, :, None]
+    return pred, gt
+
+
+def _mask(mask, hw: tuple[int, ...]) -> np.ndarray:
+    """(H, W) bool mask; None means all pixels."""
+    if mask is None:
+        return np.ones(hw, bool)
+    mask = np.asarray(mask)
+    if mask.dtype != bool:
+        raise ValueError(f"mask must be a bool array, got dtype {mask.dtype}")
+    if mask.shape != tuple(hw):
+        raise ValueError(f"mask shape {mask.shape} does not match image shape (H, W) = {tuple(hw)}")
+    return mask
+
+
+def evaluation_mask(hit, exclude=None) -> np.ndarray:
+    """(H, W) bool pixels that count: `hit & ~exclude`.
+
+    hit: (H, W) bool, the pixel's ray hit the mesh (`Fragments.hit`). exclude: (H, W) bool or
+    None, pixels whose ground truth is not meaningful (emitters, glass, mirrors).
+    """
+    hit = np.asarray(hit)
+    if hit.ndim != 2 or hit.dtype != bool:
+        raise ValueError(f"hit must be an (H, W) bool array, got shape {hit.shape}, dtype {hit.dtype}")
+    if exclude is None:
+        return hit.copy()
+    exclude = np.asarray(exclude)
+    if exclude.shape != hit.shape or exclude.dtype != bool:
+        raise ValueError(f"exclude must be a bool array of shape {hit.shape}, "
+                         f"got shape {exclude.shape}, dtype {exclude.dtype}")
+    return hit & ~exclude
+
+
+# ----------------------------------------------------------------------------- pixel errors
+
+def mse(pred, gt, mask=None) -> float:
+    """Mean squared error over the masked pixels and all channels; NaN for an empty mask."""
+    pred, gt = _pair(pred, gt)
+    mask = _mask(mask, pred.shape[:2])
+    if not mask.any():
+        return math.nan
+    return float(np.mean((pred[mask] - gt[mask]) ** 2))
+
+
+def psnr(pred, gt, mask=None, data_range: float = 1.0) -> float:
+    """10 log10(data_range^2 / mse) in dB; +inf when mse is 0, NaN for an empty mask."""
+    error = mse(pred, gt, mask)
+    if math.isnan(error):
+        return math.nan
+    if error == 0.0:
+        return math.inf
+    return float(10.0 * np.log10(data_range ** 2 / error))
+
+
+def grey_mse(pred, gt, mask=None) -> float:
+    """MSE of grey maps (roughness, metallic): (H, W) or (H, W, C) inputs, only channel 0 used.
+
+    Grey maps are often stored as RGB or RGBA with equal channels; other channels are ignored.
+    """
+    pred, gt = _image(pred, "pred"), _image(gt, "gt")
+    pred = pred if pred.ndim == 2 else pred[:, :, 0]
+    gt = gt if gt.ndim == 2 else gt[:, :, 0]
+    return mse(pred, gt, mask)
+
+
+# ----------------------------------------------------------------------------- SSIM
+
+def _gaussian_kernel() -> np.ndarray:
+    """(SSIM_WINDOW,) 1-D Gaussian taps, sigma SSIM_SIGMA, summing to 1."""
+    r = SSIM_WINDOW // 2
+    t = np.arange(-r, r + 1, dtype=np.float64)
+    k = np.exp(-t ** 2 / (2.0 * SSIM_SIGMA ** 2))
+    return k / k.sum()
+
+
+def _gaussian_filter(x: np.ndarray) -> np.ndarray:
+    """Separable Gaussian filter over axes 0 and 1 of (H, W, ...), zeros outside the image, same shape."""
+    k = _gaussian_kernel()
+    r = len(k) // 2
+    h, w = x.shape[:2]
+    rest = [(0, 0)] * (x.ndim - 2)
+    p = np.pad(x, [(r, r), (0, 0)] + rest)
+    y = sum(k[i] * p[i:i + h] for i in range(len(k)))
+    p = np.pad(y, [(0, 0), (r, r)] + rest)
+    return sum(k[i] * p[:, i:i + w] for i in range(len(k)))
+
+
+def ssim_map(pred, gt, mask=None, data_range: float = 1.0) -> np.ndarray:
+    """(H, W, C) per-pixel, per-channel SSIM; NaN outside the mask.
+
+    With G the Gaussian filter (zero outside the image) and m the mask, every local statistic
+    is a mask-weighted Gaussian average  E[f] = G(m f) / G(m),  so pixels outside the mask
+    (and outside the image) get zero weight. mu_x = E[x], sigma_x^2 = E[x^2] - mu_x^2,
+    sigma_xy = E[xy] - mu_x mu_y (weighted population moments, no N/(N-1) correction), and
+        SSIM = (2 mu_x mu_y + C1)(2 sigma_xy + C2) / ((mu_x^2 + mu_y^2 + C1)(sigma_x^2 + sigma_y^2 + C2))
+    with C1 = (K1 data_range)^2, C2 = (K2 data_range)^2. Without a mask this is Wang et al.'s
+    Gaussian SSIM with border windows renormalised instead of zero-padded or cropped.
+    """
+    pred, gt = _pair(pred, gt)
+    mask = _mask(mask, pred.shape[:2])
+    m = mask[:, :, None]
+    x, y = np.where(m, pred, 0.0), np.where(m, gt, 0.0)
+    weight = _gaussian_filter(mask.astype(np.float64))[:, :, None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        stats = _gaussian_filter(np.stack([x, y, x * x, y * y, x * y], axis=-1)) / weight[..., None]
+    mu_x, mu_y, xx, yy, xy = np.moveaxis(stats, -1, 0)
+    var_x, var_y, cov = xx - mu_x ** 2, yy - mu_y ** 2, xy - mu_x * mu_y
+    c1, c2 = (SSIM_K1 * data_range) ** 2, (SSIM_K2 * data_range) ** 2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = ((2 * mu_x * mu_y + c1) * (2 * cov + c2)) / ((mu_x ** 2 + mu_y ** 2 + c1) * (var_x + var_y + c2))
+    return np.where(m, s, np.nan)
+
+
+def ssim(pred, gt, mask=None, data_range: float = 1.0) -> float:
+    """Mean of `ssim_map` over the masked pixels and all channels; 1 for identical images,
+    NaN for an empty mask."""
+    pred, gt = _pair(pred, gt)
+    mask = _mask(mask, pred.shape[:2])
+    if not mask.any():
+        return math.nan
+    return float(np.mean(ssim_map(pred, gt, mask, data_range)[mask]))
+
+
+# ----------------------------------------------------------------------------- scale-invariant
+
+def scale_invariant(pred, gt, mask=None) -> tuple[np.ndarray, np.ndarray]:
+    """(s * pred, s): pred times its per-channel least-squares scale onto gt.
+
+    s_c = sum_mask(pred_c gt_c) / sum_mask(pred_c^2), or 0 when sum_mask(pred_c^2) is 0 (an
+    all-zero channel, or an empty mask). Returns the scaled pred, float64, same shape as pred,
+    not clipped, and s with shape (C,) ((1,) for (H, W) input). This is the intrinsic-image
+    literature's convention: albedo and lighting are only determined up to a scale each.
+    """
+    pred2, gt2 = _pair(pred, gt)
+    mask = _mask(mask, pred2.shape[:2])
+    p, g = pred2[mask], gt2[mask]                                   # (N, C)
+    num, den = np.sum(p * g, axis=0), np.sum(p * p, axis=0)
+    scales = np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
+    scaled = pred2 * scales
+    return scaled.reshape(np.shape(pred)), scales
+
+
+def si_psnr(pred, gt, mask=None, data_range: float = 1.0) -> float:
+    """`psnr` of `scale_invariant(pred, gt, mask)` against gt."""
+    return psnr(scale_invariant(pred, gt, mask)[0], gt, mask, data_range)
+
+
+def si_ssim(pred, gt, mask=None, data_range: float = 1.0) -> float:
+    """`ssim` of `scale_invariant(pred, gt, mask)` against gt."""
+    return ssim(scale_invariant(pred, gt, mask)[0], gt, mask, data_range)
+
+
+# ----------------------------------------------------------------------------- normals
+
+def angular_error_deg(pred, gt, mask=None) -> float:
+    """Mean angle in degrees between (H, W, 3) normal vectors over the masked pixels.
+
+    Inputs are vectors (components in [-1, 1]), not the (n + 1) / 2 image encoding; any length
+    is accepted, each vector is normalised. The angle is degrees(arccos(clip(dot, -1, 1))) of the
+    normalised vectors, computed as atan2(|a x b|, a . b), which is the same angle but exact near
+    0 and 180 degrees. A vector of length <= ZERO_NORMAL_LENGTH in pred or gt counts as 90 degrees
+    (no information: as wrong as a random guess on average). NaN for an empty mask.
+    """
+    pred, gt = _pair(pred, gt)
+    if pred.shape[2] != 3:
+        raise ValueError(f"normals must be (H, W, 3), got shape {pred.shape}")
+    mask = _mask(mask, pred.shape[:2])
+    if not mask.any():
+        return math.nan
+    a, b = pred[mask], gt[mask]                                     # (N, 3)
+    zero = (np.linalg.norm(a, axis=1) <= ZERO_NORMAL_LENGTH) | (np.linalg.norm(b, axis=1) <= ZERO_NORMAL_LENGTH)
+    angle = np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=1), np.sum(a * b, axis=1)))
+    return float(np.mean(np.where(zero, 90.0, angle)))
+
+
+# ----------------------------------------------------------------------------- per view, aggregate
+
+def _srgb_encode(x: np.ndarray) -> np.ndarray:
+    """IEC 61966-2-1 sRGB encode of linear values in [0, 1], float64 (as imageio.linear_to_srgb)."""
+    return np.where(x <= 0.0031308, x * 12.92, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+
+
+def evaluate_view(pred: Mapping[str, np.ndarray], gt: Mapping[str, np.ndarray], mask=None) -> dict[str, float]:
+    """Metrics of one view for every map present in both `pred` and `gt` (maps in only one are skipped).
+
+    - albedo (H, W, 3) linear RGB: clipped to [0, 1] and sRGB-encoded (how albedo images are
+      compared in the literature), then albedo_psnr, albedo_ssim, albedo_si_psnr, albedo_si_ssim
+      with data_range 1 (the scale is fitted on the encoded values).
+    - roughness, metallic (H, W) or (H, W, C), channel 0: roughness_mse, metallic_mse.
+    - normal (H, W, 3) unit vectors (world or camera space, both maps the same): normal_angular_deg.
+    - irradiance (H, W, C) linear HDR: irradiance_si_psnr, data_range = max of gt over the mask
+      (1 when that is not positive), so it depends on neither map's exposure.
+    Map names outside `MAP_NAMES` raise ValueError.
+    """
+    for name in list(pred) + list(gt):
+        if name not in MAP_NAMES:
+            raise ValueError(f"unknown map {name!r}: expected one of {', '.join(MAP_NAMES)}")
+    out: dict[str, float] = {}
+    for name in MAP_NAMES:
+        if name not in pred or name not in gt:
+            continue
+        try:
+            out.update(_map_metrics(name, pred[name], gt[name], mask))
+        except ValueError as error:
+            raise ValueError(f"{name}: {error}") from None
+    return out
+
+
+def _map_metrics(name: str, pred, gt, mask) -> dict[str, float]:
+    """`evaluate_view`'s metrics of one map."""
+    p, g = _image(pred, "pred"), _image(gt, "gt")
+    out: dict[str, float] = {}
+    if name == "albedo":
+        p, g = _srgb_encode(np.clip(p, 0.0, 1.0)), _srgb_encode(np.clip(g, 0.0, 1.0))
+        out["albedo_psnr"] = psnr(p, g, mask)
+        out["albedo_ssim"] = ssim(p, g, mask)
+        out["albedo_si_psnr"] = si_psnr(p, g, mask)
+        out["albedo_si_ssim"] = si_ssim(p, g, mask)
+    elif name in ("roughness", "metallic"):
+        out[f"{name}_mse"] = grey_mse(p, g, mask)
+    elif name == "normal":
+        out["normal_angular_deg"] = angular_error_deg(p, g, mask)
+    elif name == "irradiance":
+        m = _mask(mask, g.shape[:2])
+        peak = float(np.max(g[m])) if m.any() else 1.0
+        out["irradiance_si_psnr"] = si_psnr(p, g, mask, peak if peak > 0 else 1.0)
+    return out
+
+
+def aggregate(per_view: Sequence[Mapping[str, float]]) -> dict[str, float]:
+    """Mean of each metric over the views that have it, plus `num_views` (all views given).
+
+    NaN values (empty masks) are skipped; a metric that is NaN in every view stays NaN.
+    Metrics whose name ends in "psnr" are capped at PSNR_CAP_DB before averaging, so one
+    perfect view (+inf dB) counts as 100 dB instead of making the mean infinite.
+    """
+    values: dict[str, list[float]] = {}
+    for view in per_view:
+        for key, value in view.items():
+            values.setdefault(key, []).append(float(value))
+    out: dict[str, float] = {}
+    for key, vals in values.items():
+        v = np.array(vals, np.float64)
+        if key.endswith("psnr"):
+            v = np.minimum(v, PSNR_CAP_DB)
+        v = v[~np.isnan(v)]
+        out[key] = float(np.mean(v)) if v.size else math.nan
+    out["num_views"] = len(per_view)
+    return out
