@@ -11,7 +11,9 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdistill.render.gather_plan import GatherPlan, MipChain, TexelSpace
+from jaxdistill.render.gather_plan import (GatherPlan, MipChain, TexelSpace, build_gather_plans,
+                                           build_texel_space)
+from jaxdistill.render.layout import TextureLayout
 
 
 def build_pyramid(texels: jnp.ndarray, chain: MipChain) -> jnp.ndarray:
@@ -123,3 +125,22 @@ def expand(texels, space: TexelSpace, fill, *, observed=None, dilation: int = 8)
             image = dilate(image, known, dilation)
         pages.append(image)
     return pages
+
+
+def sample_pages(pages, fragments, object_page, *, sampler: str = "bilinear") -> list[np.ndarray]:
+    """Per view, (H, W, C) float32 images of full texture pages seen through `fragments`.
+
+    pages: one (S, S, C) array per page (square, power-of-two sides, row 0 at v = 1);
+    object_page: the page of each object. Values keep the pages' space; missed pixels are 0.
+    This is how ground-truth per-view maps are made from ground-truth textures: with exactly
+    the gather the distillation renders with.
+    """
+    layout = TextureLayout(tuple(int(np.asarray(p).shape[0]) for p in pages), tuple(object_page),
+                           mipmaps=sampler == "trilinear", tile_size=16 if sampler == "trilinear" else 1)
+    space = build_texel_space(fragments, layout, sampler)
+    texels = jnp.asarray(compact(pages, space))
+    images = []
+    for frag in fragments:
+        plan = build_gather_plans([frag], space, sampler)
+        images.append(np.asarray(render(texels, plan))[0])
+    return images

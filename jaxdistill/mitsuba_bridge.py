@@ -1,0 +1,126 @@
+"""Mitsuba 3 interop for ground truth: our cameras and meshes as Mitsuba sensors and shapes.
+
+Mitsuba is an optional extra (`pip install -e ".[scenes]"`), used by the scene-generation
+scripts and their tests, never by the distillation itself. Everything here runs in the
+`scalar_rgb` variant, which needs no LLVM and renders deterministically for a given seed.
+
+Conventions bridged:
+- Camera: ours is OpenCV (x right, y down, z forward); Mitsuba's perspective sensor looks
+  down +z with x left, y up, so `to_world = c2w @ diag(-1, -1, 1, 1)`. Its principal point
+  offsets are fractions of the film size: offset_x = 0.5 - cx / W, offset_y = 0.5 - cy / H
+  (the inverse of `cameras.from_mitsuba`). Mitsuba pixels are square: fx must equal fy.
+- UVs: ours have v up and texture row 0 at v = 1; a Mitsuba bitmap puts row 0 at v = 0, so
+  shapes get texcoords (u, 1 - v) and bitmaps are passed unflipped (row 0 = top).
+- Bitmaps are float32 linear values (`raw`), so Mitsuba applies no sRGB decoding.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from jaxdistill.cameras import Camera
+
+VARIANT = "scalar_rgb"
+SQUARE_PIXEL_TOLERANCE = 1e-6
+
+
+def load_mitsuba(variant: str = VARIANT):
+    """Returns the `mitsuba` module with `variant` set; a clear ImportError when it is absent."""
+    try:
+        import mitsuba as mi
+    except ImportError as e:
+        raise ImportError("Mitsuba 3 is needed to render ground truth: install the 'scenes' extra "
+                          "with  pip install -e \".[scenes]\"") from e
+    if mi.variant() != variant:
+        mi.set_variant(variant)
+    return mi
+
+
+def to_world(camera: Camera) -> np.ndarray:
+    """(4, 4) Mitsuba sensor to_world (camera x left, y up, z forward) of an OpenCV camera."""
+    return camera.c2w @ np.diag([-1.0, -1.0, 1.0, 1.0])
+
+
+def sensor_dict(camera: Camera, *, spp: int = 1, centre_samples: bool = False,
+                pixel_format: str = "rgb") -> dict:
+    """A `perspective` sensor dict reproducing `camera` exactly.
+
+    centre_samples=True takes one sample at each pixel centre (stratified sampler, no jitter,
+    box filter): the Mitsuba analogue of our one-ray-per-pixel-centre fragments. Otherwise an
+    independent sampler with `spp` samples and Mitsuba's default Gaussian reconstruction filter.
+    Raises ValueError when fx != fy (Mitsuba's sensor has square pixels).
+    """
+    mi = load_mitsuba()
+    K, W, H = camera.K, camera.width, camera.height
+    if abs(K[0, 0] - K[1, 1]) > SQUARE_PIXEL_TOLERANCE * K[0, 0]:
+        raise ValueError(f"camera has fx={K[0, 0]} != fy={K[1, 1]}: Mitsuba's perspective sensor "
+                         "has square pixels; use equal focal lengths")
+    fov_x = float(np.degrees(2.0 * np.arctan(W / (2.0 * K[0, 0]))))
+    film = {"type": "hdrfilm", "width": W, "height": H, "pixel_format": pixel_format,
+            "component_format": "float32"}
+    if centre_samples:
+        film["rfilter"] = {"type": "box"}
+        sampler = {"type": "stratified", "sample_count": 1, "jitter": False}
+    else:
+        sampler = {"type": "independent", "sample_count": int(spp)}
+    return {"type": "perspective", "fov": fov_x, "fov_axis": "x",
+            "principal_point_offset_x": 0.5 - K[0, 2] / W,
+            "principal_point_offset_y": 0.5 - K[1, 2] / H,
+            "near_clip": 1e-3, "far_clip": 1e5,
+            "to_world": mi.ScalarTransform4f(to_world(camera).tolist()),
+            "film": film, "sampler": sampler}
+
+
+def mesh_shape(name: str, vertices, faces, uv, *, bsdf=None, emitter=None, flip_normals=False):
+    """A Mitsuba mesh from (Nv, 3) vertices, (F, 3) faces and per-corner uv (F, 3, 2) (ours, v up).
+
+    Corners are unshared (3F vertices) so per-corner UVs survive seams; there are no vertex
+    normals, so Mitsuba shades with face normals, like our fragments. `bsdf` and `emitter`
+    are loaded Mitsuba objects or plugin dicts.
+    """
+    import drjit as dr
+    mi = load_mitsuba()
+    faces = np.asarray(faces, np.int64)
+    corners = np.asarray(vertices, np.float64)[faces].reshape(-1, 3)
+    tex = np.asarray(uv, np.float64).reshape(-1, 2).copy()
+    tex[:, 1] = 1.0 - tex[:, 1]
+    props = mi.Properties()
+    for key, obj in (("bsdf", bsdf), ("emitter", emitter)):
+        if obj is not None:
+            props[key] = mi.load_dict(obj) if isinstance(obj, dict) else obj
+    if flip_normals:
+        props["flip_normals"] = True
+    shape = mi.Mesh(name, len(corners), len(faces), props, has_vertex_texcoords=True)
+    params = mi.traverse(shape)
+    params["vertex_positions"] = dr.scalar.ArrayXf(corners.astype(np.float32).ravel())
+    params["faces"] = dr.scalar.ArrayXu(np.arange(3 * len(faces), dtype=np.uint32))
+    params["vertex_texcoords"] = dr.scalar.ArrayXf(tex.astype(np.float32).ravel())
+    params.update()
+    return shape
+
+
+def bitmap(values, *, filter_type: str = "bilinear", wrap_mode: str = "clamp") -> dict:
+    """A `bitmap` texture dict from a linear float image (H, W) or (H, W, C), row 0 on top."""
+    mi = load_mitsuba()
+    array = np.ascontiguousarray(np.asarray(values, np.float32))
+    if array.ndim == 2:
+        array = array[..., None]
+    return {"type": "bitmap", "bitmap": mi.Bitmap(array), "raw": True,
+            "filter_type": filter_type, "wrap_mode": wrap_mode}
+
+
+def render(scene, camera: Camera, *, spp: int = 1, seed: int = 0, integrator=None,
+           centre_samples: bool = False) -> np.ndarray:
+    """(H, W, C) float32 image of a loaded Mitsuba `scene` from `camera` (linear radiance or AOVs)."""
+    mi = load_mitsuba()
+    sensor = mi.load_dict(sensor_dict(camera, spp=spp, centre_samples=centre_samples))
+    if isinstance(integrator, dict):
+        integrator = mi.load_dict(integrator)
+    image = mi.render(scene, sensor=sensor, integrator=integrator, seed=int(seed),
+                      spp=1 if centre_samples else int(spp))
+    return np.array(image, dtype=np.float32)
+
+
+def aov_integrator(*aovs: str) -> dict:
+    """An `aov` integrator dict; each aov is 'name:type' (e.g. 'albedo:albedo', 'obj:shape_index')."""
+    return {"type": "aov", "aovs": ",".join(aovs)}
