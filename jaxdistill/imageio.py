@@ -59,11 +59,15 @@ def read_image(path, *, linear: bool = True) -> np.ndarray:
     return pixels
 
 
-def write_image(path, pixels: np.ndarray, *, encode_srgb: bool | None = None) -> None:
+def write_image(path, pixels: np.ndarray, *, encode_srgb: bool | None = None, half: bool = False,
+                compression: str | None = None, timestamp: str | None = None) -> None:
     """Writes (H, W) or (H, W, C) linear float pixels; PNG/JPG get sRGB encoding by default.
 
-    EXR is written as float32. For LDR files `encode_srgb=False` writes values as-is
-    (use it for data maps such as normals, roughness, counts already in [0, 1]).
+    EXR is written as float32, or float16 with `half=True`; `compression` sets the EXR codec
+    (e.g. "zip", "piz", "dwaa:45"; OpenImageIO's default otherwise). For LDR files
+    `encode_srgb=False` writes values as-is (data maps such as normals, roughness, counts in [0, 1]).
+    EXR headers carry the write time unless `timestamp` ("YYYY:MM:DD hh:mm:ss") fixes it, which
+    makes the file byte-reproducible.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -76,8 +80,12 @@ def write_image(path, pixels: np.ndarray, *, encode_srgb: bool | None = None) ->
     if not linear_file:
         pixels = linear_to_srgb(pixels) if encode_srgb else np.clip(pixels, 0.0, 1.0)
     ext = path.suffix.lower()
-    dtype = "float" if linear_file else ("uint16" if ext in (".tif", ".tiff") else "uint8")
+    dtype = ("half" if half else "float") if linear_file else ("uint16" if ext in (".tif", ".tiff") else "uint8")
     buf = oiio.ImageBuf(np.ascontiguousarray(pixels))
+    if compression:
+        buf.specmod().attribute("compression", compression)
+    if timestamp:
+        buf.specmod().attribute("DateTime", timestamp)
     tmp = path.with_name(path.name + ".tmp" + path.suffix)
     if not buf.write(os.fspath(tmp), dtype):
         raise OSError(f"{path}: cannot write image: {oiio.geterror()}")

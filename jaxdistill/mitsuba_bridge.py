@@ -45,9 +45,11 @@ def sensor_dict(camera: Camera, *, spp: int = 1, centre_samples: bool = False,
                 pixel_format: str = "rgb") -> dict:
     """A `perspective` sensor dict reproducing `camera` exactly.
 
-    centre_samples=True takes one sample at each pixel centre (stratified sampler, no jitter,
-    box filter): the Mitsuba analogue of our one-ray-per-pixel-centre fragments. Otherwise an
-    independent sampler with `spp` samples and Mitsuba's default Gaussian reconstruction filter.
+    centre_samples=True takes one sample at each pixel centre (stratified sampler, no jitter):
+    the Mitsuba analogue of our one-ray-per-pixel-centre fragments. Otherwise an independent
+    sampler with `spp` samples. The reconstruction filter is a box (each sample lands in exactly
+    one pixel): with Mitsuba's default Gaussian, image blocks overlap at their borders and the
+    order in which threads add them changes the last bits, so renders would not be reproducible.
     Raises ValueError when fx != fy (Mitsuba's sensor has square pixels).
     """
     mi = load_mitsuba()
@@ -57,9 +59,8 @@ def sensor_dict(camera: Camera, *, spp: int = 1, centre_samples: bool = False,
                          "has square pixels; use equal focal lengths")
     fov_x = float(np.degrees(2.0 * np.arctan(W / (2.0 * K[0, 0]))))
     film = {"type": "hdrfilm", "width": W, "height": H, "pixel_format": pixel_format,
-            "component_format": "float32"}
+            "component_format": "float32", "rfilter": {"type": "box"}}
     if centre_samples:
-        film["rfilter"] = {"type": "box"}
         sampler = {"type": "stratified", "sample_count": 1, "jitter": False}
     else:
         sampler = {"type": "independent", "sample_count": int(spp)}

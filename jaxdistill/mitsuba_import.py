@@ -925,7 +925,7 @@ def prepare_scene(xml_path, out_dir, *, num_views: int, width: int, height: int,
     for i, (name, cam) in enumerate(bar):
         image = mb.render(source.scene, cam, spp=spp, seed=seed + i)[..., :3]
         image = np.nan_to_num(image, nan=0.0, posinf=0.0, neginf=0.0)
-        imageio.write_image(out / "photos" / f"{name}.exr", image)
+        imageio.write_image(out / "photos" / f"{name}.exr", image, half=True)
         imageio.write_image(out / "photos" / f"{name}.png", image)
     timings["render_s"] = time.perf_counter() - t
     log.info("rendered %d views at %dx%d, spp %d in %.1f s", len(cams), width, height, spp, timings["render_s"])
@@ -945,7 +945,7 @@ def prepare_scene(xml_path, out_dir, *, num_views: int, width: int, height: int,
         "settings": {"views": num_views, "width": width, "height": height, "spp": spp, "seed": seed},
         "command": command,
         "conventions": {
-            "photos": "photos/<view>.exr linear RGB radiance; photos/<view>.png the same, sRGB-encoded",
+            "photos": "photos/<view>.exr linear RGB radiance (half float); photos/<view>.png the same, sRGB-encoded",
             "albedo": "targets/albedo/<view>.exr linear RGB; 0 outside the mask",
             "roughness": "targets/roughness/<view>.exr one channel, perceptual roughness = sqrt(GGX alpha); "
                          "0 outside the mask",

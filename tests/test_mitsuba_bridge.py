@@ -62,3 +62,18 @@ def test_aov_albedo_and_object_ids_match_our_sampler():
     names = [s.id() for s in scene.shapes()]      # shape_index is 1-based; 0 is a miss
     mitsuba_object = np.array([mesh.object_names.index(names[int(k) - 1]) for k in aov[..., 3].ravel()])
     assert (mitsuba_object.reshape(hit.shape) == frag.object_id).mean() > 0.99
+
+
+def test_path_traced_renders_are_reproducible():
+    mi = mb.load_mitsuba()
+    mesh = synthetic.box_room(size=(4.0, 2.5, 3.0), subdivisions=2, furniture=True)
+    shapes = {name: mb.mesh_shape(name, mesh.vertices, mesh.faces[mesh.face_object == i], mesh.uv[mesh.face_object == i],
+                                  bsdf={"type": "diffuse"})
+              for i, name in enumerate(mesh.object_names) if name != "room_ceiling"}      # the sky comes in
+    scene = mi.load_dict({"type": "scene", **shapes, "sky": {"type": "constant"}})
+    cam = look_at_camera((1.0, 1.4, 2.8), (3.5, 1.1, 0.5), width=160, height=120, fx=130.0, cx=77.0, cy=62.0)
+    a, b = (mb.render(scene, cam, spp=4, seed=7, integrator={"type": "path", "max_depth": 3}) for _ in range(2))
+    c = mb.render(scene, cam, spp=4, seed=8, integrator={"type": "path", "max_depth": 3})
+    assert a.std() > 0.05
+    np.testing.assert_array_equal(a, b)
+    assert not np.array_equal(a, c)
