@@ -1,0 +1,748 @@
+"""Generates the embedded bedroom scene: geometry, PBR ground truth, Mitsuba photos, estimates.
+
+    python scripts/make_bedroom.py [--out=jaxdistill/scenes/bedroom] [--views=48] [--spp=64]
+    python scripts/make_bedroom.py --verify      # regenerate into a temp dir, compare hashes
+
+Needs the `scenes` extra (Mitsuba 3, scalar_rgb). Every random choice comes from one seed, so
+the same versions on the same platform regenerate the folder bit for bit (`manifest.sha256`).
+
+What it builds (units metres, y up; the room spans [0, 4.2] x [0, 2.6] x [0, 3.6]):
+- A room with a window opening (sun and sky come in through it) and a door; a bed (frame,
+  mattress, two pillows, blanket), two nightstands, a wardrobe, a desk and a chair, a rug, a
+  bedside lamp (metal stand, fabric shade, emitting bulb), two picture frames, a radiator and
+  metal handles. Each object is a set of rectangles whose UVs are packed without overlap into
+  its own texture page at a uniform texel density (about 128 texels per metre).
+- Spatially varying ground truth per object: albedo (wood grain, fabric weave, wallpaper,
+  plaster, rug pattern, paintings, brushed metal), roughness and metallic maps, stored as 8-bit
+  PNGs; the quantised values are the ground truth. Every material is Mitsuba's `principled`
+  BSDF driven by exactly these textures, so the ground truth is exact.
+- Views inside the room at varied heights, orientations and focal lengths, some close-ups,
+  off-centre principal points; photos path traced with Mitsuba (EXR linear + PNG sRGB).
+- Per-view stand-ins for a monocular estimator's output (the `views` prior's targets): the
+  ground truth rendered by our own gather sampler, corrupted the way single-image estimators
+  err; the parameters of every view are in `estimates.json`, described in the scene README.
+- A check that our sampler agrees with Mitsuba's `aov` albedo for every camera.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import hashlib
+import json
+import math
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from jaxdistill import cameras, imageio
+from jaxdistill import mitsuba_bridge as mb
+from jaxdistill.render import fragments as fr
+from jaxdistill.render.sampler import sample_pages
+from jaxdistill.scene import Mesh, Scene, View, write_scene
+from jaxdistill.synthetic import quad_patch
+
+ROOM = np.array([4.2, 2.6, 3.6])
+TEXELS_PER_METRE = 128
+GUTTER_TEXELS = 4
+EMITTERS = {"bulb": [14.0, 10.0, 5.5], "panel": [7.0, 6.6, 6.0]}   # material -> area radiance (linear RGB)
+EMITTER_OBJECTS = ("lamp_bulb", "ceiling_light")          # excluded from evaluation
+SUN_IRRADIANCE = [4.0, 3.7, 3.2]
+SKY_RADIANCE = [0.45, 0.55, 0.75]
+PIXEL_FILTER_SIGMA = 0.5   # Gaussian pixel filter applied after Mitsuba's box-filtered render (see generate)
+EXR_TIMESTAMP = "2026:11:21 00:00:00"   # fixed EXR capDate: files are byte-reproducible
+DEFAULT_OUT = Path(__file__).resolve().parents[1] / "jaxdistill" / "scenes" / "bedroom"
+
+# ----------------------------------------------------------------------------- geometry
+
+
+@dataclasses.dataclass
+class Rect:
+    """A planar rectangle origin + a*edge_u + b*edge_v (a, b in [0, 1]); normal edge_u x edge_v.
+
+    uv: fixed (u0, v0, du, dv) placement in the page, or None to be packed by `pack_rects`.
+    """
+
+    origin: np.ndarray
+    edge_u: np.ndarray
+    edge_v: np.ndarray
+    uv: tuple | None = None
+
+
+def rect(origin, edge_u, edge_v, uv=None) -> Rect:
+    return Rect(np.asarray(origin, float), np.asarray(edge_u, float), np.asarray(edge_v, float), uv)
+
+
+def box(lo, hi, skip=()) -> list[Rect]:
+    """Outward-facing rectangles of the box [lo, hi]; skip names faces to leave out ('-y', '+x', ...)."""
+    (x0, y0, z0), (x1, y1, z1) = lo, hi
+    dx, dy, dz = x1 - x0, y1 - y0, z1 - z0
+    faces = {
+        "-y": rect((x0, y0, z0), (dx, 0, 0), (0, 0, dz)),
+        "+y": rect((x0, y1, z1), (dx, 0, 0), (0, 0, -dz)),
+        "-z": rect((x1, y0, z0), (-dx, 0, 0), (0, dy, 0)),
+        "+z": rect((x0, y0, z1), (dx, 0, 0), (0, dy, 0)),
+        "-x": rect((x0, y0, z0), (0, 0, dz), (0, dy, 0)),
+        "+x": rect((x1, y0, z1), (0, 0, -dz), (0, dy, 0)),
+    }
+    return [r for name, r in faces.items() if name not in skip]
+
+
+def wall(origin, edge_u, edge_v, hole=None) -> list[Rect]:
+    """An inward-facing wall with planar UVs (u along edge_u, v up), optionally with a
+    rectangular opening hole = (a0, a1, b0, b1) in fractions of the edges."""
+    origin, eu, ev = (np.asarray(x, float) for x in (origin, edge_u, edge_v))
+    if hole is None:
+        return [rect(origin, eu, ev, (0.0, 0.0, 1.0, 1.0))]
+    a0, a1, b0, b1 = hole
+    cells = [(0, 1, 0, b0), (0, 1, b1, 1), (0, a0, b0, b1), (a1, 1, b0, b1)]
+    return [rect(origin + p0 * eu + q0 * ev, (p1 - p0) * eu, (q1 - q0) * ev, (p0, q0, p1 - p0, q1 - q0))
+            for p0, p1, q0, q1 in cells]
+
+
+def pack_rects(sizes: np.ndarray, gutter: float) -> tuple[np.ndarray, float]:
+    """Shelf-packs rectangles (n, 2) (width, height in metres) into the unit square.
+
+    Returns lower-left corners (n, 2) and the largest common scale s (uv units per metre) at
+    which all of them fit with `gutter` uv units between and around them.
+    """
+    order = np.argsort(-sizes[:, 1], kind="stable")
+
+    def place(s):
+        corners = np.zeros_like(sizes)
+        x, y, shelf = gutter, gutter, 0.0
+        for i in order:
+            w, h = sizes[i] * s
+            if x + w + gutter > 1.0:
+                x, y, shelf = gutter, y + shelf + gutter, 0.0
+            if x + w + gutter > 1.0 or y + h + gutter > 1.0:
+                return None
+            corners[i] = (x, y)
+            x, shelf = x + w + gutter, max(shelf, h)
+        return corners
+
+    lo, hi = 0.0, 1.0 / sizes.max()
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if place(mid) is not None else (lo, mid)
+    return place(lo), lo
+
+
+def page_size_for(rects: list[Rect]) -> int:
+    """Power-of-two page side giving about TEXELS_PER_METRE over the object's area, in [64, 512]."""
+    area = sum(np.linalg.norm(np.cross(r.edge_u, r.edge_v)) for r in rects)
+    side = math.sqrt(area * 1.6) * TEXELS_PER_METRE
+    return int(np.clip(2 ** round(math.log2(max(side, 1.0))), 64, 512))
+
+
+def build_object(rects: list[Rect], size: int):
+    """(vertices, faces, corner uv) of one object; packed rects share one texel density."""
+    packed = [i for i, r in enumerate(rects) if r.uv is None]
+    placement = {}
+    if packed:
+        sizes = np.array([[np.linalg.norm(rects[i].edge_u), np.linalg.norm(rects[i].edge_v)] for i in packed])
+        corners, scale = pack_rects(sizes, GUTTER_TEXELS / size)
+        for k, i in enumerate(packed):
+            placement[i] = (*corners[k], *(sizes[k] * scale))
+    verts, faces, uvs, offset = [], [], [], 0
+    for i, r in enumerate(rects):
+        v, f, uv = quad_patch(r.origin, r.edge_u, r.edge_v, 1)
+        u0, v0, du, dv = r.uv if r.uv is not None else placement[i]
+        verts.append(v)
+        faces.append(f + offset)
+        uvs.append(np.stack([u0 + uv[..., 0] * du, v0 + uv[..., 1] * dv], -1))
+        offset += len(v)
+    return np.concatenate(verts), np.concatenate(faces), np.concatenate(uvs)
+
+
+def legs(x0, x1, z0, z1, height, thickness) -> list[Rect]:
+    """Four square legs under the rectangle [x0, x1] x [z0, z1]."""
+    t = thickness
+    out = []
+    for x in (x0, x1 - t):
+        for z in (z0, z1 - t):
+            out += box((x, 0.0, z), (x + t, height, z + t), skip=("-y", "+y"))
+    return out
+
+
+def bedroom_objects() -> list[tuple[str, list[Rect], str]]:
+    """(name, rectangles, material) of every object of the room."""
+    X, Y, Z = ROOM
+    win = (1.2 / Z, 2.4 / Z, 0.9 / Y, 2.1 / Y)             # window on the x = X wall
+    door = (0.3, 1.2)                                      # door on the z = 0 wall (x range)
+    objs = [
+        ("floor", [rect((0, 0, Z), (X, 0, 0), (0, 0, -Z), (0, 0, 1, 1))], "floor_wood"),
+        ("ceiling", [rect((0, Y, 0), (X, 0, 0), (0, 0, Z), (0, 0, 1, 1))], "plaster"),
+        ("wall_door", wall((0, 0, 0), (X, 0, 0), (0, Y, 0)), "paint"),
+        ("wall_bed", wall((X, 0, Z), (-X, 0, 0), (0, Y, 0)), "wallpaper"),
+        ("wall_wardrobe", wall((0, 0, Z), (0, 0, -Z), (0, Y, 0)), "paint"),
+        ("wall_window", wall((X, 0, 0), (0, 0, Z), (0, Y, 0), hole=win), "paint"),
+    ]
+    wz0, wz1, wy0, wy1 = win[0] * Z, win[1] * Z, win[2] * Y, win[3] * Y
+    d = 0.18                                               # reveal depth, outwards
+    frame = [rect((X + d, wy0, wz0), (-d, 0, 0), (0, 0, wz1 - wz0)),       # sill, facing up
+             rect((X, wy1, wz0), (d, 0, 0), (0, 0, wz1 - wz0)),            # lintel, facing down
+             rect((X + d, wy0, wz0), (0, wy1 - wy0, 0), (-d, 0, 0)),       # side z = wz0, facing +z
+             rect((X, wy0, wz1), (0, wy1 - wy0, 0), (d, 0, 0))]            # side z = wz1, facing -z
+    frame += box((X + 0.06, wy0, 0.5 * (wz0 + wz1) - 0.03), (X + 0.12, wy1, 0.5 * (wz0 + wz1) + 0.03), skip=("-y", "+y"))
+    frame += box((X + 0.06, 0.5 * (wy0 + wy1) - 0.03, wz0), (X + 0.12, 0.5 * (wy0 + wy1) + 0.03, wz1), skip=("-z", "+z"))
+    objs.append(("window_frame", frame, "white_wood"))
+    objs.append(("door", box((door[0], 0.0, 0.0), (door[1], 2.05, 0.035), skip=("-z", "-y")), "door_wood"))
+    objs.append(("door_handle", box((1.02, 1.0, 0.035), (1.14, 1.03, 0.09), skip=("-z",))
+                 + box((1.1, 0.97, 0.035), (1.14, 1.06, 0.05), skip=("-z",)), "brass"))
+    # bed against the far wall (z = Z)
+    bx0, bx1, bz0, bz1 = 1.3, 2.9, 1.45, Z
+    objs.append(("bed_frame", box((bx0, 0.12, bz0), (bx1, 0.35, bz1), skip=("+z", "-y"))
+                 + box((bx0 - 0.04, 0.0, bz1 - 0.06), (bx1 + 0.04, 1.05, bz1), skip=("+z", "-y"))
+                 + legs(bx0, bx1, bz0, bz1 - 0.06, 0.12, 0.07), "oak"))
+    objs.append(("mattress", box((bx0 + 0.03, 0.35, bz0 + 0.03), (bx1 - 0.03, 0.55, bz1 - 0.07), skip=("-y", "+z")), "linen"))
+    objs.append(("blanket", box((bx0 - 0.02, 0.3, bz0 - 0.02), (bx1 + 0.02, 0.58, bz1 - 0.75), skip=("-y", "+z")), "knit"))
+    for k, (x0, x1) in enumerate(((bx0 + 0.1, bx0 + 0.75), (bx1 - 0.75, bx1 - 0.1))):
+        objs.append((f"pillow_{k}", box((x0, 0.55, bz1 - 0.55), (x1, 0.7, bz1 - 0.12), skip=("-y",)), "pillow"))
+    for k, (x0, x1) in enumerate(((0.75, 1.2), (3.0, 3.45))):
+        objs.append((f"nightstand_{k}", box((x0, 0.0, Z - 0.45), (x1, 0.55, Z - 0.02), skip=("-y", "+z"))
+                     + box((x0 + 0.04, 0.3, Z - 0.455), (x1 - 0.04, 0.5, Z - 0.45), skip=("+z",)), "walnut"))
+        objs.append((f"nightstand_{k}_knob", box((0.5 * (x0 + x1) - 0.03, 0.38, Z - 0.49), (0.5 * (x0 + x1) + 0.03, 0.42, Z - 0.455), skip=("+z",)), "steel"))
+    # lamp on nightstand 0
+    lx, lz = 0.975, Z - 0.235
+    objs.append(("lamp_stand", box((lx - 0.09, 0.55, lz - 0.09), (lx + 0.09, 0.57, lz + 0.09), skip=("-y",))
+                 + box((lx - 0.012, 0.57, lz - 0.012), (lx + 0.012, 0.9, lz + 0.012), skip=("-y",)), "brushed_steel"))
+    objs.append(("lamp_shade", box((lx - 0.14, 0.82, lz - 0.14), (lx + 0.14, 1.04, lz + 0.14), skip=("-y", "+y")), "shade"))
+    objs.append(("lamp_bulb", box((lx - 0.04, 0.86, lz - 0.04), (lx + 0.04, 0.96, lz + 0.04)), "bulb"))
+    objs.append(("ceiling_light", box((1.75, Y - 0.04, 1.45), (2.45, Y - 0.005, 2.15), skip=("+y",)), "panel"))
+    # wardrobe against x = 0
+    objs.append(("wardrobe", box((0.0, 0.0, 0.35), (0.6, 2.1, 1.85), skip=("-x", "-y")), "walnut"))
+    objs.append(("wardrobe_handles", box((0.6, 0.95, 1.02), (0.63, 1.25, 1.05), skip=("-x",))
+                 + box((0.6, 0.95, 1.15), (0.63, 1.25, 1.18), skip=("-x",)), "steel"))
+    # desk and chair under the window side, near the door wall
+    objs.append(("desk", box((3.4, 0.72, 0.2), (4.15, 0.76, 1.1)) + legs(3.4, 4.15, 0.2, 1.1, 0.72, 0.05), "varnished"))
+    objs.append(("chair", box((2.9, 0.44, 0.45), (3.3, 0.48, 0.85)) + box((2.86, 0.44, 0.45), (2.9, 0.95, 0.85))
+                 + legs(2.86, 3.3, 0.45, 0.85, 0.44, 0.035), "oak"))
+    objs.append(("rug", box((1.0, 0.0, 0.6), (3.2, 0.012, 2.6), skip=("-y",)), "rug"))
+    objs.append(("radiator", [r for k in range(8) for r in box((X - 0.1, 0.15, 1.35 + 0.12 * k),
+                                                                (X - 0.02, 0.75, 1.35 + 0.12 * k + 0.06), skip=("+x",))], "radiator"))
+    objs.append(("picture_0", box((0.0, 1.25, 2.3), (0.03, 1.85, 3.1), skip=("-x",)), "painting"))
+    objs.append(("picture_1", box((1.75, 1.3, Z - 0.03), (2.45, 1.8, Z), skip=("+z",)), "painting"))
+    return objs
+
+
+# ----------------------------------------------------------------------------- textures
+
+
+def smooth_noise(rng, shape, sigma: float, aspect: float = 1.0) -> np.ndarray:
+    """Periodic Gaussian-filtered white noise of `shape` (int for square), zero mean, unit std;
+    sigma in texels across rows, sigma * aspect along rows."""
+    shape = (shape, shape) if np.isscalar(shape) else tuple(shape)
+    white = rng.standard_normal(shape)
+    gy, gx = np.meshgrid(np.fft.fftfreq(shape[0]), np.fft.fftfreq(shape[1]), indexing="ij")
+    kernel = np.exp(-2 * np.pi ** 2 * ((gy * sigma) ** 2 + (gx * sigma * aspect) ** 2))
+    out = np.real(np.fft.ifft2(np.fft.fft2(white) * kernel))
+    return (out - out.mean()) / (out.std() + 1e-12)
+
+
+def gaussian_blur(image: np.ndarray, sigma: float) -> np.ndarray:
+    """(H, W, C) image blurred with a separable Gaussian (edge-replicated borders)."""
+    if sigma <= 0:
+        return image
+    r = int(math.ceil(3 * sigma))
+    k = np.exp(-0.5 * (np.arange(-r, r + 1) / sigma) ** 2)
+    k /= k.sum()
+    out = np.pad(image, ((r, r), (r, r), (0, 0)), mode="edge")
+    out = sum(k[i] * out[i:i + image.shape[0]] for i in range(2 * r + 1))
+    return sum(k[i] * out[:, i:i + image.shape[1]] for i in range(2 * r + 1))
+
+
+def mix(a, b, t):
+    return np.asarray(a)[None, None] * (1 - t[..., None]) + np.asarray(b)[None, None] * t[..., None]
+
+
+def grid(size: int):
+    s = (np.arange(size) + 0.5) / size
+    return np.meshgrid(s, s, indexing="xy")          # (u, row) with row 0 on top
+
+
+def wood(rng, size, light, dark, rings=38.0):
+    u, v = grid(size)
+    warp = smooth_noise(rng, size, size / 10, aspect=0.25)
+    grain = 0.5 + 0.5 * np.sin(2 * np.pi * (v * rings + 0.8 * warp))
+    fine = smooth_noise(rng, size, 0.7, aspect=6.0)
+    t = np.clip(grain ** 3 + 0.12 * fine, 0, 1)
+    return mix(light, dark, t), t
+
+
+def albedo_and_maps(material: str, rng, size: int):
+    """(albedo (S, S, 3) linear, roughness (S, S), metallic (S, S)) of a named material."""
+    u, v = grid(size)
+    n_low = smooth_noise(rng, size, size / 8)
+    rough = np.full((size, size), 0.5)
+    metal = np.zeros((size, size))
+    if material in ("floor_wood", "oak", "walnut", "door_wood", "varnished"):
+        colours = {"floor_wood": ((0.42, 0.26, 0.13), (0.22, 0.12, 0.05)), "oak": ((0.55, 0.38, 0.2), (0.33, 0.2, 0.09)),
+                   "walnut": ((0.26, 0.15, 0.08), (0.12, 0.06, 0.03)), "door_wood": ((0.6, 0.5, 0.36), (0.42, 0.32, 0.2)),
+                   "varnished": ((0.48, 0.3, 0.15), (0.28, 0.15, 0.06))}[material]
+        albedo, t = wood(rng, size, *colours)
+        if material == "floor_wood":                                    # planks
+            plank = np.floor(u * 12)
+            albedo *= (0.85 + 0.3 * np.random.default_rng(int(rng.integers(1 << 31))).random(12))[plank.astype(int)][..., None]
+            albedo *= np.where(np.abs(u * 12 - np.round(u * 12)) < 0.02, 0.4, 1.0)[..., None]
+        base = {"varnished": 0.25, "floor_wood": 0.35}.get(material, 0.55)
+        rough = base + 0.15 * t + 0.03 * n_low
+    elif material in ("plaster", "paint", "white_wood"):
+        colour = {"plaster": (0.8, 0.79, 0.76), "paint": (0.62, 0.66, 0.58), "white_wood": (0.78, 0.78, 0.75)}[material]
+        albedo = np.asarray(colour)[None, None] * (1 + 0.04 * n_low + 0.015 * smooth_noise(rng, size, 3.0))[..., None]
+        rough = 0.8 + 0.05 * n_low if material != "white_wood" else 0.35 + 0.05 * n_low
+    elif material == "wallpaper":
+        stripe = (np.sin(2 * np.pi * u * 24) > 0.6).astype(float)
+        motif = ((np.sin(2 * np.pi * u * 48) * np.sin(2 * np.pi * v * 30)) > 0.85).astype(float)
+        albedo = mix((0.7, 0.62, 0.5), (0.45, 0.3, 0.3), np.clip(0.6 * stripe + motif, 0, 1))
+        albedo *= (1 + 0.03 * n_low)[..., None]
+        rough = 0.75 - 0.2 * motif
+    elif material in ("linen", "knit", "pillow", "shade"):
+        f = {"linen": 90, "knit": 60, "pillow": 110, "shade": 70}[material]
+        weave = 0.5 + 0.5 * np.sin(2 * np.pi * u * f) * np.sin(2 * np.pi * v * f)
+        colour, accent = {"linen": ((0.85, 0.84, 0.8), (0.7, 0.7, 0.68)), "knit": ((0.2, 0.3, 0.5), (0.12, 0.18, 0.34)),
+                          "pillow": ((0.8, 0.68, 0.55), (0.62, 0.5, 0.4)), "shade": ((0.9, 0.85, 0.72), (0.75, 0.7, 0.6))}[material]
+        albedo = mix(colour, accent, np.clip(weave + 0.2 * n_low, 0, 1))
+        if material == "knit":                                         # cable stripes
+            albedo = np.where((np.sin(2 * np.pi * v * 8) > 0.7)[..., None], albedo * 1.8, albedo)
+        rough = 0.9 + 0.05 * weave
+    elif material == "rug":
+        d = np.minimum(np.minimum(u, 1 - u), np.minimum(v, 1 - v))
+        border = (d < 0.08).astype(float) * (1 - (d < 0.06) + (d < 0.03))
+        diamond = ((np.abs((u * 10) % 1 - 0.5) + np.abs((v * 8) % 1 - 0.5)) < 0.3).astype(float)
+        albedo = mix((0.55, 0.12, 0.1), (0.85, 0.7, 0.45), np.clip(diamond * (d >= 0.08) + border, 0, 1))
+        albedo = albedo * (1 + 0.08 * smooth_noise(rng, size, 0.8))[..., None]
+        rough = 0.95 - 0.05 * diamond
+    elif material == "painting":
+        colours = np.array([(0.75, 0.3, 0.1), (0.1, 0.3, 0.6), (0.85, 0.75, 0.3), (0.15, 0.45, 0.25)])
+        fields = np.stack([smooth_noise(rng, size, size / 10) for _ in colours])
+        w = np.exp(2.5 * fields)
+        albedo = np.einsum("kij,kc->ijc", w / w.sum(0), colours)
+        d = np.minimum(np.minimum(u, 1 - u), np.minimum(v, 1 - v))
+        gilded = d < 0.1                                               # gilt frame: metallic border
+        albedo[gilded] = (0.85, 0.65, 0.3)
+        metal = gilded.astype(float)
+        rough = np.where(gilded, 0.3, 0.6)
+    elif material in ("steel", "brushed_steel", "radiator", "brass"):
+        brushed = smooth_noise(rng, size, 0.6, aspect=12.0)
+        colour = {"brass": (0.9, 0.7, 0.35), "radiator": (0.85, 0.85, 0.83)}.get(material, (0.75, 0.75, 0.76))
+        albedo = np.asarray(colour)[None, None] * (1 + 0.04 * brushed)[..., None]
+        metal = np.ones((size, size))
+        rough = {"steel": 0.3, "brushed_steel": 0.4, "radiator": 0.35, "brass": 0.25}[material] + 0.06 * brushed
+    elif material in EMITTERS:
+        albedo = np.full((size, size, 3), 0.9)
+        rough = np.full((size, size), 0.2)
+    else:
+        raise ValueError(f"unknown material {material!r}")
+    return np.clip(albedo, 0.02, 0.95), np.clip(rough, 0.02, 1.0), np.clip(metal, 0.0, 1.0)
+
+
+# ----------------------------------------------------------------------------- scene
+
+
+def build_scene_geometry(objs) -> tuple[Mesh, list[int]]:
+    """The Mesh of all objects (one object id each) and each object's page size."""
+    verts, faces, uvs, face_object, sizes, offset = [], [], [], [], [], 0
+    for k, (name, rects, _) in enumerate(objs):
+        size = page_size_for(rects)
+        v, f, uv = build_object(rects, size)
+        verts.append(v)
+        faces.append(f + offset)
+        uvs.append(uv)
+        face_object.append(np.full(len(f), k, np.int32))
+        sizes.append(size)
+        offset += len(v)
+    mesh = Mesh(vertices=np.concatenate(verts), faces=np.concatenate(faces).astype(np.int64),
+                uv=np.concatenate(uvs), face_object=np.concatenate(face_object),
+                object_names=tuple(name for name, _, _ in objs))
+    return mesh, sizes
+
+
+def write_textures(objs, sizes, rng, folder: Path) -> dict[str, list[np.ndarray]]:
+    """Writes 8-bit GT textures and returns what they decode to (the exact ground truth):
+    albedo (S, S, 3) linear, roughness and metallic (S, S, 1) in [0, 1]."""
+    gt = {"albedo": [], "roughness": [], "metallic": []}
+    for (name, _, material), size in zip(objs, sizes):
+        albedo, rough, metal = albedo_and_maps(material, rng, size)
+        for key, values, srgb in (("albedo", albedo, True), ("roughness", rough, False), ("metallic", metal, False)):
+            path = folder / key / f"{name}.png"
+            imageio.write_image(path, values, encode_srgb=srgb)
+            gt[key].append(imageio.read_image(path, linear=srgb))
+    return gt
+
+
+def mitsuba_scene(mesh: Mesh, objs, gt):
+    """The loaded Mitsuba scene: principled BSDFs on the GT textures, sun, sky and the lamp."""
+    mi = mb.load_mitsuba()
+    shapes = {}
+    for k, (name, _, material) in enumerate(objs):
+        sel = mesh.face_object == k
+        bsdf = {"type": "principled", "base_color": mb.bitmap(gt["albedo"][k]),
+                "roughness": mb.bitmap(gt["roughness"][k]), "metallic": mb.bitmap(gt["metallic"][k])}
+        emitter = EMITTERS.get(material)
+        emitter = {"type": "area", "radiance": {"type": "rgb", "value": emitter}} if emitter else None
+        shapes[name] = mb.mesh_shape(name, mesh.vertices, mesh.faces[sel], mesh.uv[sel], bsdf=bsdf, emitter=emitter)
+    sun = np.array([-1.0, -0.55, 0.35])
+    return mi.load_dict({
+        "type": "scene", **shapes,
+        "sun": {"type": "directional", "direction": (sun / np.linalg.norm(sun)).tolist(),
+                "irradiance": {"type": "rgb", "value": SUN_IRRADIANCE}},
+        "sky": {"type": "constant", "radiance": {"type": "rgb", "value": SKY_RADIANCE}},
+    })
+
+
+def object_boxes(mesh: Mesh, names) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Axis-aligned bounds of the named objects."""
+    out = {}
+    for name in names:
+        tri = mesh.triangles()[mesh.face_object == mesh.object_names.index(name)].reshape(-1, 3)
+        out[name] = (tri.min(0), tri.max(0))
+    return out
+
+
+def place_views(mesh: Mesh, rng, count: int, width: int, height: int) -> list[cameras.Camera]:
+    """`count` cameras inside the room, aimed at objects in turn (so all are seen), about a third
+    of them close-ups; fov 55-75 degrees, off-centre principal point, a little roll.
+
+    A candidate is kept when its eye is at least 0.2 m outside every piece of furniture and a
+    low-resolution preview sees geometry in >= 90 % of pixels at a median depth >= 0.4 m.
+    """
+    room_objects = {"floor", "ceiling", "wall_door", "wall_bed", "wall_wardrobe", "wall_window", "window_frame"}
+    furniture = [n for n in mesh.object_names if n not in room_objects]
+    boxes = object_boxes(mesh, mesh.object_names)
+    caster = fr.RayCaster(mesh)
+    targets = [n for n in mesh.object_names if n not in EMITTER_OBJECTS]
+    order = list(rng.permutation(targets))
+    out = []
+    while len(out) < count:
+        name = order[len(out) % len(order)]
+        lo, hi = boxes[name]
+        target = lo + rng.uniform(0.2, 0.8, 3) * (hi - lo)
+        close_up = name in furniture and rng.random() < 0.35
+        if close_up:
+            direction = rng.normal(size=3)
+            direction[1] = abs(direction[1]) + 0.3
+            eye = target + direction / np.linalg.norm(direction) * rng.uniform(0.6, 1.0)
+        else:
+            eye = rng.uniform([0.35, 0.6, 0.35], ROOM - [0.35, 0.7, 0.35])
+        if not (np.all(eye > [0.15, 0.3, 0.15]) and np.all(eye < ROOM - 0.15)):
+            continue
+        if any(np.all(eye > bl - 0.2) and np.all(eye < bh + 0.2) for n, (bl, bh) in boxes.items() if n in furniture):
+            continue
+        fov = rng.uniform(55.0, 75.0) if not close_up else rng.uniform(50.0, 62.0)
+        fx = width / (2 * math.tan(math.radians(fov) / 2))
+        cx, cy = width / 2 + rng.normal(0, 0.02 * width), height / 2 + rng.normal(0, 0.02 * height)
+        K = np.array([[fx, 0, cx], [0, fx, cy], [0, 0, 1.0]])
+        forward = (target - eye) / np.linalg.norm(target - eye)
+        if abs(forward[1]) > 0.9:
+            continue
+        roll = math.radians(rng.normal(0, 3.0))
+        side = np.cross(forward, [0.0, 1.0, 0.0])
+        side /= np.linalg.norm(side)
+        up = math.cos(roll) * np.cross(side, forward) + math.sin(roll) * side
+        cam = cameras.look_at(eye, target, up, K, width, height)
+        small = cameras.Camera(np.diag([0.125, 0.125, 1.0]) @ K, cam.c2w, width // 8, height // 8)
+        tri, _, depth = fr.cast_view(caster, small)[:3]
+        hit = tri >= 0
+        if hit.mean() < 0.9 or np.median(depth[hit]) < 0.4:
+            continue
+        out.append(cam)
+    return out
+
+
+def face_normals(mesh: Mesh) -> np.ndarray:
+    """(F, 3) unit normals (edge_u x edge_v of each rectangle: outwards for furniture, into the room for walls)."""
+    t = mesh.triangles()
+    n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+    return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
+def camera_normals(normals_world: np.ndarray, triangle: np.ndarray, camera: cameras.Camera) -> np.ndarray:
+    """(H, W, 3) camera-space normals, x right, y up, z towards the camera (RGB<->X); 0 on misses."""
+    hit = triangle >= 0
+    n = normals_world[np.where(hit, triangle, 0)] @ camera.w2c[:3, :3].T
+    n = n * np.array([1.0, -1.0, -1.0])
+    return np.where(hit[..., None], n, 0.0).astype(np.float32)
+
+
+# ----------------------------------------------------------------------------- estimates
+
+ESTIMATE_MODEL = """\
+Per view v, with GT maps rendered by our sampler, photo P (linear) and shading
+S = lum(P) / max(lum(albedo_gt), 0.02) normalised by its median over hit pixels, clipped to [0.2, 5]:
+- albedo     = clip(gain_v * blur(albedo_gt, blur_px_v) * blur(S, 2 px)**leak_v + 0.02 * smooth_noise, 0, 1);
+               gain_v = exposure_v * tint_v (per channel, log-normal sigma 0.12 and 0.06).
+- roughness  = clip(blur(roughness_gt) + roughness_offset_v + 0.05 * smooth_noise, 0, 1).
+- metallic   = clip(blur(metallic_gt) * metallic_scale_v + metallic_offset_v + 0.03 * smooth_noise, 0, 1).
+- normal     = normalise(R_v blur(normal_gt) + 0.06 * smooth_noise), R_v a random rotation of normal_tilt_deg_v.
+- irradiance = clip(0.9 I / percentile_99(I), 0, 1), I = blur(P / max(albedo_gt, 0.02), blur_px_v + 1.5):
+               the shading layer (specular included), exposed into [0, 1] like RGB<->X's LDR output.
+smooth_noise: unit-std Gaussian-filtered noise, sigma 8 px, independent per view, map and channel.
+"""
+
+
+def luminance(x):
+    return x @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+
+
+def estimate_view(rng, gt: dict[str, np.ndarray], photo: np.ndarray, hit: np.ndarray):
+    """Corrupted per-view maps standing in for a monocular estimator, and their parameters."""
+    h, w = hit.shape
+    p = {"exposure": float(np.exp(rng.normal(0, 0.12))), "tint": np.exp(rng.normal(0, 0.06, 3)).round(6).tolist(),
+         "leak": float(rng.uniform(0.1, 0.3)), "blur_px": float(rng.uniform(0.5, 1.5)),
+         "roughness_offset": float(rng.normal(0, 0.1)), "metallic_scale": float(rng.uniform(0.5, 1.0)),
+         "metallic_offset": float(rng.uniform(0.0, 0.08)), "normal_tilt_deg": float(abs(rng.normal(0, 4.0))),
+         }
+
+    def noise(c):
+        return np.stack([smooth_noise(rng, (h, w), 8.0) for _ in range(c)], -1)
+
+    m = hit[..., None]
+    albedo = gt["albedo"]
+    shading = luminance(photo) / np.maximum(luminance(albedo), 0.02)
+    shading = np.clip(shading / np.median(shading[hit]), 0.2, 5.0)[..., None]
+    smooth_shading = gaussian_blur(shading, 2.0)
+    gain = p["exposure"] * np.asarray(p["tint"])
+    est = {"albedo": np.clip(gain * gaussian_blur(albedo, p["blur_px"]) * smooth_shading ** p["leak"] + 0.02 * noise(3), 0, 1)}
+    est["roughness"] = np.clip(gaussian_blur(gt["roughness"], p["blur_px"]) + p["roughness_offset"] + 0.05 * noise(1), 0, 1)
+    est["metallic"] = np.clip(gaussian_blur(gt["metallic"], p["blur_px"]) * p["metallic_scale"] + p["metallic_offset"]
+                              + 0.03 * noise(1), 0, 1)
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    a = math.radians(p["normal_tilt_deg"])
+    cross = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    rot = np.eye(3) + math.sin(a) * cross + (1 - math.cos(a)) * cross @ cross
+    n = gaussian_blur(gt["normal"], p["blur_px"]) @ rot.T + 0.06 * noise(3)
+    est["normal"] = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-6)
+    irradiance = gaussian_blur(photo / np.maximum(albedo, 0.02), p["blur_px"] + 1.5)
+    est["irradiance"] = np.clip(0.9 * irradiance / np.percentile(irradiance[hit], 99), 0, 1)
+    est = {k: np.where(m, v, 0.0).astype(np.float32) for k, v in est.items()}
+    return est, p
+
+
+# ----------------------------------------------------------------------------- main
+
+MAP_FILES = {name: ".png" for name in ("albedo", "roughness", "metallic", "normal", "irradiance")}
+
+
+def write_map(path: Path, name: str, values: np.ndarray) -> None:
+    """Per-view map files: albedo, irradiance PNG sRGB; roughness, metallic PNG values; normals PNG (n+1)/2."""
+    if name in ("albedo", "irradiance"):
+        imageio.write_image(path, values)
+    elif name == "normal":
+        imageio.write_image(path, 0.5 * (values + 1.0), encode_srgb=False)
+    else:
+        imageio.write_image(path, values, encode_srgb=False)
+
+
+def psnr_and_match(a: np.ndarray, b: np.ndarray, mask: np.ndarray, tol: float) -> tuple[float, float]:
+    """PSNR of a vs b over mask (range 1) and the fraction of masked pixels within tol in every channel."""
+    d = (a - b)[mask]
+    mse = float(np.mean(d ** 2))
+    return (10 * math.log10(1 / mse) if mse > 0 else math.inf), float(np.mean(np.all(np.abs(d) <= tol, axis=-1)))
+
+
+def generate(out: Path, *, seed: int, views: int, width: int, height: int, spp: int) -> dict:
+    """Builds the whole scene folder; returns the summary written to the README."""
+    from jaxdistill import metrics
+
+    times = {}
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(seed)
+    objs = bedroom_objects()
+    mesh, sizes = build_scene_geometry(objs)
+    gt_tex = write_textures(objs, sizes, rng, out / "gt" / "textures")
+    cams = place_views(mesh, rng, views, width, height)
+    names = [f"view_{i:03d}" for i in range(len(cams))]
+    times["geometry_textures_views_s"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    frags = fr.compute_fragments(mesh, cams, cache_dir=False, progress=True)
+    stacked = [np.concatenate([gt_tex[k][o] for k in ("albedo", "roughness", "metallic")], -1) for o in range(len(objs))]
+    gt_views = sample_pages(stacked, frags, range(len(objs)))
+    normals = face_normals(mesh)
+    times["gt_maps_s"] = time.perf_counter() - t0
+
+    scene = mitsuba_scene(mesh, objs, gt_tex)
+    emitter_ids = [mesh.object_names.index(n) for n in EMITTER_OBJECTS]
+    aov = mb.aov_integrator("albedo:albedo", "obj:shape_index")
+    path_tracer = {"type": "path", "max_depth": 6}
+    agreement, baseline, estimates, view_list = [], [], {}, []
+    t_render = t_aov = 0.0
+    for i, (name, cam, frag, g) in enumerate(tqdm(list(zip(names, cams, frags, gt_views)), desc="render", unit="view")):
+        t0 = time.perf_counter()
+        photo = mb.render(scene, cam, spp=spp, seed=seed * 100003 + i, integrator=path_tracer)[..., :3]
+        photo = gaussian_blur(photo, PIXEL_FILTER_SIGMA)
+        t_render += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        check = mb.render(scene, cam, centre_samples=True, integrator=aov)
+        t_aov += time.perf_counter() - t0
+        hit = frag.object_id >= 0
+        mitsuba_hit = check[..., 3] > 0
+        both = hit & mitsuba_hit
+        p, match = psnr_and_match(check[..., :3], g[..., :3], both, 2.0 / 255)
+        agreement.append({"view": name, "psnr_db": p, "match_fraction": match,
+                          "hit_agreement": float(np.mean(hit == mitsuba_hit))})
+
+        gt = {"albedo": g[..., :3], "roughness": g[..., 3:4], "metallic": g[..., 4:5],
+              "normal": camera_normals(normals, frag.triangle, cam)}
+        est, params = estimate_view(np.random.default_rng([seed, i]), gt, photo, hit)
+        estimates[name] = params
+        mask = metrics.evaluation_mask(hit, np.isin(frag.object_id, emitter_ids))
+        baseline.append(metrics.evaluate_view({k: est[k] for k in gt}, gt, mask))
+
+        imageio.write_image(out / "photos" / f"{name}.exr", photo, half=True, compression="dwaa:90",
+                            timestamp=EXR_TIMESTAMP)
+        imageio.write_image(out / "photos" / f"{name}.png", photo)
+        targets = {}
+        for key, values in est.items():
+            targets[key] = out / "targets" / key / f"{name}{MAP_FILES[key]}"
+            write_map(targets[key], key, values)
+        view_list.append(View(name=name, camera=cam, photo=out / "photos" / f"{name}.exr", targets=targets))
+    times["render_s"], times["aov_check_s"] = t_render, t_aov
+
+    write_scene(Scene(name="bedroom", mesh=mesh, views=tuple(view_list), texture_layout="pages"), out)
+    gt_doc = {"format": "jaxdistill-gt", "version": 1,
+              "textures": {k: {n: f"gt/textures/{k}/{n}.png" for n, _, _ in objs} for k in gt_tex},
+              "texture_encoding": {"albedo": "srgb", "roughness": "linear", "metallic": "linear"},
+              "normal": "geometry", "exclude_objects": list(EMITTER_OBJECTS), "sampler": "bilinear"}
+    (out / "gt.json").write_text(json.dumps(gt_doc, indent=1))
+    (out / "estimates.json").write_text(json.dumps({"seed": seed, "model": ESTIMATE_MODEL, "views": estimates}, indent=1))
+    write_preview(out)
+    return {"objects": len(objs), "faces": mesh.num_faces, "page_sizes": dict(zip(mesh.object_names, sizes)),
+            "views": len(cams), "agreement": agreement, "baseline": metrics.aggregate(baseline), "times": times}
+
+
+def write_preview(folder: Path, views=(0, 12, 24, 36)) -> Path:
+    """preview.jpg: rows of views, columns photo | albedo | normal | roughness | irradiance targets,
+    at half resolution (read back from the written files, so it is deterministic)."""
+    doc = json.loads((folder / "scene.json").read_text())
+    rows = []
+    for i in views:
+        if i >= len(doc["views"]):
+            continue
+        v = doc["views"][i]
+        tiles = [imageio.read_image(folder / v["photo"].replace(".exr", ".png"), linear=False)]
+        for key in ("albedo", "normal", "roughness", "irradiance"):
+            img = imageio.read_image(folder / v["targets"][key], linear=False)
+            tiles.append(np.repeat(img, 3, axis=-1) if img.shape[-1] == 1 else img)
+        rows.append(np.concatenate([t[::2, ::2, :3] for t in tiles], axis=1))
+    path = folder / "preview.jpg"
+    imageio.write_image(path, np.concatenate(rows, axis=0), encode_srgb=False, compression="jpeg:85")
+    return path
+
+
+def manifest(folder: Path) -> dict[str, str]:
+    """sha256 of every file under folder except README.md and the manifest itself."""
+    return {p.relative_to(folder).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file() and p.name not in ("README.md", "manifest.sha256")}
+
+
+def readme(summary: dict, args, total_s: float) -> str:
+    """The scene folder's README: what is in it, how it was made, agreement and baseline figures."""
+    agree = summary["agreement"]
+    psnr = np.array([a["psnr_db"] for a in agree])
+    match = np.array([a["match_fraction"] for a in agree])
+    hits = np.array([a["hit_agreement"] for a in agree])
+    base = summary["baseline"]
+    rows = "\n".join(f"| {k} | {v:.4g} |" for k, v in base.items() if k != "num_views")
+    pages = ", ".join(f"{n} {s}" for n, s in summary["page_sizes"].items())
+    t = summary["times"]
+    return f"""# Embedded bedroom scene
+
+Procedural bedroom generated by `scripts/make_bedroom.py` (seed {args.seed}):
+{summary['objects']} objects, {summary['faces']} triangles, {summary['views']} views of {args.width}x{args.height},
+photos path traced by Mitsuba 3 (`scalar_rgb`, `path`, max depth 6, {args.spp} spp, box pixel filter),
+then a Gaussian pixel filter (sigma {PIXEL_FILTER_SIGMA} px) in NumPy, like Mitsuba's default filter but
+deterministic (Mitsuba's own adds overlapping image blocks in thread order, so the last bits vary).
+Light: sun and sky through the window opening, a ceiling light panel and the bedside lamp's bulb.
+
+    python scripts/make_bedroom.py --seed={args.seed} --views={args.views} --spp={args.spp} --width={args.width} --height={args.height}
+
+Generation took {total_s / 60:.1f} min on the machine that made this folder (2 CPU cores):
+geometry, textures and views {t['geometry_textures_views_s']:.0f} s, GT maps {t['gt_maps_s']:.0f} s,
+photos {t['render_s']:.0f} s, Mitsuba AOV check {t['aov_check_s']:.0f} s. `manifest.sha256` lists
+every file but this README; `python scripts/make_bedroom.py --verify` regenerates the folder in a
+temporary directory and compares (same versions and platform: bit for bit).
+
+![photo, albedo, normal, roughness and irradiance targets of four views](preview.jpg)
+
+## Files
+- `preview.jpg`: four views; columns photo, then the albedo, normal, roughness and irradiance targets.
+- `scene.json`, `mesh.glb`: the scene in jaxdistill's format (one texture page per object).
+- `photos/<view>.exr` (linear, half float, lossy DWAA compression at level 90, below the Monte Carlo noise) and `photos/<view>.png` (sRGB).
+- `targets/<map>/<view>`: per-view estimates for the `views` prior, standing in for a monocular
+  estimator (see below). albedo PNG sRGB; roughness, metallic PNG values in [0, 1]; normal PNG
+  (n+1)/2, camera space x right, y up, z towards the camera; irradiance PNG sRGB (exposed into [0, 1]).
+- `gt/textures/<map>/<object>.png`: ground-truth albedo (sRGB PNG), roughness and metallic (linear
+  PNG); the 8-bit values are the ground truth, and Mitsuba rendered exactly these.
+  Page sizes: {pages}.
+- `gt.json`: how to evaluate: sample the GT textures through the scene's UVs with the bilinear
+  sampler; normals come from the geometry; pixels of the emitters (`lamp_bulb`, `ceiling_light`) are excluded.
+- `estimates.json`: the corruption parameters of every view.
+
+## Our sampler against Mitsuba
+Mitsuba's `aov` albedo at pixel centres against GT albedo from our gather sampler, over pixels
+both hit ({len(agree)} views): PSNR median {np.median(psnr):.1f} dB (min {psnr.min():.1f}),
+pixels within 2/255 in every channel: median {np.median(match):.4f} (min {match.min():.4f}),
+hit masks agree on {np.median(hits):.5f} of pixels (median). Cameras, UVs and texture
+orientation therefore match an independent renderer.
+
+## Per-view estimates (the baseline distillation must beat)
+{ESTIMATE_MODEL}
+Their error against GT, mean over views (albedo metrics on sRGB-encoded values):
+
+| metric | value |
+|---|---|
+{rows}
+
+Licence: generated content of jaxdistill, same licence as the package.
+"""
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--views", type=int, default=48)
+    parser.add_argument("--width", type=int, default=320)
+    parser.add_argument("--height", type=int, default=240)
+    parser.add_argument("--spp", type=int, default=64)
+    parser.add_argument("--verify", action="store_true", help="regenerate in a temp dir and compare with --out")
+    args = parser.parse_args(argv)
+    for name in ("views", "width", "height", "spp"):
+        if getattr(args, name) < 1:
+            parser.error(f"--{name} must be >= 1")
+    if args.verify:
+        expected = (args.out / "manifest.sha256").read_text().split("\n") if (args.out / "manifest.sha256").exists() else None
+        if expected is None:
+            parser.error(f"{args.out / 'manifest.sha256'}: missing; generate the scene first")
+        with tempfile.TemporaryDirectory() as tmp:
+            start = time.perf_counter()
+            generate(Path(tmp), seed=args.seed, views=args.views, width=args.width, height=args.height, spp=args.spp)
+            got = [f"{h}  {p}" for p, h in manifest(Path(tmp)).items()]
+        want = [line for line in expected if line]
+        diff = sorted(set(got) ^ set(want))
+        print(f"regenerated in {(time.perf_counter() - start) / 60:.1f} min: {len(got)} files, "
+              f"{len(diff)} lines differ" + "".join(f"\n  {d}" for d in diff[:20]))
+        return 1 if diff else 0
+    start = time.perf_counter()
+    if args.out.exists():
+        shutil.rmtree(args.out)
+    summary = generate(args.out, seed=args.seed, views=args.views, width=args.width, height=args.height, spp=args.spp)
+    total = time.perf_counter() - start
+    (args.out / "manifest.sha256").write_text("".join(f"{h}  {p}\n" for p, h in manifest(args.out).items()))
+    (args.out / "README.md").write_text(readme(summary, args, total))
+    size = sum(p.stat().st_size for p in args.out.rglob("*") if p.is_file())
+    print(json.dumps({k: summary[k] for k in ("objects", "faces", "views", "baseline", "times")}, indent=1))
+    print(f"wrote {args.out} ({size / 2**20:.1f} MiB) in {total / 60:.1f} min")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
