@@ -381,3 +381,8 @@ def from_scannetpp(transform_matrix, fl_x, fl_y, cx, cy, width, height) -> Camer
     K = _as_float([[fl_x, 0.0, cx], [0.0, fl_y, cy], [0.0, 0.0, 1.0]], (3, 3), "fl_x/fl_y/cx/cy")
     _raise_if(intrinsics_problems(K), "fl_x/fl_y/cx/cy")
     return Camera(K, _algorithm1(m @ _FLIP_XZ, "transform_matrix"), width, height)
+
+
+def rgbx_camera_normals(normals_world, camera: Camera) -> np.ndarray:
+    """(..., 3) world-space normals in RGB<->X's camera space: x right, y up, z towards the camera."""
+    return (np.asarray(normals_world, np.float64) @ camera.c2w[:3, :3]) * np.array([1.0, -1.0, -1.0])

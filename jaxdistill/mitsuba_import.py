@@ -67,7 +67,7 @@ from tqdm.auto import tqdm
 
 from jaxdistill import imageio
 from jaxdistill import mitsuba_bridge as mb
-from jaxdistill.cameras import Camera, look_at
+from jaxdistill.cameras import Camera, look_at, rgbx_camera_normals
 from jaxdistill.errors import InputError, ProblemList
 from jaxdistill.render import fragments as fr
 from jaxdistill.scene import Mesh, Scene, View, read_scene, write_scene
@@ -832,8 +832,7 @@ class GroundTruthEvaluator:
         n = np.einsum("nk,nkc->nc", weights, self.corner_normal[tri])
         n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
         n *= np.where(np.einsum("nc,nc->n", n, directions) > 0, -1.0, 1.0)[:, None]   # face the camera
-        n_cam = n @ camera.c2w[:3, :3]                     # OpenCV camera axes: x right, y down, z forward
-        n_cam *= [1.0, -1.0, -1.0]                         # RGB<->X: x right, y up, z towards the camera
+        n_cam = rgbx_camera_normals(n, camera)             # RGB<->X: x right, y up, z towards the camera
         normal = np.full((h * w, 3), 0.5)
         normal[flat] = 0.5 * (n_cam + 1.0)
 

@@ -465,8 +465,7 @@ def face_normals(mesh: Mesh) -> np.ndarray:
 def camera_normals(normals_world: np.ndarray, triangle: np.ndarray, camera: cameras.Camera) -> np.ndarray:
     """(H, W, 3) camera-space normals, x right, y up, z towards the camera (RGB<->X); 0 on misses."""
     hit = triangle >= 0
-    n = normals_world[np.where(hit, triangle, 0)] @ camera.w2c[:3, :3].T
-    n = n * np.array([1.0, -1.0, -1.0])
+    n = cameras.rgbx_camera_normals(normals_world[np.where(hit, triangle, 0)], camera)
     return np.where(hit[..., None], n, 0.0).astype(np.float32)
 
 
