@@ -29,3 +29,31 @@ def look_at_camera(eye, target, width=32, height=24, fx=30.0, up=(0.0, 1.0, 0.0)
 @pytest.fixture
 def cache_dir(tmp_path):
     return tmp_path / "cache"
+
+
+@pytest.fixture(scope="session")
+def rgbx_dir(tmp_path_factory):
+    """A tiny random RGB↔X folder (diffusers/transformers save_pretrained, safetensors)."""
+    pytest.importorskip("torch")
+    from tiny_rgbx import write_tiny_rgbx
+
+    return write_tiny_rgbx(tmp_path_factory.mktemp("rgbx") / "rgb-to-x")
+
+
+@pytest.fixture(scope="session")
+def loaded(rgbx_dir):
+    """The tiny folder loaded by our converter (float32)."""
+    from jaxdistill.models import convert
+
+    return convert.load_rgbx(rgbx_dir)
+
+
+@pytest.fixture(scope="session")
+def torch_models(rgbx_dir):
+    """(unet, vae, text_encoder) PyTorch references read from the same folder."""
+    from diffusers import AutoencoderKL, UNet2DConditionModel
+    from transformers import CLIPTextModel
+
+    return (UNet2DConditionModel.from_pretrained(rgbx_dir / "unet").eval(),
+            AutoencoderKL.from_pretrained(rgbx_dir / "vae").eval(),
+            CLIPTextModel.from_pretrained(rgbx_dir / "text_encoder").eval())

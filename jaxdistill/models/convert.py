@@ -1,0 +1,271 @@
+"""Load a diffusers-format RGB↔X folder into Flax parameter pytrees (no torch at runtime).
+
+The folder is laid out like `zheng95z/rgb-to-x`: `model_index.json`, `unet/`, `vae/`,
+`text_encoder/`, `tokenizer/`, `scheduler/`, weights as `.safetensors` (read with the
+safetensors NumPy API). Every PyTorch key maps by rule to one Flax leaf:
+
+  `down_blocks.0.resnets.1.conv1.weight` → `down_blocks_0/resnets_1/conv1/kernel`
+  conv weight OIHW → kernel HWIO · linear weight (out, in) → kernel (in, out)
+  norm weight → scale · embedding weight → embedding · bias → bias
+
+and every shape is checked against `jax.eval_shape` of the Flax init. A key without a leaf,
+or a leaf without a key, is an error naming it. Optionally the converted pytrees are cached
+(`cache_dir`) as flat safetensors so a second load skips conversion.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import traverse_util
+
+from jaxdistill.errors import InputError
+from jaxdistill.models.clip import CLIPTextConfig, CLIPTextTransformer
+from jaxdistill.models.unet import UNet2DCondition, UNetConfig
+from jaxdistill.models.vae import AutoencoderKL, VAEConfig
+
+log = logging.getLogger(__name__)
+
+CONVERTER_VERSION = 1
+RGBX_IN_CHANNELS = 8
+PARTS = ("unet", "vae", "text_encoder", "tokenizer", "scheduler")
+_WEIGHT_STEMS = {"unet": "diffusion_pytorch_model", "vae": "diffusion_pytorch_model", "text_encoder": "model"}
+# PyTorch buffers that are not parameters (older transformers saved CLIP's position ids)
+_IGNORED_KEYS = {"embeddings.position_ids"}
+# pre-0.14 diffusers VAE attention names → current ones
+_ALIASES = {"query": "to_q", "key": "to_k", "value": "to_v", "proj_attn": "to_out.0"}
+_DOWNLOAD_HINT = ("download it with `huggingface-cli download zheng95z/rgb-to-x --local-dir DIR` "
+                  "on a machine with internet (Adobe Research License: never commit the weights)")
+
+
+def flax_path(torch_key: str) -> tuple[str, ...]:
+    """`a.b.0.c.weight` → ('a', 'b_0', 'c', 'weight'): list indices fold into the preceding name."""
+    out: list[str] = []
+    for part in torch_key.split("."):
+        if part.isdigit() and out:
+            out[-1] = f"{out[-1]}_{part}"
+        else:
+            out.append(part)
+    return tuple(out)
+
+
+def _normalise_key(key: str) -> str:
+    if key.startswith("text_model."):
+        key = key[len("text_model."):]
+    parts = key.split(".")
+    if len(parts) >= 2 and parts[-2] in _ALIASES:
+        parts[-2] = _ALIASES[parts[-2]]
+    return ".".join(parts)
+
+
+def convert_state_dict(state: dict[str, np.ndarray], abstract: dict, source: str, consume: bool = False) -> dict:
+    """PyTorch state dict (name → array) → Flax params shaped like `abstract` (eval_shape output,
+    the dict under 'params'). All unmapped keys, missing leaves and shape mismatches are
+    reported together in one InputError naming them. `consume` empties `state` as it goes, so
+    peak memory is about one copy of the weights, not two."""
+    want = traverse_util.flatten_dict(abstract)
+    leaves_of: dict[tuple, set[str]] = {}
+    for path in want:
+        leaves_of.setdefault(path[:-1], set()).add(path[-1])
+    out: dict[tuple, np.ndarray] = {}
+    problems: list[tuple[str, str, str]] = []
+    seen: set[tuple] = set()
+    for key in list(state):
+        array = state.pop(key) if consume else state[key]
+        norm = _normalise_key(key)
+        if norm in _IGNORED_KEYS:
+            continue
+        path = flax_path(norm)
+        module, leaf = path[:-1], path[-1]
+        names = leaves_of.get(module, set())
+        if leaf == "weight":
+            leaf = next((n for n in ("kernel", "scale", "embedding") if n in names), None)
+        elif leaf != "bias":
+            leaf = None
+        if leaf is None or leaf not in names:
+            problems.append((source, key, "no matching parameter in the Flax model (unexpected key)"))
+            continue
+        array = np.asarray(array)
+        if leaf == "kernel":
+            target_ndim = len(want[module + (leaf,)].shape)
+            if target_ndim == 2 and array.ndim == 4 and array.shape[2:] == (1, 1):
+                array = array[:, :, 0, 0]  # old VAE attention stored as 1×1 convolutions
+            array = array.transpose(2, 3, 1, 0) if array.ndim == 4 else array.T
+        target = want[module + (leaf,)]
+        seen.add(module + (leaf,))
+        if tuple(array.shape) != tuple(target.shape):
+            problems.append((source, key, f"shape {tuple(array.shape)} (after conversion) but the model "
+                             f"expects {tuple(target.shape)} at {'/'.join(module + (leaf,))}"))
+            continue
+        out[module + (leaf,)] = np.ascontiguousarray(array, dtype=np.float32)
+    for path in want:
+        if path not in seen:
+            problems.append((source, "/".join(path), "Flax parameter with no key in the checkpoint (missing)"))
+    if problems:
+        shown = problems[:25]
+        if len(problems) > len(shown):
+            shown.append((source, "...", f"and {len(problems) - len(shown)} more problems"))
+        raise InputError(shown)
+    return traverse_util.unflatten_dict(out)
+
+
+def read_safetensors(folder: Path, stem: str) -> dict[str, np.ndarray]:
+    """All tensors of `<stem>.safetensors` (or its sharded index) as NumPy arrays (memory-mapped)."""
+    from safetensors.numpy import load_file
+
+    single = folder / f"{stem}.safetensors"
+    index = folder / f"{stem}.safetensors.index.json"
+    if single.exists():
+        return load_file(str(single))
+    if index.exists():
+        try:
+            shards = sorted(set(json.loads(index.read_text())["weight_map"].values()))
+        except (json.JSONDecodeError, KeyError) as err:
+            raise InputError.single(index, "weight_map", f"unreadable shard index: {err}") from None
+        state: dict[str, np.ndarray] = {}
+        for shard in shards:
+            if not (folder / shard).exists():
+                raise InputError.single(index, "weight_map", f"lists shard {shard} which is missing")
+            state.update(load_file(str(folder / shard)))
+        return state
+    bins = sorted(p.name for p in folder.glob("*.bin"))
+    others = sorted(p.name for p in folder.glob("*.safetensors"))
+    if bins:
+        raise InputError.single(folder, f"{stem}.safetensors", (
+            f"missing; the folder only has PyTorch pickles {bins}. jaxdistill reads safetensors only "
+            "(no torch at runtime). Convert once, where torch and diffusers/transformers are installed: "
+            f"`python -c \"from {'transformers import CLIPTextModel as M' if stem == 'model' else 'diffusers import ' + ('UNet2DConditionModel' if folder.name == 'unet' else 'AutoencoderKL') + ' as M'}; "
+            f"M.from_pretrained('{folder}').save_pretrained('{folder}', safe_serialization=True)\"`"))
+    hint = f" (found {others}; a variant such as fp16 is not read — save the fp32 weights)" if others else ""
+    raise InputError.single(folder, f"{stem}.safetensors", f"missing{hint}; {_DOWNLOAD_HINT}")
+
+
+def _digest(folder: Path, stem: str, extra: str) -> str:
+    h = hashlib.sha256(f"v{CONVERTER_VERSION}:{extra}".encode())
+    h.update((folder / "config.json").read_bytes())
+    for p in sorted(folder.glob(f"{stem}*.safetensors")):
+        st = p.stat()
+        h.update(f"{p.name}:{st.st_size}:{st.st_mtime_ns}".encode())
+    return h.hexdigest()[:20]
+
+
+def _load_part(folder: Path, stem: str, abstract: dict, cache_dir: Path | None, tag: str) -> dict:
+    """Converted params of one network, through the cache when one is given."""
+    from safetensors.numpy import load_file, save_file
+
+    cache_file = None
+    if cache_dir is not None:
+        cache_file = Path(cache_dir) / f"{folder.name}-{_digest(folder, stem, tag)}.safetensors"
+        if cache_file.exists():
+            flat = load_file(str(cache_file))
+            params = traverse_util.unflatten_dict({tuple(k.split("/")): v for k, v in flat.items()})
+            # a cache written by another layout must not slip through: re-check every leaf
+            expected = {k: v.shape for k, v in traverse_util.flatten_dict(abstract).items()}
+            got = {k: v.shape for k, v in traverse_util.flatten_dict(params).items()}
+            if expected == got:
+                return params
+            log.warning("ignoring stale cache %s", cache_file)
+    params = convert_state_dict(read_safetensors(folder, stem), abstract, str(folder), consume=True)
+    if cache_file is not None:
+        cache_file.parent.mkdir(parents=True, exist_ok=True)
+        tmp = cache_file.with_suffix(".tmp")
+        save_file({"/".join(k): v for k, v in traverse_util.flatten_dict(params).items()}, str(tmp))
+        tmp.replace(cache_file)
+    return params
+
+
+@dataclasses.dataclass(frozen=True)
+class RgbxNetworks:
+    """The three networks (static Flax modules) of an RGB↔X folder, with their configs."""
+
+    unet: UNet2DCondition
+    vae: AutoencoderKL
+    text_encoder: CLIPTextTransformer
+
+
+@dataclasses.dataclass
+class LoadedRgbx:
+    """Networks, parameters (plain pytrees, float32), tokenizer folder and load timings."""
+
+    folder: Path
+    networks: RgbxNetworks
+    params: dict[str, Any]          # {"unet": ..., "vae": ..., "text_encoder": ...}, each {"params": ...}
+    seconds: dict[str, float]       # load time per part, and "total"
+
+
+def check_folder(folder: str | Path) -> Path:
+    """The folder as a Path, after checking it is laid out like zheng95z/rgb-to-x."""
+    folder = Path(folder).expanduser()
+    if not folder.is_dir():
+        raise InputError.single(folder, "(folder)", f"not found; {_DOWNLOAD_HINT}")
+    if not (folder / "model_index.json").exists():
+        raise InputError.single(folder, "model_index.json", "missing: not a diffusers pipeline folder "
+                                f"(expected model_index.json, {', '.join(p + '/' for p in PARTS)}); {_DOWNLOAD_HINT}")
+    problems = [(str(folder), f"{part}/", "missing") for part in PARTS if not (folder / part).is_dir()]
+    for part in ("unet", "vae", "text_encoder"):
+        if (folder / part).is_dir() and not (folder / part / "config.json").exists():
+            problems.append((str(folder / part), "config.json", "missing"))
+    if problems:
+        raise InputError(problems + [(str(folder), "(layout)", f"expected the zheng95z/rgb-to-x layout; {_DOWNLOAD_HINT}")])
+    return folder
+
+
+def build_networks(folder: str | Path, dtype: Any = jnp.float32, precision: str = "default",
+                   chunk_size: int | None = None, require_rgbx: bool = True) -> RgbxNetworks:
+    """Flax modules configured from the folder's config.json files (no weights read)."""
+    folder = check_folder(folder)
+    unet_cfg = UNetConfig.from_json(folder / "unet" / "config.json")
+    if require_rgbx and unet_cfg.in_channels != RGBX_IN_CHANNELS:
+        raise InputError.single(folder / "unet" / "config.json", "in_channels", (
+            f"is {unet_cfg.in_channels}, but an RGB→X UNet takes {RGBX_IN_CHANNELS} (noisy latent + photo "
+            "latent). This is not an RGB→X model; point --prior_dir at zheng95z/rgb-to-x."))
+    opts = dict(dtype=dtype, precision=precision)
+    if chunk_size is not None:
+        opts["chunk_size"] = chunk_size
+    text_opts = dict(dtype=dtype, precision=precision)
+    return RgbxNetworks(
+        unet=UNet2DCondition(unet_cfg, **opts),
+        vae=AutoencoderKL(VAEConfig.from_json(folder / "vae" / "config.json"), **opts),
+        text_encoder=CLIPTextTransformer(CLIPTextConfig.from_json(folder / "text_encoder" / "config.json"),
+                                         **text_opts),
+    )
+
+
+def abstract_params(networks: RgbxNetworks) -> dict[str, dict]:
+    """Shapes of every parameter (`jax.eval_shape` of each init, no memory allocated)."""
+    key = jax.random.key(0)
+    u, v, t = networks.unet, networks.vae, networks.text_encoder
+    f = v.config.downsampling_factor
+    unet_shapes = jax.eval_shape(u.init, key, jnp.zeros((1, 8, 8, u.config.in_channels)), jnp.zeros((1,)),
+                                 jnp.zeros((1, 4, u.config.cross_attention_dim)))
+    vae_shapes = jax.eval_shape(v.init, key, jnp.zeros((1, 2 * f, 2 * f, v.config.in_channels)))
+    text_shapes = jax.eval_shape(t.init, key, jnp.zeros((1, t.config.max_position_embeddings), jnp.int32))
+    return {"unet": unet_shapes["params"], "vae": vae_shapes["params"], "text_encoder": text_shapes["params"]}
+
+
+def load_rgbx(folder: str | Path, dtype: Any = jnp.float32, precision: str = "default",
+              cache_dir: str | Path | None = None, chunk_size: int | None = None,
+              require_rgbx: bool = True) -> LoadedRgbx:
+    """Read and convert all three networks of an RGB↔X folder; params stay float32 on the host."""
+    start = time.perf_counter()
+    networks = build_networks(folder, dtype, precision, chunk_size, require_rgbx)
+    folder = Path(folder).expanduser()
+    shapes = abstract_params(networks)
+    params, seconds = {}, {}
+    for part, stem in _WEIGHT_STEMS.items():
+        t0 = time.perf_counter()
+        params[part] = {"params": _load_part(folder / part, stem, shapes[part], cache_dir, part)}
+        seconds[part] = time.perf_counter() - t0
+    seconds["total"] = time.perf_counter() - start
+    log.info("loaded RGB↔X from %s in %.1f s (%s)", folder, seconds["total"],
+             ", ".join(f"{k} {v:.1f} s" for k, v in seconds.items() if k != "total"))
+    return LoadedRgbx(folder, networks, params, seconds)

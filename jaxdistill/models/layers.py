@@ -1,0 +1,213 @@
+"""Building blocks shared by the UNet and the VAE (Flax linen, NHWC).
+
+Module and parameter names mirror the PyTorch (diffusers) modules with the list
+index folded into the name (`resnets.0` → `resnets_0`), so `convert.py` maps
+checkpoint keys to leaves by rule. Parameters are float32; activations run in
+`dtype` (float32 or bfloat16). Normalisation statistics, attention scores and
+softmax always run in float32.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+from flax import linen as nn
+
+Dtype = Any
+
+# Attention over more than this many query×key score entries (per batch element and
+# head) is computed in query chunks, so the VAE's mid-block attention at 512² (4096
+# tokens) or 1024² (16384 tokens) never holds the full score matrix at once.
+DEFAULT_ATTENTION_CHUNK = 1024
+
+
+def precision_of(name: str) -> jax.lax.Precision | None:
+    """`"default"` → None (the backend's choice, TF32 on recent GPUs), `"highest"` → full fp32."""
+    if name == "default":
+        return None
+    if name == "highest":
+        return jax.lax.Precision.HIGHEST
+    raise ValueError(f"precision must be 'default' or 'highest', got {name!r}")
+
+
+class GroupNorm(nn.Module):
+    """GroupNorm over the channel axis (last), statistics in float32 (two-pass variance)."""
+
+    num_groups: int
+    epsilon: float
+    dtype: Dtype = jnp.float32
+
+    @nn.compact
+    def __call__(self, x):
+        channels = x.shape[-1]
+        scale = self.param("scale", nn.initializers.ones, (channels,), jnp.float32)
+        bias = self.param("bias", nn.initializers.zeros, (channels,), jnp.float32)
+        x32 = x.astype(jnp.float32)
+        grouped = x32.reshape(x.shape[:-1] + (self.num_groups, channels // self.num_groups))
+        axes = tuple(range(1, grouped.ndim - 2)) + (grouped.ndim - 1,)
+        mean = grouped.mean(axis=axes, keepdims=True)
+        var = jnp.square(grouped - mean).mean(axis=axes, keepdims=True)
+        normed = ((grouped - mean) * jax.lax.rsqrt(var + self.epsilon)).reshape(x.shape)
+        return (normed * scale + bias).astype(self.dtype)
+
+
+class LayerNorm(nn.Module):
+    """LayerNorm over the last axis, statistics in float32."""
+
+    epsilon: float = 1e-5
+    dtype: Dtype = jnp.float32
+
+    @nn.compact
+    def __call__(self, x):
+        features = x.shape[-1]
+        scale = self.param("scale", nn.initializers.ones, (features,), jnp.float32)
+        bias = self.param("bias", nn.initializers.zeros, (features,), jnp.float32)
+        x32 = x.astype(jnp.float32)
+        mean = x32.mean(axis=-1, keepdims=True)
+        var = jnp.square(x32 - mean).mean(axis=-1, keepdims=True)
+        return ((x32 - mean) * jax.lax.rsqrt(var + self.epsilon) * scale + bias).astype(self.dtype)
+
+
+def dense(features: int, name: str | None, dtype: Dtype, precision: str, use_bias: bool = True) -> nn.Dense:
+    """A linear layer with float32 parameters computing in `dtype`."""
+    return nn.Dense(features, use_bias=use_bias, dtype=dtype, param_dtype=jnp.float32,
+                    precision=precision_of(precision), name=name)
+
+
+def conv(features: int, kernel: int, name: str | None, dtype: Dtype, precision: str, stride: int = 1,
+         padding: Any = "SAME_TORCH") -> nn.Conv:
+    """A 2-D convolution, PyTorch padding `kernel // 2` unless `padding` is given."""
+    if padding == "SAME_TORCH":
+        padding = ((kernel // 2, kernel // 2),) * 2
+    return nn.Conv(features, (kernel, kernel), strides=(stride, stride), padding=padding, dtype=dtype,
+                   param_dtype=jnp.float32, precision=precision_of(precision), name=name)
+
+
+def _scores_softmax_values(q, k, v, scale, precision, mask=None):
+    """softmax(q·kᵀ·scale)·v for q (B, Nq, H, D), k/v (B, Nk, H, D); scores in float32;
+    `mask` (Nq, Nk) True = attend."""
+    prec = precision_of(precision)
+    scores = jnp.einsum("bqhd,bkhd->bhqk", q.astype(jnp.float32), k.astype(jnp.float32),
+                        precision=prec) * scale
+    if mask is not None:
+        scores = jnp.where(mask[None, None], scores, jnp.finfo(jnp.float32).min)
+    weights = jax.nn.softmax(scores, axis=-1).astype(v.dtype)
+    return jnp.einsum("bhqk,bkhd->bqhd", weights, v, precision=prec)
+
+
+def dot_product_attention(q, k, v, num_heads: int, mask=None, chunk_size: int = DEFAULT_ATTENTION_CHUNK,
+                          precision: str = "default"):
+    """Multi-head attention of q (B, Nq, C) over k, v (B, Nk, C) → (B, Nq, C).
+
+    `mask` (Nq, Nk) bool, True = attend (used for CLIP's causal mask, never chunked).
+    Without a mask, when Nq·Nk exceeds `chunk_size`², queries are processed in chunks of
+    `chunk_size` with `lax.map`, so peak memory is chunk_size·Nk scores per head.
+    """
+    batch, num_q, channels = q.shape
+    head_dim = channels // num_heads
+    scale = 1.0 / math.sqrt(head_dim)
+    q = q.reshape(batch, num_q, num_heads, head_dim)
+    k = k.reshape(batch, k.shape[1], num_heads, head_dim)
+    v = v.reshape(batch, v.shape[1], num_heads, head_dim)
+    if mask is not None:
+        out = _scores_softmax_values(q, k, v, scale, precision, mask)
+    elif num_q * k.shape[1] <= chunk_size * chunk_size or num_q <= chunk_size:
+        out = _scores_softmax_values(q, k, v, scale, precision)
+    else:
+        num_chunks = -(-num_q // chunk_size)
+        padded = jnp.pad(q, ((0, 0), (0, num_chunks * chunk_size - num_q), (0, 0), (0, 0)))
+        chunks = padded.reshape(batch, num_chunks, chunk_size, num_heads, head_dim).swapaxes(0, 1)
+        out = jax.lax.map(lambda qc: _scores_softmax_values(qc, k, v, scale, precision), chunks)
+        out = out.swapaxes(0, 1).reshape(batch, num_chunks * chunk_size, num_heads, head_dim)[:, :num_q]
+    return out.reshape(batch, num_q, channels)
+
+
+class Attention(nn.Module):
+    """diffusers `Attention`: to_q/to_k/to_v projections, attention, to_out.0 (B, N, C) → (B, N, C)."""
+
+    num_heads: int
+    qkv_bias: bool = False
+    dtype: Dtype = jnp.float32
+    precision: str = "default"
+    chunk_size: int = DEFAULT_ATTENTION_CHUNK
+
+    @nn.compact
+    def __call__(self, x, context=None):
+        channels = x.shape[-1]
+        context = x if context is None else context
+        q = dense(channels, "to_q", self.dtype, self.precision, self.qkv_bias)(x)
+        k = dense(channels, "to_k", self.dtype, self.precision, self.qkv_bias)(context)
+        v = dense(channels, "to_v", self.dtype, self.precision, self.qkv_bias)(context)
+        out = dot_product_attention(q, k, v, self.num_heads, chunk_size=self.chunk_size,
+                                    precision=self.precision)
+        return dense(channels, "to_out_0", self.dtype, self.precision)(out)
+
+
+class ResnetBlock2D(nn.Module):
+    """diffusers `ResnetBlock2D` (scale-shift 'default', SiLU, output scale 1), NHWC.
+
+    x (B, H, W, Cin), optional temb (B, T) → (B, H, W, out_channels).
+    """
+
+    out_channels: int
+    groups: int
+    epsilon: float
+    dtype: Dtype = jnp.float32
+    precision: str = "default"
+
+    @nn.compact
+    def __call__(self, x, temb=None):
+        h = nn.silu(GroupNorm(self.groups, self.epsilon, self.dtype, name="norm1")(x))
+        h = conv(self.out_channels, 3, "conv1", self.dtype, self.precision)(h)
+        if temb is not None:
+            t = dense(self.out_channels, "time_emb_proj", self.dtype, self.precision)(nn.silu(temb))
+            h = h + t[:, None, None, :]
+        h = nn.silu(GroupNorm(self.groups, self.epsilon, self.dtype, name="norm2")(h))
+        h = conv(self.out_channels, 3, "conv2", self.dtype, self.precision)(h)
+        if x.shape[-1] != self.out_channels:
+            x = conv(self.out_channels, 1, "conv_shortcut", self.dtype, self.precision)(x)
+        return x + h
+
+
+class Downsample2D(nn.Module):
+    """Stride-2 3×3 convolution; `padding` 1 (UNet) or 0 with PyTorch's (0, 1) pad (VAE)."""
+
+    channels: int
+    padding: int = 1
+    dtype: Dtype = jnp.float32
+    precision: str = "default"
+
+    @nn.compact
+    def __call__(self, x):
+        if self.padding == 0:
+            pad = ((0, 1), (0, 1))
+        else:
+            pad = ((self.padding, self.padding),) * 2
+        return conv(self.channels, 3, "conv", self.dtype, self.precision, stride=2, padding=pad)(x)
+
+
+def nearest_resize(x, size: tuple[int, int]):
+    """PyTorch `interpolate(mode='nearest')` of x (B, H, W, C) to `size`: source index floor(i·H/h)."""
+    height, width = x.shape[1:3]
+    rows = (jnp.arange(size[0]) * height) // size[0]
+    cols = (jnp.arange(size[1]) * width) // size[1]
+    return x[:, rows][:, :, cols]
+
+
+class Upsample2D(nn.Module):
+    """Nearest upsampling (×2, or to `size` when given) followed by a 3×3 convolution."""
+
+    channels: int
+    dtype: Dtype = jnp.float32
+    precision: str = "default"
+
+    @nn.compact
+    def __call__(self, x, size: tuple[int, int] | None = None):
+        if size is None:
+            x = jnp.repeat(jnp.repeat(x, 2, axis=1), 2, axis=2)
+        else:
+            x = nearest_resize(x, size)
+        return conv(self.channels, 3, "conv", self.dtype, self.precision)(x)
