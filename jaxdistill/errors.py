@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+from typing import Any
+
 
 class InputError(ValueError):
     """Bad user input, reported with where it is (file, field) and what to do.
@@ -19,6 +23,20 @@ class InputError(ValueError):
     @classmethod
     def single(cls, file: str, field: str, message: str) -> "InputError":
         return cls([(str(file), field, message)])
+
+
+def read_json(path, missing: str) -> Any:
+    """The parsed JSON file; InputError naming the file (and the line) when it is missing or
+    invalid. `missing` says what to do when the file does not exist."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError.single(path, "(file)", missing)
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as err:
+        raise InputError.single(path, f"line {err.lineno}", f"not valid JSON: {err.msg}") from None
+    except (OSError, UnicodeDecodeError) as err:
+        raise InputError.single(path, "(file)", f"not valid JSON: unreadable as UTF-8 text ({err})") from None
 
 
 class ProblemList:

@@ -41,7 +41,7 @@ import numpy as np
 from jaxdistill import MAP_NAMES
 from jaxdistill import imageio
 from jaxdistill.cameras import Camera, intrinsics_problems, pose_problems
-from jaxdistill.errors import InputError, ProblemList
+from jaxdistill.errors import InputError, ProblemList, read_json
 
 FORMAT_NAME = "jaxdistill-scene"
 FORMAT_VERSION = 1
@@ -293,12 +293,7 @@ def read_scene(path, *, check_pixels: bool = True) -> Scene:
     if path.is_dir():
         path = path / "scene.json"
     file = os.fspath(path)
-    if not path.is_file():
-        raise InputError.single(file, "(file)", "scene file not found")
-    try:
-        doc = json.loads(path.read_text())
-    except json.JSONDecodeError as err:
-        raise InputError.single(file, f"line {err.lineno}", f"not valid JSON: {err.msg}") from err
+    doc = read_json(path, "scene file not found")
     root = path.parent
     problems = ProblemList()
     if doc.get("format") != FORMAT_NAME:

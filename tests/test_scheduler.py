@@ -257,7 +257,7 @@ def test_read_config_missing_and_bad_json(tmp_path):
     with pytest.raises(InputError, match="scheduler_config.json.*missing"):
         sch.read_scheduler_config(tmp_path)
     write_config(tmp_path).write_text("{")
-    with pytest.raises(InputError, match="not readable JSON"):
+    with pytest.raises(InputError, match="not valid JSON"):
         sch.read_scheduler_config(tmp_path)
     write_config(tmp_path)
     with pytest.raises(InputError, match="overrides: timestep_spacing"):

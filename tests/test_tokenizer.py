@@ -100,7 +100,7 @@ def test_missing_folder(tmp_path):
 
 def test_unreadable_json_is_named(tiny):
     (tiny / "tokenizer_config.json").write_text("{not json", encoding="utf-8")
-    with pytest.raises(InputError, match="tokenizer_config.json.*not readable JSON"):
+    with pytest.raises(InputError, match="tokenizer_config.json.*not valid JSON"):
         load_tokenizer(tiny)
 
 

@@ -14,9 +14,8 @@ from typing import Any
 import jax.numpy as jnp
 from flax import linen as nn
 
-from jaxdistill.errors import ProblemList
+from jaxdistill.errors import ProblemList, read_json
 from jaxdistill.models import layers
-from jaxdistill.models.unet import _read_json
 
 ACTIVATIONS = {
     "gelu": lambda x: nn.gelu(x, approximate=False),
@@ -62,7 +61,7 @@ class CLIPTextConfig:
 
     @classmethod
     def from_json(cls, path: str | Path) -> "CLIPTextConfig":
-        return cls.from_dict(_read_json(path), str(path))
+        return cls.from_dict(read_json(path, "not found"), str(path))
 
 
 class SelfAttention(nn.Module):

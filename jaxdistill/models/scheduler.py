@@ -12,7 +12,6 @@ config as a static argument, so the schedule arrays become compile-time constant
 from __future__ import annotations
 
 import dataclasses
-import json
 from collections.abc import Callable
 from pathlib import Path
 
@@ -20,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdistill.errors import InputError, ProblemList
+from jaxdistill.errors import InputError, ProblemList, read_json
 
 # Floor for sqrt(ᾱ) and sqrt(1 - ᾱ) denominators. It is below every non-zero ᾱ and 1 - ᾱ of the
 # usual schedules (the smallest is ᾱ_998 ≈ 4e-9 for a linear schedule rescaled to zero terminal
@@ -116,13 +115,8 @@ def read_scheduler_config(folder, **overrides) -> SchedulerConfig:
     if unknown:
         raise TypeError(f"unknown scheduler setting(s) {unknown}; known: {list(_FIELDS)}")
     path = _config_file(Path(folder))
-    if not path.is_file():
-        raise InputError.single(path, "(file)", "missing: the model folder needs "
-                                "scheduler/scheduler_config.json (copy the model completely)")
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise InputError.single(path, "(file)", f"not readable JSON ({err}); re-download it") from err
+    data = read_json(path, "missing: the model folder needs scheduler/scheduler_config.json "
+                     "(copy the model completely)")
     if not isinstance(data, dict):
         raise InputError.single(path, "(root)", "must be a JSON object")
     used_defaults = data.get("_use_default_values") or []

@@ -15,7 +15,6 @@ prompt text; with pad "!" every "!" in a prompt therefore becomes id 0, not the 
 from __future__ import annotations
 
 import dataclasses
-import json
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -23,7 +22,7 @@ import numpy as np
 from tokenizers import AddedToken, Regex, Tokenizer, normalizers, pre_tokenizers, processors
 from tokenizers.models import BPE
 
-from jaxdistill.errors import InputError
+from jaxdistill.errors import InputError, read_json
 
 BOS = "<|startoftext|>"
 EOS = "<|endoftext|>"
@@ -75,15 +74,10 @@ class ClipTokenizer:
 
 def _read_json(path: Path, required: bool):
     """The parsed JSON file, or None when an optional file is absent; InputError if unreadable."""
-    if not path.is_file():
-        if required:
-            raise InputError.single(path, "(file)", f"missing: a CLIP tokenizer folder needs "
-                                    f"{path.name} (copy the model's tokenizer/ folder completely)")
+    if not path.is_file() and not required:
         return None
-    try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise InputError.single(path, "(file)", f"not readable JSON ({err}); re-download it") from err
+    return read_json(path, f"missing: a CLIP tokenizer folder needs {path.name} "
+                     "(copy the model's tokenizer/ folder completely)")
 
 
 def _read_vocab(path: Path) -> dict[str, int]:

@@ -11,7 +11,6 @@ per block (320 channels / 5 heads = 64 per head); we follow diffusers exactly.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 from pathlib import Path
 from typing import Any
@@ -19,7 +18,7 @@ from typing import Any
 import jax.numpy as jnp
 from flax import linen as nn
 
-from jaxdistill.errors import InputError, ProblemList
+from jaxdistill.errors import ProblemList, read_json
 from jaxdistill.models import layers
 
 DOWN_BLOCKS = ("CrossAttnDownBlock2D", "DownBlock2D")
@@ -70,7 +69,7 @@ class UNetConfig:
         """Validated config; every unsupported field is reported at once (InputError)."""
         problems = ProblemList()
         for key, want in _FIXED.items():
-            if key in cfg and cfg[key] != want and not (isinstance(want, float) and cfg[key] == want):
+            if key in cfg and cfg[key] != want:
                 problems.add(source, key, f"is {cfg[key]!r}; jaxdistill implements only {want!r} "
                              "(the Stable Diffusion 2.x UNet that RGB↔X uses)")
         blocks = tuple(cfg.get("block_out_channels", cls.block_out_channels))
@@ -109,17 +108,7 @@ class UNetConfig:
 
     @classmethod
     def from_json(cls, path: str | Path) -> "UNetConfig":
-        return cls.from_dict(_read_json(path), str(path))
-
-
-def _read_json(path) -> dict:
-    path = Path(path)
-    try:
-        return json.loads(path.read_text())
-    except FileNotFoundError:
-        raise InputError.single(path, "(file)", "not found") from None
-    except json.JSONDecodeError as err:
-        raise InputError.single(path, f"line {err.lineno}", f"not valid JSON: {err.msg}") from None
+        return cls.from_dict(read_json(path, "not found"), str(path))
 
 
 def timestep_embedding(t, dim: int, flip_sin_to_cos: bool, freq_shift: float, max_period: float = 10000.0):

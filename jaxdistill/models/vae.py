@@ -16,9 +16,8 @@ import jax
 import jax.numpy as jnp
 from flax import linen as nn
 
-from jaxdistill.errors import ProblemList
+from jaxdistill.errors import ProblemList, read_json
 from jaxdistill.models import layers
-from jaxdistill.models.unet import _read_json
 
 _FIXED = {
     "act_fn": "silu", "use_quant_conv": True, "use_post_quant_conv": True, "mid_block_add_attention": True,
@@ -62,7 +61,7 @@ class VAEConfig:
 
     @classmethod
     def from_json(cls, path: str | Path) -> "VAEConfig":
-        return cls.from_dict(_read_json(path), str(path))
+        return cls.from_dict(read_json(path, "not found"), str(path))
 
     @property
     def downsampling_factor(self) -> int:
