@@ -120,15 +120,12 @@ def run(cfg: EstimateConfig) -> dict:
     seconds = []
     with tqdm(total=len(photos) * len(cfg.maps), desc="RGB→X estimates", unit="map") as bar:
         for name, path in photos:
-            photo = prior.check_photo(read_photo_srgb(path), rgbx.networks.vae.config.downsampling_factor,
-                                      str(path))
-            image_latent = prior.encode_photo(rgbx, photo)     # c_v: once per photo, shared by the maps
+            image_latent = prior.encode_photo(rgbx, read_photo_srgb(path), str(path))   # c_v, shared by the maps
             for map_name in cfg.maps:
                 t0 = time.perf_counter()
                 view_key = jax.random.fold_in(jax.random.fold_in(key, zlib.crc32(name.encode())),
                                               list(MAP_PROMPTS).index(map_name))
-                result = prior.estimate(rgbx, photo, map_name, view_key, num_steps=cfg.steps,
-                                        image_latent=image_latent)
+                result = prior.estimate_from_latent(rgbx, image_latent, map_name, view_key, num_steps=cfg.steps)
                 imageio.write_image(out / map_name / f"{name}.png", result, encode_srgb=False)
                 seconds.append(time.perf_counter() - t0)
                 bar.update()

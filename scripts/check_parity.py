@@ -39,26 +39,11 @@ from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from tiny_rgbx import RGBX_TEXT, RGBX_UNET, RGBX_VAE, nchw, nhwc  # noqa: E402  (test helpers)
+
 TOLERANCE = 1e-4
 NETWORKS = ("unet", "vae_encode", "vae_decode", "text_encoder")
-
-# The real RGB↔X sizes (shared/DESIGN.md §3); the tiny ones come from tests/tiny_rgbx.py.
-FULL_UNET = dict(
-    sample_size=96, in_channels=8, out_channels=4, block_out_channels=(320, 640, 1280, 1280), layers_per_block=2,
-    norm_num_groups=32, attention_head_dim=(5, 10, 20, 20), cross_attention_dim=1024, use_linear_projection=True,
-    upcast_attention=True, down_block_types=("CrossAttnDownBlock2D",) * 3 + ("DownBlock2D",),
-    up_block_types=("UpBlock2D",) + ("CrossAttnUpBlock2D",) * 3,
-)
-FULL_VAE = dict(
-    in_channels=3, out_channels=3, block_out_channels=(128, 256, 512, 512), layers_per_block=2,
-    down_block_types=("DownEncoderBlock2D",) * 4, up_block_types=("UpDecoderBlock2D",) * 4,
-    latent_channels=4, norm_num_groups=32, sample_size=768, scaling_factor=0.18215,
-)
-FULL_TEXT = dict(
-    hidden_size=1024, intermediate_size=4096, num_hidden_layers=23, num_attention_heads=16,
-    max_position_embeddings=77, hidden_act="gelu", layer_norm_eps=1e-5, projection_dim=512, vocab_size=49408,
-)
-
 
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
@@ -132,14 +117,6 @@ def errors(ours, ref) -> tuple[float, float]:
     return diff, diff / float(np.abs(ref).max())
 
 
-def nchw(x):
-    return np.ascontiguousarray(np.asarray(x).transpose(0, 3, 1, 2))
-
-
-def nhwc(x):
-    return np.ascontiguousarray(np.asarray(x).transpose(0, 2, 3, 1))
-
-
 def flax_config(part: str, model):
     """Our config for `part`, parsed from the PyTorch model's config (what config.json would hold)."""
     from jaxdistill.models.clip import CLIPTextConfig
@@ -166,15 +143,14 @@ class Checker:
         from jaxdistill.models.unet import UNet2DCondition
         from jaxdistill.models.vae import AutoencoderKL
 
-        sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
         import tiny_rgbx
 
         self.args, self.jax, self.torch, self.tiny = args, jax, torch, tiny_rgbx
         torch.set_num_threads(args.threads)
         full = args.size == "full"
-        self.sizes = {"unet": FULL_UNET if full else tiny_rgbx.TINY_UNET,
-                      "vae": FULL_VAE if full else tiny_rgbx.TINY_VAE,
-                      "text": FULL_TEXT if full else dict(tiny_rgbx.TINY_TEXT, vocab_size=600)}
+        self.sizes = {"unet": RGBX_UNET if full else tiny_rgbx.TINY_UNET,
+                      "vae": RGBX_VAE if full else tiny_rgbx.TINY_VAE,
+                      "text": RGBX_TEXT if full else dict(tiny_rgbx.TINY_TEXT, vocab_size=600)}
         self.bos_eos = (49406, 49407) if full else (2, 2)
         # configs from weightless (meta-device) PyTorch models: one `abstract_params` for all parts
         with torch.device("meta"):

@@ -18,7 +18,6 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
-sys.path.insert(0, str(ROOT / "scripts"))
 
 
 def main() -> None:
@@ -28,10 +27,9 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
     import tiny_rgbx
-    from check_parity import FULL_TEXT, FULL_UNET, FULL_VAE
 
     start = time.perf_counter()
-    sizes = dict(unet=FULL_UNET, vae=FULL_VAE, text=FULL_TEXT) if args.size == "full" else {}
+    sizes = dict(unet=tiny_rgbx.RGBX_UNET, vae=tiny_rgbx.RGBX_VAE, text=tiny_rgbx.RGBX_TEXT) if args.size == "full" else {}
     folder = tiny_rgbx.write_tiny_rgbx(args.out, seed=args.seed, **sizes)
     total = sum(p.stat().st_size for p in folder.rglob("*.safetensors"))
     print(f"wrote {folder} ({total / 2**30:.2f} GiB of safetensors) in {time.perf_counter() - start:.0f} s")

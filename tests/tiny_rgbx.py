@@ -14,21 +14,29 @@ from pathlib import Path
 
 import numpy as np
 
-TINY_UNET = dict(
-    sample_size=16, in_channels=8, out_channels=4, block_out_channels=(32, 32, 64, 64), layers_per_block=2,
-    norm_num_groups=8, attention_head_dim=(2, 2, 4, 4), cross_attention_dim=32, use_linear_projection=True,
+# The real RGB↔X sizes (shared/DESIGN.md §3), for scripts that time real-size networks.
+RGBX_UNET = dict(
+    sample_size=96, in_channels=8, out_channels=4, block_out_channels=(320, 640, 1280, 1280), layers_per_block=2,
+    norm_num_groups=32, attention_head_dim=(5, 10, 20, 20), cross_attention_dim=1024, use_linear_projection=True,
     upcast_attention=True, down_block_types=("CrossAttnDownBlock2D",) * 3 + ("DownBlock2D",),
     up_block_types=("UpBlock2D",) + ("CrossAttnUpBlock2D",) * 3,
 )
-TINY_VAE = dict(
-    in_channels=3, out_channels=3, block_out_channels=(16, 32, 32, 32), layers_per_block=2,
+RGBX_VAE = dict(
+    in_channels=3, out_channels=3, block_out_channels=(128, 256, 512, 512), layers_per_block=2,
     down_block_types=("DownEncoderBlock2D",) * 4, up_block_types=("UpDecoderBlock2D",) * 4,
-    latent_channels=4, norm_num_groups=8, sample_size=64, scaling_factor=0.18215,
+    latent_channels=4, norm_num_groups=32, sample_size=768, scaling_factor=0.18215,
 )
-TINY_TEXT = dict(
-    hidden_size=32, intermediate_size=64, num_hidden_layers=2, num_attention_heads=4,
-    max_position_embeddings=77, hidden_act="gelu", layer_norm_eps=1e-5, projection_dim=32,
+RGBX_TEXT = dict(
+    hidden_size=1024, intermediate_size=4096, num_hidden_layers=23, num_attention_heads=16,
+    max_position_embeddings=77, hidden_act="gelu", layer_norm_eps=1e-5, projection_dim=512, vocab_size=49408,
 )
+# The tiny sizes: the real structure (block types, layers per block, projections, upcast), small widths.
+TINY_UNET = dict(RGBX_UNET, sample_size=16, block_out_channels=(32, 32, 64, 64), norm_num_groups=8,
+                 attention_head_dim=(2, 2, 4, 4), cross_attention_dim=32)
+TINY_VAE = dict(RGBX_VAE, block_out_channels=(16, 32, 32, 32), norm_num_groups=8, sample_size=64)
+TINY_TEXT = dict(RGBX_TEXT, hidden_size=32, intermediate_size=64, num_hidden_layers=2, num_attention_heads=4,
+                 projection_dim=32)
+del TINY_TEXT["vocab_size"]   # set from the tiny vocabulary
 RGBX_SCHEDULER = {
     "_class_name": "DDIMScheduler", "_diffusers_version": "0.20.0", "beta_end": 0.012,
     "beta_schedule": "scaled_linear", "beta_start": 0.00085, "clip_sample": False,

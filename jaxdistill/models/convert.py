@@ -39,6 +39,9 @@ CONVERTER_VERSION = 1
 RGBX_IN_CHANNELS = 8
 PARTS = ("unet", "vae", "text_encoder", "tokenizer", "scheduler")
 _WEIGHT_STEMS = {"unet": "diffusion_pytorch_model", "vae": "diffusion_pytorch_model", "text_encoder": "model"}
+# the PyTorch class of each part, for the .bin → safetensors conversion hint
+_TORCH_CLASSES = {"unet": ("diffusers", "UNet2DConditionModel"), "vae": ("diffusers", "AutoencoderKL"),
+                  "text_encoder": ("transformers", "CLIPTextModel")}
 # PyTorch buffers that are not parameters (older transformers saved CLIP's position ids)
 _IGNORED_KEYS = {"embeddings.position_ids"}
 # pre-0.14 diffusers VAE attention names → current ones
@@ -140,10 +143,11 @@ def read_safetensors(folder: Path, stem: str) -> dict[str, np.ndarray]:
     bins = sorted(p.name for p in folder.glob("*.bin"))
     others = sorted(p.name for p in folder.glob("*.safetensors"))
     if bins:
+        library, model_class = _TORCH_CLASSES.get(folder.name, ("diffusers", "UNet2DConditionModel"))
         raise InputError.single(folder, f"{stem}.safetensors", (
             f"missing; the folder only has PyTorch pickles {bins}. jaxdistill reads safetensors only "
             "(no torch at runtime). Convert once, where torch and diffusers/transformers are installed: "
-            f"`python -c \"from {'transformers import CLIPTextModel as M' if stem == 'model' else 'diffusers import ' + ('UNet2DConditionModel' if folder.name == 'unet' else 'AutoencoderKL') + ' as M'}; "
+            f"`python -c \"from {library} import {model_class} as M; "
             f"M.from_pretrained('{folder}').save_pretrained('{folder}', safe_serialization=True)\"`"))
     hint = f" (found {others}; a variant such as fp16 is not read — save the fp32 weights)" if others else ""
     raise InputError.single(folder, f"{stem}.safetensors", f"missing{hint}; {_DOWNLOAD_HINT}")

@@ -33,6 +33,13 @@ def precision_of(name: str) -> jax.lax.Precision | None:
     raise ValueError(f"precision must be 'default' or 'highest', got {name!r}")
 
 
+def _standardise(x, axes, epsilon):
+    """(x − mean) / sqrt(var + ε) over `axes`, with the two-pass variance (as PyTorch)."""
+    mean = x.mean(axis=axes, keepdims=True)
+    var = jnp.square(x - mean).mean(axis=axes, keepdims=True)
+    return (x - mean) * jax.lax.rsqrt(var + epsilon)
+
+
 class GroupNorm(nn.Module):
     """GroupNorm over the channel axis (last), statistics in float32 (two-pass variance)."""
 
@@ -45,12 +52,9 @@ class GroupNorm(nn.Module):
         channels = x.shape[-1]
         scale = self.param("scale", nn.initializers.ones, (channels,), jnp.float32)
         bias = self.param("bias", nn.initializers.zeros, (channels,), jnp.float32)
-        x32 = x.astype(jnp.float32)
-        grouped = x32.reshape(x.shape[:-1] + (self.num_groups, channels // self.num_groups))
+        grouped = x.astype(jnp.float32).reshape(x.shape[:-1] + (self.num_groups, channels // self.num_groups))
         axes = tuple(range(1, grouped.ndim - 2)) + (grouped.ndim - 1,)
-        mean = grouped.mean(axis=axes, keepdims=True)
-        var = jnp.square(grouped - mean).mean(axis=axes, keepdims=True)
-        normed = ((grouped - mean) * jax.lax.rsqrt(var + self.epsilon)).reshape(x.shape)
+        normed = _standardise(grouped, axes, self.epsilon).reshape(x.shape)
         return (normed * scale + bias).astype(self.dtype)
 
 
@@ -65,10 +69,7 @@ class LayerNorm(nn.Module):
         features = x.shape[-1]
         scale = self.param("scale", nn.initializers.ones, (features,), jnp.float32)
         bias = self.param("bias", nn.initializers.zeros, (features,), jnp.float32)
-        x32 = x.astype(jnp.float32)
-        mean = x32.mean(axis=-1, keepdims=True)
-        var = jnp.square(x32 - mean).mean(axis=-1, keepdims=True)
-        return ((x32 - mean) * jax.lax.rsqrt(var + self.epsilon) * scale + bias).astype(self.dtype)
+        return (_standardise(x.astype(jnp.float32), (-1,), self.epsilon) * scale + bias).astype(self.dtype)
 
 
 def dense(features: int, name: str | None, dtype: Dtype, precision: str, use_bias: bool = True) -> nn.Dense:

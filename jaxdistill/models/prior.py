@@ -175,9 +175,11 @@ def decode_latents(vae, vae_params, latents):
     return jnp.clip(image, -1.0, 1.0)
 
 
-def encode_photo(prior: RgbxPrior, photo_srgb) -> jax.Array:
-    """Photo (H, W, 3) sRGB [0, 1] → scaled image latent (1, H/8, W/8, 4) (c_v of the thesis)."""
-    return encode_images(prior.networks.vae, prior.params["vae"], photo_to_model_space(photo_srgb)[None])
+def encode_photo(prior: RgbxPrior, photo_srgb, name: str = "photo") -> jax.Array:
+    """Photo (H, W, 3) sRGB [0, 1], sides multiples of 8 (checked) → scaled image latent
+    (1, H/8, W/8, 4), the thesis's c_v."""
+    photo = check_photo(photo_srgb, prior.networks.vae.config.downsampling_factor, name)
+    return encode_images(prior.networks.vae, prior.params["vae"], photo_to_model_space(photo)[None])
 
 
 def check_photo(photo, factor: int, name: str = "photo") -> np.ndarray:
@@ -195,19 +197,21 @@ def check_photo(photo, factor: int, name: str = "photo") -> np.ndarray:
 
 
 def estimate(prior: RgbxPrior, photo_srgb, map_name: str, key: jax.Array, num_steps: int = 50,
-             guidance: Guidance = Guidance(), gamma: bool = True, image_latent=None) -> np.ndarray:
+             guidance: Guidance = Guidance(), gamma: bool = True) -> np.ndarray:
     """RGB→X estimate of one map for one photo: (H, W, 3) float32 in [0, 1].
 
     Full DDIM sampling (default 50 steps, the demo's scheduler: zero-terminal-SNR, trailing)
     from noise drawn with `key`. Albedo/irradiance come back display-encoded (x**(1/2.2)) when
-    `gamma`, roughness/metallic as grey, normals as (n+1)/2 in camera space. Pass the photo's
-    `image_latent` (from `encode_photo`) to skip re-encoding it for every map.
+    `gamma`, roughness/metallic as grey, normals as (n+1)/2 in camera space.
     """
+    return estimate_from_latent(prior, encode_photo(prior, photo_srgb), map_name, key, num_steps, guidance, gamma)
+
+
+def estimate_from_latent(prior: RgbxPrior, image_latent, map_name: str, key: jax.Array, num_steps: int = 50,
+                         guidance: Guidance = Guidance(), gamma: bool = True) -> np.ndarray:
+    """`estimate` for a photo already encoded by `encode_photo` (encode once, estimate every map)."""
     if map_name not in MAP_PROMPTS:
         raise InputError.single("estimate", "map_name", f"{map_name!r}; choose one of {sorted(MAP_PROMPTS)}")
-    photo = check_photo(photo_srgb, prior.networks.vae.config.downsampling_factor)
-    if image_latent is None:
-        image_latent = encode_photo(prior, photo)
     x_T = jax.random.normal(key, image_latent.shape, jnp.float32)  # DDIM's init_noise_sigma is 1
     latent = _sample(prior.networks, prior.scheduler, num_steps, guidance, prior.params, image_latent,
                      prior.text[map_name], x_T)
