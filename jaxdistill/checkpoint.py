@@ -1,0 +1,357 @@
+"""Checkpoints of the distillation state: save every `ckpt_every` steps and on exit, resume.
+
+A checkpoint is one orbax step directory `<directory>/<step>/` holding two items: "state"
+(the state pytree: texels, optimizer state, step, PRNG key) and "config" (the run's flags as
+JSON, compared on resume by `compatible` / `check_compatible`).
+
+Completeness: orbax writes a step into `<step>.orbax-checkpoint-tmp`, then finalises it by
+stamping `commit_timestamp_nsecs` into `_CHECKPOINT_METADATA`, writing `commit_success.txt`
+and renaming the directory to `<step>`. On a local disk orbax itself trusts the rename alone,
+so a `<step>` directory left by an interrupted copy would count as a checkpoint; this module
+also requires the commit marker inside it (`_committed`), and never lists, restores or
+counts (for `max_to_keep`) a directory without it.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import signal
+from pathlib import Path
+from typing import Any, Iterable, Iterator
+
+import jax
+import numpy as np
+import orbax.checkpoint as ocp
+from etils import epath
+from orbax.checkpoint.path import atomicity_types
+from orbax.checkpoint.path import step as step_lib
+
+from .errors import InputError, ProblemList
+
+DEFAULT_IGNORE = ("steps", "resume", "ckpt_every", "out_dir")
+_ADVICE = "use the same flags, or a new --out_dir, or drop --resume to start over"
+_COMMIT_FILE = atomicity_types.COMMIT_SUCCESS_FILE  # "commit_success.txt"
+
+
+def _committed(path) -> bool:
+    """Whether the step directory `path` was finalised by orbax (not a partial write)."""
+    path = Path(path)
+    if atomicity_types.TMP_DIR_SUFFIX in path.name or not path.is_dir():
+        return False
+    if (path / _COMMIT_FILE).is_file():
+        return True
+    # Versions that finalised by rename alone still stamped the commit time.
+    meta = step_lib.Metadata(step=0, path=epath.Path(path))
+    try:
+        return meta.commit_timestamp_nsecs is not None
+    except (OSError, ValueError, TypeError):
+        return False
+
+
+class _CommittedNameFormat:
+    """Orbax's standard `<step>` naming, hiding step directories without the commit marker."""
+
+    def __init__(self):
+        self._inner = step_lib.standard_name_format()
+
+    def build_name(self, step: int) -> str:
+        return self._inner.build_name(step)
+
+    def find_all(self, base_path) -> Iterator[step_lib.Metadata]:
+        return (m for m in self._inner.find_all(base_path) if _committed(m.path))
+
+    def find_step(self, base_path, step: int) -> step_lib.Metadata:
+        meta = self._inner.find_step(base_path, step)
+        if not _committed(meta.path):
+            raise ValueError(f"checkpoint {meta.path} is incomplete (no {_COMMIT_FILE})")
+        return meta
+
+
+def _is_typed_key(x) -> bool:
+    return jax.dtypes.issubdtype(getattr(x, "dtype", None), jax.dtypes.prng_key)
+
+
+def _key_impl(leaf):
+    """The PRNG implementation of a typed key array or of its jax.ShapeDtypeStruct."""
+    if isinstance(leaf, jax.Array):
+        return jax.random.key_impl(leaf)
+    found = []
+    jax.eval_shape(lambda k: found.append(jax.random.key_impl(k)), leaf)
+    return found[0]
+
+
+def _path_name(path) -> str:
+    """`opt_state/0/mu` for a jax key path (dict keys, sequence indices, namedtuple fields)."""
+    parts = []
+    for k in path:
+        for attr in ("key", "idx", "name"):
+            if hasattr(k, attr):
+                parts.append(str(getattr(k, attr)))
+                break
+        else:
+            parts.append(str(k))
+    return "/".join(parts)
+
+
+def _jsonable(config: dict, what: str) -> dict:
+    """`config` after a JSON round trip (tuples become lists); TypeError naming a bad key."""
+    if not isinstance(config, dict):
+        raise TypeError(f"{what} must be a dict of flag name -> value, got {type(config).__name__}")
+    out = {}
+    for name, value in config.items():
+        try:
+            out[str(name)] = json.loads(json.dumps(value))
+        except (TypeError, ValueError) as err:
+            raise TypeError(f"{what}[{name!r}] = {value!r} is not JSON-able: {err}") from None
+    return out
+
+
+class CheckpointStore:
+    """Orbax `CheckpointManager` over `directory`, keeping the last `max_to_keep` complete steps.
+
+    The directory is created on the first `save`, so opening a store only to resume from a wrong
+    path leaves nothing behind; temp dirs of interrupted saves are deleted at each `save`.
+    One writer per directory.
+    """
+
+    def __init__(self, directory, max_to_keep: int = 3):
+        self.directory = Path(directory).absolute()
+        state_handler = ocp.StandardCheckpointHandler()
+        json_handler = ocp.JsonCheckpointHandler()
+        registry = ocp.handlers.DefaultCheckpointHandlerRegistry()
+        registry.add("state", ocp.args.StandardSave, state_handler)
+        registry.add("state", ocp.args.StandardRestore, state_handler)
+        registry.add("config", ocp.args.JsonSave, json_handler)
+        registry.add("config", ocp.args.JsonRestore, json_handler)
+        self._name_format = _CommittedNameFormat()
+        options = ocp.CheckpointManagerOptions(
+            max_to_keep=max_to_keep,
+            create=False,
+            step_name_format=self._name_format,
+        )
+        self._mngr = ocp.CheckpointManager(self.directory, options=options, handler_registry=registry)
+
+    # -- saving -------------------------------------------------------------------------------
+
+    def save(self, step: int, state, config: dict, *, wait: bool = True) -> bool:
+        """Saves `state` and `config` as step `step`; False (nothing written) if that step is
+        already a complete checkpoint. With `wait=False` the write finishes in the background
+        (the arrays are copied first, so `state` may change right away); it only counts as a
+        checkpoint once finalised."""
+        step = int(step)
+        config = _jsonable(config, "config")
+        self._mngr.wait_until_finished()
+        final = self._step_dir(step)
+        if _committed(final):
+            return False
+        if final.exists():  # left by an interrupted write or copy: never a checkpoint, replace it
+            shutil.rmtree(final)
+        self._remove_temporary()
+        self.directory.mkdir(parents=True, exist_ok=True)
+        state = jax.tree.map(lambda x: jax.random.key_data(x) if _is_typed_key(x) else x, state)
+        saved = self._mngr.save(
+            step,
+            args=ocp.args.Composite(state=ocp.args.StandardSave(state), config=ocp.args.JsonSave(config)),
+            force=True,
+        )
+        if wait:
+            self._mngr.wait_until_finished()
+        return bool(saved)
+
+    def _remove_temporary(self) -> None:
+        """Deletes orbax temp dirs left by interrupted saves (none of ours is in flight here)."""
+        if self.directory.is_dir():
+            for path in self.directory.iterdir():
+                if step_lib.is_path_temporary(path):
+                    shutil.rmtree(path)
+
+    def wait(self) -> None:
+        """Blocks until a background save (`wait=False`) is finalised."""
+        self._mngr.wait_until_finished()
+
+    # -- querying -----------------------------------------------------------------------------
+
+    def all_steps(self) -> list[int]:
+        """The steps of all complete checkpoints, ascending."""
+        return sorted(s for s in self._mngr.all_steps() if _committed(self._step_dir(s)))
+
+    def latest_step(self) -> int | None:
+        """The latest complete checkpoint's step, or None."""
+        steps = self.all_steps()
+        return steps[-1] if steps else None
+
+    # -- restoring ----------------------------------------------------------------------------
+
+    def read_config(self, step: int | None = None) -> dict:
+        """The config saved with `step` (default: the latest complete one)."""
+        step = self._complete_step(step)
+        restored = self._mngr.restore(step, args=ocp.args.Composite(config=ocp.args.JsonRestore()))
+        return dict(restored.config)
+
+    def restore(self, step: int | None, like) -> tuple[Any, dict]:
+        """`(state, config)` of `step` (None: the latest complete one), with the structure,
+        shapes and dtypes of `like` (concrete arrays or jax.ShapeDtypeStruct), as arrays on the
+        default device; InputError naming each leaf whose shape or dtype differs."""
+        step = self._complete_step(step)
+        self._check_like(step, like)
+        device = jax.local_devices()[0]
+        sharding = jax.sharding.SingleDeviceSharding(device)
+
+        def abstract(x):
+            if _is_typed_key(x):
+                x = jax.eval_shape(jax.random.key_data, x)
+            return jax.ShapeDtypeStruct(tuple(x.shape), x.dtype, sharding=sharding)
+
+        target = jax.tree.map(abstract, like)
+        restored = self._mngr.restore(
+            step,
+            args=ocp.args.Composite(state=ocp.args.StandardRestore(target), config=ocp.args.JsonRestore()),
+        )
+        state = jax.tree.map(
+            lambda x, data: jax.random.wrap_key_data(data, impl=_key_impl(x)) if _is_typed_key(x) else data,
+            like, restored.state,
+        )
+        return state, dict(restored.config)
+
+    def _complete_step(self, step: int | None) -> int:
+        self._mngr.wait_until_finished()
+        steps = self.all_steps()
+        if not steps:
+            raise InputError.single(
+                self.directory, "--resume",
+                f"no complete checkpoint in {self.directory}; --resume needs one "
+                "(check --out_dir, or drop --resume to start over)")
+        if step is None:
+            return steps[-1]
+        if int(step) not in steps:
+            raise InputError.single(
+                self.directory, f"step {int(step)}",
+                f"no complete checkpoint for step {int(step)} in {self.directory}; complete steps: {steps}")
+        return int(step)
+
+    def saved_shapes(self, step: int | None = None) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
+        """{leaf path (e.g. "texels", "opt_state/0/mu"): (shape, dtype)} of a complete checkpoint's state."""
+        step = self._complete_step(step)
+        tree = self._mngr.metadata(step).item_metadata["state"].tree
+        return {_path_name(p): (tuple(m.shape), np.dtype(m.dtype))
+                for p, m in jax.tree_util.tree_flatten_with_path(tree)[0]}
+
+    def _check_like(self, step: int, like) -> None:
+        """InputError for each leaf of `like` missing from, or shaped/typed unlike, the checkpoint."""
+        tree = self._mngr.metadata(step).item_metadata["state"].tree
+        saved = {_path_name(p): m for p, m in jax.tree_util.tree_flatten_with_path(tree)[0]}
+        wanted = {_path_name(p): x for p, x in jax.tree_util.tree_flatten_with_path(like)[0]}
+        where = self._step_dir(step)
+        problems = ProblemList()
+        for name, x in wanted.items():
+            if _is_typed_key(x):
+                x = jax.eval_shape(jax.random.key_data, x)
+            meta = saved.get(name)
+            if meta is None:
+                problems.add(where, name, "missing from the checkpoint (the state layout changed); " + _ADVICE)
+                continue
+            shape, dtype = tuple(x.shape), np.dtype(x.dtype)
+            saved_shape, saved_dtype = tuple(meta.shape), np.dtype(meta.dtype)
+            if (shape, dtype) != (saved_shape, saved_dtype):
+                problems.add(where, name,
+                             f"the checkpoint has shape {saved_shape} {saved_dtype}, the current run "
+                             f"expects {shape} {dtype} (did the scene or the texture size change?); "
+                             + _ADVICE)
+        for name in saved.keys() - wanted.keys():
+            problems.add(where, name, "in the checkpoint but not in the current state (the state "
+                         "layout changed); " + _ADVICE)
+        problems.raise_if_any()
+
+    def _step_dir(self, step: int) -> Path:
+        return self.directory / self._name_format.build_name(int(step))
+
+    # -- lifetime -----------------------------------------------------------------------------
+
+    def close(self) -> None:
+        """Waits for a background save to finalise and releases orbax's resources."""
+        self._mngr.close()
+
+    def __enter__(self) -> "CheckpointStore":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def compatible(saved: dict, current: dict, *, ignore: Iterable[str] = DEFAULT_IGNORE) -> list[str]:
+    """Sorted names of the flags whose values differ between `saved` and `current` (after a JSON
+    round trip; a flag present in only one differs), leaving out `ignore`."""
+    saved, current = _jsonable(saved, "saved config"), _jsonable(current, "current config")
+    skip = set(ignore)
+    names = (saved.keys() | current.keys()) - skip
+    return sorted(n for n in names if n not in saved or n not in current or saved[n] != current[n])
+
+
+def check_compatible(saved: dict, current: dict, directory, ignore: Iterable[str] = DEFAULT_IGNORE) -> None:
+    """InputError naming `directory` and each differing flag (saved vs current value)."""
+    differ = compatible(saved, current, ignore=ignore)
+    if not differ:
+        return
+    saved, current = _jsonable(saved, "saved config"), _jsonable(current, "current config")
+    missing = "(not set)"
+
+    def show(cfg, name):
+        return json.dumps(cfg[name]) if name in cfg else missing
+
+    problems = [(str(directory), f"--{name}",
+                 f"checkpoint has {show(saved, name)}, current run has {show(current, name)}")
+                for name in differ]
+    problems.append((str(directory), "--resume",
+                     f"the checkpoint was written with other flags; {_ADVICE}"))
+    raise InputError(problems)
+
+
+class StopSignals:
+    """Context manager turning SIGINT and SIGTERM into a flag (`requested`) that the loop polls
+    to save a checkpoint and exit. A second signal goes to the previous handler (a second
+    Ctrl-C interrupts at once). Enter it from the main thread; the previous handlers are
+    restored on exit."""
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self):
+        self._signum: int | None = None
+        self._previous: dict[int, Any] = {}
+
+    @property
+    def requested(self) -> bool:
+        return self._signum is not None
+
+    @property
+    def signal_name(self) -> str | None:
+        return None if self._signum is None else signal.Signals(self._signum).name
+
+    def _handle(self, signum, frame) -> None:
+        if self._signum is None:
+            self._signum = signum
+            return
+        previous = self._previous.get(signum)
+        if callable(previous):
+            previous(signum, frame)
+        elif previous == signal.SIG_DFL:
+            signal.signal(signum, signal.SIG_DFL)
+            signal.raise_signal(signum)
+
+    def __enter__(self) -> "StopSignals":
+        self._signum = None
+        try:
+            for sig in self.SIGNALS:
+                self._previous[sig] = signal.signal(sig, self._handle)
+        except BaseException:
+            self._restore()
+            raise
+        return self
+
+    def _restore(self) -> None:
+        for sig, previous in self._previous.items():
+            signal.signal(sig, previous if previous is not None else signal.SIG_DFL)
+        self._previous = {}
+
+    def __exit__(self, *exc) -> None:
+        self._restore()
