@@ -1,0 +1,346 @@
+"""Exports: map files, tangent-space normals, glTF (orientation via a raw GLB parse), plots."""
+
+from __future__ import annotations
+
+import json
+import struct
+
+import numpy as np
+import pytest
+
+from jaxdistill import export, imageio
+from jaxdistill.scene import Mesh
+
+
+def srgb_encode(x):
+    """IEC 61966-2-1 sRGB transfer function (independent reference)."""
+    x = np.clip(np.asarray(x, np.float64), 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055)
+
+
+def random_pages(sizes, seed=0):
+    rng = np.random.default_rng(seed)
+    pages = {"albedo": [], "normal": [], "roughness": [], "metallic": [], "irradiance": []}
+    for s in sizes:
+        pages["albedo"].append(rng.uniform(0, 1, (s, s, 3)).astype(np.float32))
+        n = rng.normal(size=(s, s, 3))
+        pages["normal"].append((n / np.linalg.norm(n, axis=-1, keepdims=True)).astype(np.float32))
+        pages["roughness"].append(rng.uniform(0, 1, (s, s, 1)).astype(np.float32))
+        pages["metallic"].append(rng.uniform(0, 1, (s, s, 1)).astype(np.float32))
+        pages["irradiance"].append(rng.uniform(0, 3, (s, s, 3)).astype(np.float32))
+    return pages
+
+
+def quad_mesh(uv_of_xy=lambda x, y: (x, y), faces=((0, 1, 2), (0, 2, 3)), rotation=None):
+    """Unit square in the z=0 plane (counter-clockwise seen from +z), UVs from (x, y)."""
+    xy = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
+    vertices = np.concatenate([xy, np.zeros((4, 1))], axis=1)
+    if rotation is not None:
+        vertices = vertices @ rotation.T
+    faces = np.array(faces, np.int64)
+    uv = np.array([[uv_of_xy(*xy[i]) for i in face] for face in faces], np.float64)
+    return Mesh(vertices=vertices, faces=faces, uv=uv, face_object=np.zeros(len(faces), np.int32),
+                object_names=("quad",))
+
+
+# ----------------------------------------------------------------------------- write_maps
+
+
+def test_page_names():
+    assert export.page_names(["floor", "bed"], [0, 1]) == ["floor", "bed"]
+    assert export.page_names(["floor", "bed", "lamp"], [0, 0, 1]) == ["page_000", "lamp"]
+    assert export.page_names(["a", "b"], [0, 0]) == ["page_000"]
+    assert export.page_names(["my lamp/1", "x"], [0, 1]) == ["my_lamp_1", "x"]
+    assert export.page_names(["a b", "a/b"], [0, 1]) == ["a_b", "a_b_001"]
+
+
+def test_write_maps_single_page(tmp_path):
+    pages = random_pages([8])
+    written = export.write_maps(tmp_path, pages, ["floor", "bed"], [0, 0])
+    names = sorted(p.relative_to(tmp_path).as_posix() for p in written)
+    assert names == sorted(f"maps/{m}.{e}" for m in pages for e in ("exr", "png"))
+    for m in pages:
+        np.testing.assert_array_equal(imageio.read_image(tmp_path / f"maps/{m}.exr"), pages[m][0])
+    tol = 0.5 / 255 + 1e-6
+    png = lambda m: imageio.read_image(tmp_path / f"maps/{m}.png", linear=False)
+    np.testing.assert_allclose(png("albedo"), srgb_encode(pages["albedo"][0]), atol=tol)
+    np.testing.assert_allclose(png("irradiance"), srgb_encode(np.minimum(pages["irradiance"][0], 1)), atol=tol)
+    assert (pages["irradiance"][0] > 1).any() and imageio.read_image(tmp_path / "maps/irradiance.exr").max() > 1
+    np.testing.assert_allclose(png("normal"), (pages["normal"][0] + 1) / 2, atol=tol)
+    np.testing.assert_allclose(png("roughness"), pages["roughness"][0], atol=tol)
+    np.testing.assert_allclose(png("metallic"), pages["metallic"][0], atol=tol)
+
+
+def test_write_maps_several_pages(tmp_path):
+    pages = random_pages([8, 4])
+    written = export.write_maps(tmp_path, pages, ["wall", "lamp"], [0, 1])
+    assert len(written) == 5 * 2 * 2
+    for m in pages:
+        for p, stem in enumerate(["wall", "lamp"]):
+            np.testing.assert_array_equal(imageio.read_image(tmp_path / f"maps/{m}/{stem}.exr"), pages[m][p])
+            assert imageio.image_size(tmp_path / f"maps/{m}/{stem}.png")[:2] == pages[m][p].shape[:2][::-1]
+
+
+def test_write_maps_errors(tmp_path):
+    pages = random_pages([8, 4])
+    bad = dict(pages, roughness=[pages["roughness"][0], np.zeros((8, 8, 1), np.float32)])
+    with pytest.raises(ValueError, match="'roughness' page 1 is 8x8"):
+        export.write_maps(tmp_path, bad, ["wall", "lamp"], [0, 1])
+    with pytest.raises(ValueError, match=r"'metallic' page 0.*\(S, S, 1\)"):
+        export.write_maps(tmp_path, dict(pages, metallic=pages["albedo"]), ["wall", "lamp"], [0, 1])
+    with pytest.raises(ValueError, match="unknown map 'depth'"):
+        export.write_maps(tmp_path, {"depth": pages["roughness"]}, ["wall", "lamp"], [0, 1])
+    with pytest.raises(ValueError, match="2 pages, but object_page uses 1"):
+        export.write_maps(tmp_path, pages, ["wall", "lamp"], [0, 0])
+
+
+# ----------------------------------------------------------------------------- tangent space
+
+TILT = 0.4
+S = 8
+
+
+def uniform_normal(n, size=S):
+    n = np.asarray(n, np.float64)
+    return [np.broadcast_to(n / np.linalg.norm(n), (size, size, 3)).astype(np.float32)]
+
+
+def decoded(page):
+    return page.astype(np.float64) * 2 - 1
+
+
+@pytest.mark.parametrize("uv_of_xy, world, expected", [
+    # UVs along x, y: the frame is the world frame
+    (lambda x, y: (x, y), (0, 0, 1), (0, 0, 1)),
+    (lambda x, y: (x, y), (np.sin(TILT), 0, np.cos(TILT)), (np.sin(TILT), 0, np.cos(TILT))),
+    (lambda x, y: (x, y), (0, np.sin(TILT), np.cos(TILT)), (0, np.sin(TILT), np.cos(TILT))),
+    # UVs rotated by 90 degrees: +u along +y, +v along -x
+    (lambda x, y: (y, 1 - x), (np.sin(TILT), 0, np.cos(TILT)), (0, -np.sin(TILT), np.cos(TILT))),
+    (lambda x, y: (y, 1 - x), (0, np.sin(TILT), np.cos(TILT)), (np.sin(TILT), 0, np.cos(TILT))),
+    # mirrored u: +u along -x, v still along +y (bitangent sign -1)
+    (lambda x, y: (1 - x, y), (np.sin(TILT), 0, np.cos(TILT)), (-np.sin(TILT), 0, np.cos(TILT))),
+    (lambda x, y: (1 - x, y), (0, np.sin(TILT), np.cos(TILT)), (0, np.sin(TILT), np.cos(TILT))),
+    # mirrored v
+    (lambda x, y: (x, 1 - y), (0, np.sin(TILT), np.cos(TILT)), (0, -np.sin(TILT), np.cos(TILT))),
+    # a normal facing away from the surface
+    (lambda x, y: (x, y), (0, 0, -1), (0, 0, -1)),
+])
+def test_tangent_space_quad(uv_of_xy, world, expected):
+    (page,) = export.tangent_space_normals(uniform_normal(world), quad_mesh(uv_of_xy), [0])
+    assert page.shape == (S, S, 3) and page.dtype == np.float32
+    np.testing.assert_allclose(decoded(page), np.broadcast_to(expected, (S, S, 3)), atol=1e-6)
+
+
+def test_tangent_space_is_rotation_invariant():
+    angle = 0.7
+    axis = np.array([1.0, 2.0, 0.5]) / np.linalg.norm([1.0, 2.0, 0.5])
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    rot = np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
+    world = np.array([np.sin(TILT), 0.2, np.cos(TILT)])
+    mesh = quad_mesh(lambda x, y: (y, 1 - x), rotation=rot)
+    (page,) = export.tangent_space_normals(uniform_normal(rot @ world), mesh, [0])
+    (flat,) = export.tangent_space_normals(uniform_normal(world), quad_mesh(lambda x, y: (y, 1 - x)), [0])
+    np.testing.assert_allclose(page, flat, atol=1e-6)
+    w = world / np.linalg.norm(world)
+    np.testing.assert_allclose(decoded(page)[3, 3], [w[1], -w[0], w[2]], atol=1e-6)
+
+
+def test_tangent_space_uncovered_seams_and_unknown():
+    # one triangle covering the UV half u >= v (the page's upper right half, as row 0 is v = 1)
+    mesh = quad_mesh(faces=((0, 1, 2),))
+    world = uniform_normal((np.sin(TILT), 0, np.cos(TILT)), size=16)[0].copy()
+    world[15, 15] = 0.0  # unknown normal inside the triangle
+    (page,) = export.tangent_space_normals([world], mesh, [0], dilate=2)
+    tilted = (np.array([np.sin(TILT), 0, np.cos(TILT)]) + 1) / 2
+    r, c = np.mgrid[:16, :16]
+    u, v = (c + 0.5) / 16, 1 - (r + 0.5) / 16
+    covered = u >= v
+    known = covered & ~((r == 15) & (c == 15))
+    np.testing.assert_allclose(page[known], np.broadcast_to(tilted, (int(known.sum()), 3)), atol=1e-6)
+    np.testing.assert_allclose(page[15, 15], [0.5, 0.5, 1.0])
+    texel_distance = (v - u) * 16  # distance from the diagonal in texels along a row or column
+    far = texel_distance > 4.5  # beyond two dilation passes (a diagonal step moves 2 texels off the edge)
+    np.testing.assert_allclose(page[far], np.broadcast_to([0.5, 0.5, 1.0], (int(far.sum()), 3)))
+    # the first row of texels outside the triangle (a seam) takes the face's frame
+    seam = (~covered) & (texel_distance <= 1.0)
+    assert seam.any()
+    np.testing.assert_allclose(page[seam], np.broadcast_to(tilted, (int(seam.sum()), 3)), atol=1e-6)
+    # without dilation they stay flat
+    (plain,) = export.tangent_space_normals([world], mesh, [0], dilate=0)
+    np.testing.assert_allclose(plain[~covered], np.broadcast_to([0.5, 0.5, 1.0], (int((~covered).sum()), 3)))
+
+
+def test_tangent_space_pages_and_errors():
+    mesh = quad_mesh()
+    two = Mesh(vertices=mesh.vertices, faces=mesh.faces, uv=mesh.uv, face_object=np.array([0, 1], np.int32),
+               object_names=("a", "b"))
+    tilt = (np.sin(TILT), 0, np.cos(TILT))
+    p0, p1 = export.tangent_space_normals(uniform_normal(tilt, 8) + uniform_normal(tilt, 4), two, [0, 1])
+    # each page only holds its object's face: face 0 covers u >= v, face 1 covers u <= v
+    assert p0.shape == (8, 8, 3) and p1.shape == (4, 4, 3)
+    np.testing.assert_allclose(p0[0, 0], [0.5, 0.5, 1.0])  # top left: u < v, face 1's half
+    np.testing.assert_allclose(p1[0, 0], (np.array(tilt) + 1) / 2, atol=1e-6)
+    with pytest.raises(ValueError, match="'normal' page 0"):
+        export.tangent_space_normals([np.zeros((8, 4, 3))], mesh, [0])
+    with pytest.raises(ValueError, match="object_page"):
+        export.tangent_space_normals(uniform_normal(tilt), two, [0, 1])
+
+
+# ----------------------------------------------------------------------------- glTF
+
+
+def read_glb(path):
+    """(json, bin) chunks of a GLB file, parsed by the glTF 2.0 spec (no trimesh)."""
+    data = path.read_bytes()
+    magic, version, length = struct.unpack_from("<4sII", data, 0)
+    assert magic == b"glTF" and version == 2 and length == len(data)
+    n, kind = struct.unpack_from("<I4s", data, 12)
+    assert kind == b"JSON"
+    doc = json.loads(data[20:20 + n])
+    n2, kind2 = struct.unpack_from("<I4s", data, 20 + n)
+    assert kind2 == b"BIN\x00"
+    return doc, data[28 + n:28 + n + n2]
+
+
+def accessor(doc, blob, index):
+    acc = doc["accessors"][index]
+    view = doc["bufferViews"][acc["bufferView"]]
+    width = {"SCALAR": 1, "VEC2": 2, "VEC3": 3}[acc["type"]]
+    dtype = {5126: np.float32, 5125: np.uint32, 5123: np.uint16}[acc["componentType"]]
+    start = view.get("byteOffset", 0) + acc.get("byteOffset", 0)
+    assert view.get("byteStride", np.dtype(dtype).itemsize * width) == np.dtype(dtype).itemsize * width
+    return np.frombuffer(blob, dtype, acc["count"] * width, start).reshape(acc["count"], width)
+
+
+def gltf_scene():
+    """Object 'wall' (a quad, 2 faces) on an 8x8 page, 'lamp' (1 face, tilted) on a 4x4 page."""
+    quad = quad_mesh()
+    lamp_v = np.array([[2.0, 0.0, 0.0], [3.0, 0.0, 1.0], [2.0, 1.0, 0.5]])
+    mesh = Mesh(vertices=np.concatenate([quad.vertices, lamp_v]),
+                faces=np.concatenate([quad.faces, [[4, 5, 6]]]),
+                uv=np.concatenate([quad.uv, [[[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]]]]),
+                face_object=np.array([0, 0, 1], np.int32), object_names=("wall", "lamp"))
+    pages = random_pages([8, 4], seed=3)
+    red_blue = np.zeros((8, 8, 3), np.float32)
+    red_blue[:4, :, 0] = 1.0  # top half (rows 0..3, v > 0.5) red
+    red_blue[4:, :, 2] = 1.0  # bottom half blue
+    pages["albedo"][0] = red_blue
+    return mesh, pages
+
+
+def decode_png(doc, blob, texture_index):
+    import PIL.Image
+    import io
+
+    image = doc["images"][doc["textures"][texture_index]["source"]]
+    view = doc["bufferViews"][image["bufferView"]]
+    start = view.get("byteOffset", 0)
+    return np.asarray(PIL.Image.open(io.BytesIO(blob[start:start + view["byteLength"]])).convert("RGB"))
+
+
+def test_gltf_orientation_raw(tmp_path):
+    mesh, pages = gltf_scene()
+    path = export.write_gltf(tmp_path / "room.glb", mesh, [0, 1], pages)
+    doc, blob = read_glb(path)
+    wall = next(m for m in doc["meshes"] if m["name"] == "wall")
+    prim = wall["primitives"][0]
+    texcoord = accessor(doc, blob, prim["attributes"]["TEXCOORD_0"]).astype(np.float64)
+    position = accessor(doc, blob, prim["attributes"]["POSITION"]).astype(np.float64)
+    image = decode_png(doc, blob, doc["materials"][prim["material"]]["pbrMetallicRoughness"]
+                       ["baseColorTexture"]["index"])
+    assert image.shape == (8, 8, 3)
+    # glTF: texcoord (s, t) samples the image at column s * W, row t * H from the top
+    for (s, t), p in zip(texcoord, position):
+        our_v = p[1]  # the wall's UVs are (x, y) in our convention (v up)
+        np.testing.assert_allclose([s, t], [p[0], 1 - our_v], atol=1e-6)
+        row = min(int(np.floor(t * 8 + (0.5 if t < 0.5 else -0.5))), 7)  # a texel inside, not on the edge
+        pixel = image[row, min(int(s * 8), 7)]
+        expected = [255, 0, 0] if our_v == 1 else [0, 0, 255]
+        np.testing.assert_array_equal(pixel, expected)
+
+
+def test_gltf_reload_with_trimesh(tmp_path):
+    import trimesh
+
+    mesh, pages = gltf_scene()
+    path = export.write_gltf(tmp_path / "room.glb", mesh, [0, 1], pages)
+    loaded = trimesh.load(path, force="scene", process=False)
+    assert sorted(loaded.geometry) == ["lamp", "wall"]
+    normals = export.tangent_space_normals(pages["normal"], mesh, [0, 1])
+    for object_id, (name, page) in enumerate([("wall", 0), ("lamp", 1)]):
+        geom = loaded.geometry[name]
+        face_ids = np.nonzero(mesh.face_object == object_id)[0]
+        assert len(geom.faces) == len(face_ids) and len(geom.vertices) == 3 * len(face_ids)
+        np.testing.assert_allclose(geom.vertices[geom.faces], mesh.triangles()[face_ids], atol=1e-6)
+        # trimesh undoes the glTF flip: the reloaded UVs are ours again (v up, image row 0 at v = 1)
+        np.testing.assert_allclose(geom.visual.uv[geom.faces], mesh.uv[face_ids], atol=1e-6)
+        mat = geom.visual.material
+        assert mat.metallicFactor == 1.0 and mat.roughnessFactor == 1.0
+        base = np.asarray(mat.baseColorTexture.convert("RGB"), np.float64) / 255
+        np.testing.assert_allclose(base, srgb_encode(pages["albedo"][page]), atol=0.5 / 255 + 1e-6)
+        mr = np.asarray(mat.metallicRoughnessTexture.convert("RGB"), np.float64) / 255
+        np.testing.assert_allclose(mr[..., 1], pages["roughness"][page][..., 0], atol=0.5 / 255 + 1e-6)
+        np.testing.assert_allclose(mr[..., 2], pages["metallic"][page][..., 0], atol=0.5 / 255 + 1e-6)
+        nt = np.asarray(mat.normalTexture.convert("RGB"), np.float64) / 255
+        np.testing.assert_allclose(nt, normals[page], atol=0.5 / 255 + 1e-6)
+    wall = loaded.geometry["wall"]
+    top = wall.visual.uv[:, 1] == 1.0
+    image = np.asarray(wall.visual.material.baseColorTexture.convert("RGB"))
+    assert top.any() and (image[0] == [255, 0, 0]).all() and (image[-1] == [0, 0, 255]).all()
+
+
+def test_gltf_albedo_only_and_atlas(tmp_path):
+    import trimesh
+
+    mesh, pages = gltf_scene()
+    atlas = {"albedo": [pages["albedo"][0]]}
+    path = export.write_gltf(tmp_path / "atlas.glb", mesh, [0, 0], atlas)
+    doc, _ = read_glb(path)
+    assert len(doc["materials"]) == 1 and len(doc["images"]) == 1
+    material = doc["materials"][0]
+    assert set(material["pbrMetallicRoughness"]) >= {"baseColorTexture"}
+    assert "metallicRoughnessTexture" not in material["pbrMetallicRoughness"]
+    assert material["pbrMetallicRoughness"]["metallicFactor"] == 0.0 and "normalTexture" not in material
+    loaded = trimesh.load(path, force="scene", process=False)
+    assert sorted(loaded.geometry) == ["lamp", "wall"]
+    with pytest.raises(ValueError, match=".glb"):
+        export.write_gltf(tmp_path / "atlas.obj", mesh, [0, 0], atlas)
+
+
+# ----------------------------------------------------------------------------- plots
+
+
+def test_write_loss_plot(tmp_path):
+    steps = np.arange(200)
+    loss = np.exp(-steps / 50) * (1 + 0.2 * np.sin(steps))
+    psnr = {"albedo PSNR (dB)": (steps[::20], 10 + steps[::20] / 10)}
+    path = export.write_loss_plot(tmp_path / "plots/loss.png", steps, loss, extra=psnr, title="bedroom")
+    image = imageio.read_image(path, linear=False)
+    assert image.shape[0] >= 300 and image.shape[1] >= 500 and image.std() > 0.01
+    negative = export.write_loss_plot(tmp_path / "neg.png", steps, loss - 0.5)
+    assert imageio.read_image(negative, linear=False).std() > 0.01
+    with pytest.raises(ValueError, match="loss: 3 steps but 2 values"):
+        export.write_loss_plot(tmp_path / "bad.png", [0, 1, 2], [1.0, 2.0])
+
+
+def test_write_contact_sheet(tmp_path):
+    rng = np.random.default_rng(1)
+    a = rng.uniform(0, 1, (10, 12, 3))
+    rows = [[a, rng.uniform(0, 1, (10, 16, 3)), None],
+            [rng.uniform(0, 1, (14, 12, 3)), None, rng.uniform(0, 1, (6, 9, 3))]]
+    path = export.write_contact_sheet(tmp_path / "sheet.png", rows, ["photo", "albedo", "normal"],
+                                      ["view_000", "view_001"], gap=4, title_px=20, label_px=40)
+    sheet = imageio.read_image(path, linear=False)
+    widths, heights = [12, 16, 9], [10, 14]
+    assert sheet.shape == (20 + sum(heights) + 4 * 3, 40 + sum(widths) + 4 * 4, 3)
+    # images are drawn 1:1 (no resampling), grey where missing
+    x0, y0 = 40 + 4, 20 + 4
+    np.testing.assert_allclose(sheet[y0:y0 + 10, x0:x0 + 12], a, atol=0.5 / 255 + 1e-6)
+    x2 = x0 + 12 + 4 + 16 + 4
+    np.testing.assert_allclose(sheet[y0:y0 + 10, x2:x2 + 9], 0.5, atol=1 / 255)
+    # the title band holds text (non-white pixels)
+    assert (sheet[:20] < 0.5).any() and (sheet[y0:, :40] < 0.5).any()
+    plain = export.write_contact_sheet(tmp_path / "plain.png", rows, ["a", "b", "c"], gap=2, title_px=16)
+    assert imageio.read_image(plain, linear=False).shape == (16 + 24 + 2 * 3, 37 + 2 * 4, 3)
+    with pytest.raises(ValueError, match="row 1: 2 images for 3 columns"):
+        export.write_contact_sheet(tmp_path / "bad.png", [rows[0], rows[1][:2]], ["a", "b", "c"])
