@@ -78,17 +78,6 @@ def config_from_flags() -> EstimateConfig:
                           dtype=FLAGS.dtype, convert_cache=FLAGS.convert_cache)
 
 
-def read_photo_srgb(path: Path) -> np.ndarray:
-    """(H, W, 3) float32 sRGB-encoded values in [0, 1] from an LDR or HDR photo file."""
-    if imageio.is_linear_format(path):
-        pixels = imageio.linear_to_srgb(np.clip(imageio.read_image(path), 0.0, 1.0))
-    else:
-        pixels = imageio.read_image(path, linear=False)
-    if pixels.shape[-1] < 3:
-        raise InputError.single(path, "channels", f"has {pixels.shape[-1]} channels; RGB↔X needs a colour photo")
-    return np.clip(pixels[..., :3], 0.0, 1.0)
-
-
 def photos_to_estimate(cfg: EstimateConfig) -> list[tuple[str, Path]]:
     """(view name, photo path) pairs selected by the config."""
     if cfg.photo:
@@ -120,7 +109,7 @@ def run(cfg: EstimateConfig) -> dict:
     seconds = []
     with tqdm(total=len(photos) * len(cfg.maps), desc="RGB→X estimates", unit="map") as bar:
         for name, path in photos:
-            image_latent = prior.encode_photo(rgbx, read_photo_srgb(path), str(path))   # c_v, shared by the maps
+            image_latent = prior.encode_photo(rgbx, imageio.read_photo_srgb(path), str(path))   # c_v, shared by the maps
             for map_name in cfg.maps:
                 t0 = time.perf_counter()
                 view_key = jax.random.fold_in(jax.random.fold_in(key, zlib.crc32(name.encode())),

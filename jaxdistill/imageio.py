@@ -12,6 +12,8 @@ from pathlib import Path
 import numpy as np
 import OpenImageIO as oiio
 
+from jaxdistill.errors import InputError
+
 LINEAR_EXTENSIONS = (".exr", ".hdr", ".pfm")
 
 
@@ -90,3 +92,14 @@ def write_image(path, pixels: np.ndarray, *, encode_srgb: bool | None = None, ha
     if not buf.write(os.fspath(tmp), dtype):
         raise OSError(f"{path}: cannot write image: {oiio.geterror()}")
     os.replace(tmp, path)
+
+
+def read_photo_srgb(path: Path) -> np.ndarray:
+    """(H, W, 3) float32 sRGB-encoded values in [0, 1] from an LDR or HDR photo file."""
+    if is_linear_format(path):
+        pixels = linear_to_srgb(np.clip(read_image(path), 0.0, 1.0))
+    else:
+        pixels = read_image(path, linear=False)
+    if pixels.shape[-1] < 3:
+        raise InputError.single(path, "channels", f"has {pixels.shape[-1]} channels; RGB↔X needs a colour photo")
+    return np.clip(pixels[..., :3], 0.0, 1.0)

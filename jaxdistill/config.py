@@ -1,0 +1,197 @@
+"""The distillation run's settings: absl flags, parsed once into a frozen `DistillConfig`.
+
+Flags are declared by `define_flags(flag_values)` (the command calls it on the global FLAGS;
+tests use their own `flags.FlagValues`), read by `config_from_flags`, which reports every bad
+value at once, naming the flag, before any compute.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from typing import Any
+
+from absl import flags
+
+from jaxdistill import MAP_NAMES
+from jaxdistill.errors import InputError, ProblemList
+from jaxdistill.render.gather_plan import SAMPLERS
+
+PRIORS = ("auto", "rgbx", "views")
+LOSS_SPACES = ("image", "latent")
+ANNEALING = ("none", "linear", "sqrt")
+T_WEIGHTINGS = ("none", "sds")
+LATENT_MODES = ("mode", "sample")
+LR_SCHEDULES = ("constant", "cosine")
+PRIOR_DTYPES = ("float32", "bfloat16")
+RGBX_DIR_ENV = "JAXDISTILL_RGBX_DIR"
+
+# Flags that may change when a run is resumed; every other flag must match the checkpoint.
+RESUMABLE_FLAGS = ("steps", "resume", "ckpt_every", "out_dir", "log_every", "eval_every", "renders",
+                   "contact_views", "rgbx_dir", "convert_cache")
+
+
+@dataclasses.dataclass(frozen=True)
+class DistillConfig:
+    """Every setting of one run (hashable; fields mirror the flags one to one)."""
+
+    scene: str
+    out_dir: str
+    maps: tuple[str, ...] = MAP_NAMES
+    prior: str = "auto"
+    rgbx_dir: str | None = None
+    convert_cache: str | None = None
+    prior_dtype: str = "float32"
+    steps: int = 300
+    lr: float = 0.01
+    lr_schedule: str = "constant"
+    weight_decay: float = 0.0
+    t_min: float = 0.2
+    t_max: float = 0.98
+    anneal: str = "none"
+    t_weighting: str = "none"
+    w_t: float = 1.0
+    w_i: float = 1.0
+    loss_space: str = "image"
+    latent: str = "mode"
+    visibility_weighting: bool = True
+    p_keep: float = 1.0
+    render_size: int = 0
+    texture_size: str = "auto"
+    max_texture_size: int = 4096
+    sampler: str = "bilinear"
+    views_per_step: int = 8
+    seed: int = 0
+    ckpt_every: int = 0
+    resume: bool = False
+    log_every: int = 10
+    eval_every: int = 0
+    renders: bool = True
+    contact_views: int = 4
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-able {flag: value}, as recorded in checkpoints and metrics.json."""
+        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(self).items()}
+
+
+_DEFAULTS = DistillConfig(scene="", out_dir="")
+
+
+def define_flags(fv: flags.FlagValues = flags.FLAGS) -> None:
+    """Declares the run's flags on `fv` (defaults are DistillConfig's)."""
+    d = _DEFAULTS
+    flags.DEFINE_string("scene", None, "scene.json or its folder ('bedroom' = the embedded bedroom)", flag_values=fv)
+    flags.DEFINE_string("out_dir", None, "output folder (maps, scene.glb, renders, metrics.json, checkpoints)",
+                        flag_values=fv)
+    flags.DEFINE_list("maps", list(d.maps), f"maps to distil, any of {','.join(MAP_NAMES)}", flag_values=fv)
+    flags.DEFINE_enum("prior", d.prior, PRIORS, "rgbx: the RGB<->X model; views: the scene's per-view target "
+                      "images; auto: rgbx when weights are found, else views", flag_values=fv)
+    flags.DEFINE_string("rgbx_dir", None, f"RGB<->X folder (diffusers format); default ${RGBX_DIR_ENV}",
+                        flag_values=fv)
+    flags.DEFINE_string("convert_cache", None, "cache folder for converted RGB<->X weights", flag_values=fv)
+    flags.DEFINE_enum("prior_dtype", d.prior_dtype, PRIOR_DTYPES, "activation dtype of the frozen networks "
+                      "(texels, loss and optimizer are always float32)", flag_values=fv)
+    flags.DEFINE_integer("steps", d.steps, "optimisation steps", flag_values=fv)
+    flags.DEFINE_float("lr", d.lr, "AdamW learning rate", flag_values=fv)
+    flags.DEFINE_enum("lr_schedule", d.lr_schedule, LR_SCHEDULES, "constant (thesis) or cosine decay to 0 over "
+                      "--steps", flag_values=fv)
+    flags.DEFINE_float("weight_decay", d.weight_decay, "AdamW weight decay", flag_values=fv)
+    flags.DEFINE_float("t_min", d.t_min, "smallest diffusion time, fraction of 1000 steps", flag_values=fv)
+    flags.DEFINE_float("t_max", d.t_max, "largest diffusion time, fraction of 1000 steps", flag_values=fv)
+    flags.DEFINE_enum("anneal", d.anneal, ANNEALING, "shrink the upper end of the t range from t_max to t_min "
+                      "over the run (linear or sqrt in the step)", flag_values=fv)
+    flags.DEFINE_enum("t_weighting", d.t_weighting, T_WEIGHTINGS, "w(t) per sample: none (1) or sds (1 - alpha_bar_t)",
+                      flag_values=fv)
+    flags.DEFINE_float("w_t", d.w_t, "text guidance weight (eq. 4.2)", flag_values=fv)
+    flags.DEFINE_float("w_i", d.w_i, "image guidance weight (eq. 4.2)", flag_values=fv)
+    flags.DEFINE_enum("loss_space", d.loss_space, LOSS_SPACES, "image: MSE of renders (thesis default); latent: "
+                      "MSE of VAE latents (the thesis's ablation; backpropagates through the encoder)", flag_values=fv)
+    flags.DEFINE_enum("latent", d.latent, LATENT_MODES, "VAE encoding of renders: the mode or a sample",
+                      flag_values=fv)
+    flags.DEFINE_bool("visibility_weighting", d.visibility_weighting, "weight pixels by 1 / (2 clip(V, 1, 6))",
+                      flag_values=fv)
+    flags.DEFINE_float("p_keep", d.p_keep, "image-space dropout: probability a pixel counts in a step", flag_values=fv)
+    flags.DEFINE_integer("render_size", d.render_size, "longer side of the renders in pixels; 0 = the photos' size",
+                         flag_values=fv)
+    flags.DEFINE_string("texture_size", d.texture_size, "page side (power of two) or 'auto'", flag_values=fv)
+    flags.DEFINE_integer("max_texture_size", d.max_texture_size, "cap for --texture_size=auto", flag_values=fv)
+    flags.DEFINE_enum("sampler", d.sampler, SAMPLERS, "texture sampler", flag_values=fv)
+    flags.DEFINE_integer("views_per_step", d.views_per_step, "views per step (split over devices)", flag_values=fv)
+    flags.DEFINE_integer("seed", d.seed, "seed of everything random in the run", flag_values=fv)
+    flags.DEFINE_integer("ckpt_every", d.ckpt_every, "checkpoint every N steps (0: only at the end)", flag_values=fv)
+    flags.DEFINE_bool("resume", d.resume, "continue from the latest complete checkpoint in out_dir", flag_values=fv)
+    flags.DEFINE_integer("log_every", d.log_every, "fetch the step metrics (loss history, progress bar, NaN check) every N steps", flag_values=fv)
+    flags.DEFINE_integer("eval_every", d.eval_every, "evaluate against GT every N steps (0: only at the end)",
+                         flag_values=fv)
+    flags.DEFINE_bool("renders", d.renders, "write renders of every view for every map", flag_values=fv)
+    flags.DEFINE_integer("contact_views", d.contact_views, "views in the contact sheet", flag_values=fv)
+
+
+def config_from_flags(fv: flags.FlagValues = flags.FLAGS) -> DistillConfig:
+    """The frozen config; InputError listing every invalid flag (by name) at once."""
+    values = {f.name: fv[f.name].value for f in dataclasses.fields(DistillConfig)}
+    values["maps"] = tuple(values["maps"] or ())
+    return validate(DistillConfig(**values))
+
+
+def validate(config: DistillConfig) -> DistillConfig:
+    """`config` if every value is usable; InputError naming each bad flag otherwise."""
+    p = ProblemList()
+    c = config
+
+    def bad(flag: str, message: str) -> None:
+        p.add("flags", f"--{flag}", message)
+
+    for name in ("scene", "out_dir"):
+        if not getattr(c, name):
+            bad(name, "is required")
+    unknown = [m for m in c.maps if m not in MAP_NAMES]
+    if unknown or not c.maps:
+        bad("maps", f"unknown {unknown}; choose from {','.join(MAP_NAMES)}" if unknown else "names no map")
+    if len(set(c.maps)) != len(c.maps):
+        bad("maps", f"lists a map twice: {','.join(c.maps)}")
+    if c.steps < 1:
+        bad("steps", f"must be >= 1, got {c.steps}")
+    if not c.lr > 0:
+        bad("lr", f"must be > 0, got {c.lr}")
+    if c.weight_decay < 0:
+        bad("weight_decay", f"must be >= 0, got {c.weight_decay}")
+    if not 0.0 <= c.t_min <= c.t_max <= 1.0:
+        bad("t_min/--t_max", f"need 0 <= t_min <= t_max <= 1, got {c.t_min} and {c.t_max}")
+    if not 0.0 < c.p_keep <= 1.0:
+        bad("p_keep", f"must be in (0, 1], got {c.p_keep}")
+    if c.render_size < 0 or (c.render_size and c.render_size < 8):
+        bad("render_size", f"must be 0 (photo size) or >= 8, got {c.render_size}")
+    size = c.texture_size
+    if size != "auto" and not (size.isdigit() and int(size) > 0 and int(size) & (int(size) - 1) == 0):
+        bad("texture_size", f"must be 'auto' or a power of two, got {size!r}")
+    if c.max_texture_size < 8 or c.max_texture_size & (c.max_texture_size - 1):
+        bad("max_texture_size", f"must be a power of two >= 8, got {c.max_texture_size}")
+    if c.views_per_step < 1:
+        bad("views_per_step", f"must be >= 1, got {c.views_per_step}")
+    for name in ("ckpt_every", "log_every", "eval_every", "contact_views"):
+        if getattr(c, name) < 0:
+            bad(name, f"must be >= 0, got {getattr(c, name)}")
+    if c.log_every == 0:
+        bad("log_every", "must be >= 1")
+    if c.loss_space == "latent" and c.prior == "views":
+        bad("loss_space", "latent needs the rgbx prior (the views prior has no VAE); use --loss_space=image")
+    if c.prior == "rgbx" and c.render_size and c.render_size % 8:
+        bad("render_size", f"must be a multiple of 8 for the rgbx prior's VAE, got {c.render_size}")
+    if c.w_t < 0 or c.w_i < 0:
+        bad("w_t/--w_i", f"guidance weights must be >= 0, got {c.w_t} and {c.w_i}")
+    p.raise_if_any()
+    return config
+
+
+def resumable_flags(config: DistillConfig) -> tuple[str, ...]:
+    """Flags a resume may change. --steps only when nothing depends on the run's length (a cosine
+    learning rate or t annealing does: changing --steps would change the steps already taken)."""
+    if config.lr_schedule != "constant" or config.anneal != "none":
+        return tuple(f for f in RESUMABLE_FLAGS if f != "steps")
+    return RESUMABLE_FLAGS
+
+
+def rgbx_dir(config: DistillConfig) -> str | None:
+    """The RGB<->X folder to use: --rgbx_dir, else $JAXDISTILL_RGBX_DIR, else None."""
+    return config.rgbx_dir or os.environ.get(RGBX_DIR_ENV) or None

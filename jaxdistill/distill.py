@@ -1,0 +1,227 @@
+"""The distillation step: one pure, jitted function (state, batch, frozen) → (state, metrics).
+
+Per step, for a batch of B views and the M requested maps (thesis §4.2, DESIGN.md §2):
+1. gather-render the current texels for all views and maps at once (`render`, one gather);
+   normals are rotated from world to each view's RGB<->X camera space;
+2. `features` = the renders (image-space loss) or their VAE latents (latent-space loss);
+3. x_pred = prior.targets(stop_gradient(features), t, ...) — forward only: the networks are
+   never differentiated (image space); t ~ U[t_min, upper(step)]·1000 per view and map;
+4. loss = (1/B) Σ_b Σ_m w(t_bm) Σ_pixels W ⊙ keep ⊙ Σ_c (features − x_pred)², W the visibility
+   weights (or the hit mask), keep a Bernoulli(p_keep) image-space dropout mask;
+5. the gradient reaches the texels through the transpose of the gather (a scatter-add), and
+   optax AdamW updates them. A step whose loss or gradient is not finite leaves the state as it
+   was and reports `finite = 0`, so the caller can stop with the last good state.
+
+The PRNG key of a step is fold_in(state.key, state.step): a run is a function of its seed.
+Texels, loss and optimizer state are float32 whatever the prior's activation dtype.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+from typing import Any, Callable
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from jaxdistill.maps import MapChannels
+from jaxdistill.render.gather_plan import GatherPlan
+from jaxdistill.render.sampler import render
+
+
+@flax.struct.dataclass
+class DistillState:
+    """texels (N, C) float32 in model space; opt_state (AdamW); step () int32; key (2,) uint32."""
+
+    texels: jax.Array
+    opt_state: Any
+    step: jax.Array
+    key: jax.Array
+
+
+@dataclasses.dataclass(frozen=True)
+class StepSettings:
+    """Static settings of the step (hashable; part of the jit cache key)."""
+
+    channels: MapChannels
+    height: int
+    width: int
+    total_steps: int
+    t_min: float = 0.2
+    t_max: float = 0.98
+    anneal: str = "none"
+    t_weighting: str = "none"
+    p_keep: float = 1.0
+    num_train_timesteps: int = 1000
+    latent_factor: int = 8
+
+
+def learning_rate(lr: float, schedule: str = "constant", total_steps: int = 1):
+    """The thesis's constant rate, or a cosine decay from lr to 0 over the run."""
+    if schedule == "constant":
+        return lr
+    if schedule == "cosine":
+        return optax.cosine_decay_schedule(lr, max(total_steps, 1))
+    raise ValueError(f"unknown learning-rate schedule {schedule!r}")
+
+
+def make_optimizer(lr: float, weight_decay: float, schedule: str = "constant",
+                   total_steps: int = 1) -> optax.GradientTransformation:
+    """optax AdamW (thesis: lr 0.01, constant)."""
+    return optax.adamw(learning_rate=learning_rate(lr, schedule, total_steps), weight_decay=weight_decay)
+
+
+def init_state(texels: np.ndarray, optimizer: optax.GradientTransformation, seed: int) -> DistillState:
+    """Step-0 state: the given initial texels (float32), fresh AdamW state, key PRNGKey(seed)."""
+    texels = jnp.asarray(texels, jnp.float32)
+    return DistillState(texels=texels, opt_state=optimizer.init(texels), step=jnp.zeros((), jnp.int32),
+                        key=jax.random.PRNGKey(seed))
+
+
+def render_maps(texels, plan: GatherPlan, normal_rotation, channels: MapChannels) -> dict:
+    """{map: (B, H, W, C_map)} model-space renders; normals as n_world @ normal_rotation[b]."""
+    images = channels.split(render(texels, plan))
+    if "normal" in images:
+        images["normal"] = jnp.einsum("bhwi,bij->bhwj", images["normal"], normal_rotation)
+    return images
+
+
+def upper_t(step, settings: StepSettings):
+    """Upper end of the t range at `step` (fraction of T): t_max, or annealed towards t_min."""
+    if settings.anneal == "none":
+        return jnp.float32(settings.t_max)
+    frac = jnp.clip(step.astype(jnp.float32) / max(settings.total_steps - 1, 1), 0.0, 1.0)
+    if settings.anneal == "sqrt":
+        frac = jnp.sqrt(frac)
+    return settings.t_max - (settings.t_max - settings.t_min) * frac
+
+
+def sample_timesteps(key, step, shape, settings: StepSettings):
+    """(shape) int32 timesteps, uniform in [t_min, upper_t(step)] · T, within [0, T - 1]."""
+    u = jax.random.uniform(key, shape, jnp.float32)
+    lo, hi = settings.t_min, upper_t(step, settings)
+    t = jnp.round((lo + (hi - lo) * u) * settings.num_train_timesteps)
+    return jnp.clip(t, 0, settings.num_train_timesteps - 1).astype(jnp.int32)
+
+
+def t_weights(t, alphas_cumprod, settings: StepSettings):
+    """(B, M) w(t): 1, or 1 - alpha_bar_t (DreamFusion's sigma_t^2) for t_weighting='sds'."""
+    if settings.t_weighting == "none" or alphas_cumprod is None:
+        return jnp.ones(t.shape, jnp.float32)
+    return 1.0 - alphas_cumprod[t]
+
+
+def pool_weights(weights, factor: int):
+    """(B, H, W) pixel weights → (B, H/f, W/f) means over f x f blocks (latent resolution)."""
+    b, h, w = weights.shape
+    return weights.reshape(b, h // factor, factor, w // factor, factor).mean(axis=(2, 4))
+
+
+def weighted_square_error(features: dict, targets: dict, weights, sample_weights, maps) -> jax.Array:
+    """(1/B) Σ_b Σ_m w_bm Σ_hw weights_bhw Σ_c (features − targets)²; weights (B, h, w), w (B, M)."""
+    total = 0.0
+    for i, m in enumerate(maps):
+        sq = jnp.sum(jnp.square(features[m].astype(jnp.float32) - targets[m].astype(jnp.float32)), axis=-1)
+        total = total + jnp.sum(sample_weights[:, i] * jnp.sum(weights * sq, axis=(1, 2)))
+    return total / weights.shape[0]
+
+
+def make_step(prior, settings: StepSettings, optimizer: optax.GradientTransformation) -> Callable:
+    """The pure step: (state, batch, frozen) → (state, metrics). Not jitted (see `jit_step`).
+
+    batch: index (B, P, T) int32, weight (B, P, T) float32, hit (B, P) bool (the views' gather
+    plans), pixel_weight (B, H, W) float32, normal_rotation (B, 3, 3) float32, prior: the
+    prior's per-view data. frozen: {"chain": MipChain, "prior": the prior's constants,
+    "alphas_cumprod": (T,) float32 or None}.
+    """
+    maps = settings.channels.maps
+
+    def step(state: DistillState, batch: dict, frozen: dict):
+        key = jax.random.fold_in(state.key, state.step)
+        k_features, k_t, k_prior, k_keep = jax.random.split(key, 4)
+        plan = GatherPlan(index=batch["index"], weight=batch["weight"], hit=batch["hit"], chain=frozen["chain"],
+                          height=settings.height, width=settings.width)
+
+        def features_of(texels):
+            images = render_maps(texels, plan, batch["normal_rotation"], settings.channels)
+            return prior.features(frozen["prior"], images, k_features)
+
+        features, pullback = jax.vjp(features_of, state.texels)
+        num_views = batch["pixel_weight"].shape[0]
+        t = sample_timesteps(k_t, state.step, (num_views, len(maps)), settings)
+        targets = jax.lax.stop_gradient(
+            prior.targets(frozen["prior"], jax.lax.stop_gradient(features), batch["prior"], t, k_prior))
+        weights = batch["pixel_weight"]
+        if prior.latent_space:
+            weights = pool_weights(weights, settings.latent_factor)
+        if settings.p_keep < 1.0:
+            weights = weights * jax.random.bernoulli(k_keep, settings.p_keep, weights.shape).astype(jnp.float32)
+        sample_weights = t_weights(t, frozen.get("alphas_cumprod"), settings)
+        loss, grad_features = jax.value_and_grad(weighted_square_error)(features, targets, weights, sample_weights,
+                                                                        maps)
+        (grad,) = pullback(grad_features)
+        updates, opt_state = optimizer.update(grad, state.opt_state, state.texels)
+        texels = optax.apply_updates(state.texels, updates)
+        finite = jnp.isfinite(loss) & jnp.all(jnp.isfinite(grad))
+        keep_new = functools.partial(jnp.where, finite)
+        new_state = DistillState(texels=keep_new(texels, state.texels),
+                                 opt_state=jax.tree.map(keep_new, opt_state, state.opt_state),
+                                 step=state.step + finite.astype(jnp.int32), key=state.key)
+        per_map = {f"loss_{m}": weighted_square_error({m: features[m]}, {m: targets[m]}, weights,
+                                                      sample_weights[:, i:i + 1], (m,))
+                   for i, m in enumerate(maps)}
+        metrics = {"loss": loss, "finite": finite.astype(jnp.int32), "grad_norm": optax.tree.norm(grad),
+                   "t_mean": jnp.mean(t.astype(jnp.float32)), **per_map}
+        return new_state, metrics
+
+    return step
+
+
+class TraceCounter:
+    """Wraps a function to count how often JAX traces it; `check(max_traces)` raises beyond it
+    (as big_vision's chex.assert_max_traces: a retrace means a shape or a static changed)."""
+
+    def __init__(self, fn: Callable):
+        self.fn = fn
+        self.traces = 0
+        functools.update_wrapper(self, fn)
+
+    def __call__(self, *args, **kwargs):
+        self.traces += 1
+        return self.fn(*args, **kwargs)
+
+    def check(self, max_traces: int = 1) -> None:
+        if self.traces > max_traces:
+            raise AssertionError(f"the step was traced {self.traces} times (at most {max_traces} expected): "
+                                 "a batch shape, dtype or static setting changed between steps")
+
+
+def jit_step(step: Callable, mesh: jax.sharding.Mesh, batch_example: dict, state_example: DistillState,
+             frozen_example: dict) -> tuple[Callable, TraceCounter]:
+    """(jitted step, its trace counter): batch sharded over the mesh's "data" axis (leading
+    dimension), state and frozen constants replicated; the state is donated."""
+    counter = TraceCounter(step)
+    replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
+    by_view = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("data"))
+    state_sharding = jax.tree.map(lambda _: replicated, state_example)
+    batch_sharding = jax.tree.map(lambda _: by_view, batch_example)
+    frozen_sharding = jax.tree.map(lambda _: replicated, frozen_example)
+    jitted = jax.jit(counter, in_shardings=(state_sharding, batch_sharding, frozen_sharding),
+                     out_shardings=(state_sharding, replicated), donate_argnums=(0,))
+    return jitted, counter
+
+
+def data_mesh(devices=None) -> jax.sharding.Mesh:
+    """A 1-D mesh over all (or the given) devices with axis "data"."""
+    devices = np.asarray(jax.devices() if devices is None else devices)
+    return jax.sharding.Mesh(devices, ("data",))
+
+
+def mean_weighted_error(loss: float, weight_sum: float) -> float:
+    """Loss per unit pixel weight (comparable across batch sizes); NaN when nothing is weighted."""
+    return loss / weight_sum if weight_sum > 0 else math.nan

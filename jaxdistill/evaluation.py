@@ -1,0 +1,171 @@
+"""Per-view evaluation of distilled texels: renders in file space, ground truth, and metrics.
+
+Ground truth comes from the scene's `gt.json` (format "jaxdistill-gt", as the embedded bedroom
+ships): per-object GT texture pages sampled through the scene's UVs with our bilinear gather,
+normals from the geometry (face normals as the mesh orients them, in RGB<->X camera space),
+and emitter objects excluded. Scenes without one are evaluated against nothing (metrics say so).
+All per-view maps here are in file space (see maps.py), at the photos' native resolution.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxdistill import imageio, metrics
+from jaxdistill.errors import InputError, read_json
+from jaxdistill.maps import MapChannels, model_to_file, rgbx_camera_rotation
+from jaxdistill.render.gather_plan import GatherPlan
+from jaxdistill.render.sampler import render, sample_pages
+from jaxdistill.scene import Scene
+
+GT_FORMAT = "jaxdistill-gt"
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class GroundTruth:
+    """Per-object GT texture pages per map (file space), whether normals come from geometry,
+    and the objects whose pixels are excluded from metrics."""
+
+    pages: dict            # map -> list of (S, S, C) float32, one per object
+    geometry_normals: bool
+    exclude_objects: tuple[str, ...]
+
+
+def read_ground_truth(scene: Scene) -> GroundTruth | None:
+    """The scene's gt.json ground truth, or None when the scene has none in our format."""
+    if scene.root is None or not (scene.root / "gt.json").is_file():
+        return None
+    path = scene.root / "gt.json"
+    doc = read_json(path, "missing")
+    if doc.get("format") != GT_FORMAT:
+        return None
+    names = scene.mesh.object_names
+    if scene.texture_layout != "pages":
+        raise InputError.single(path, "textures", "per-object GT textures need a scene with texture_layout 'pages'")
+    pages = {}
+    for name, per_object in doc.get("textures", {}).items():
+        missing = [o for o in names if o not in per_object]
+        if missing:
+            raise InputError.single(path, f"textures.{name}", f"no texture for objects {missing}")
+        encoding = doc.get("texture_encoding", {}).get(name, "linear")
+        pages[name] = [imageio.read_image(scene.root / per_object[o], linear=encoding == "srgb")[..., :3 if name == "albedo" else 1]
+                       for o in names]
+    unknown = [o for o in doc.get("exclude_objects", []) if o not in names]
+    if unknown:
+        raise InputError.single(path, "exclude_objects", f"{unknown} are not objects of the scene")
+    return GroundTruth(pages=pages, geometry_normals=doc.get("normal") == "geometry",
+                       exclude_objects=tuple(doc.get("exclude_objects", [])))
+
+
+def face_normals(scene: Scene) -> np.ndarray:
+    """(F, 3) unit geometric normals (cross(e1, e2) of each triangle)."""
+    t = scene.mesh.triangles()
+    n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+
+
+def geometry_normals(scene: Scene, frag, camera) -> np.ndarray:
+    """(H, W, 3) camera-space (RGB<->X) normals of the hit faces as the mesh orients them; 0 on misses."""
+    hit = frag.triangle >= 0
+    n_world = face_normals(scene)[np.where(hit, frag.triangle, 0)]
+    n_cam = n_world @ rgbx_camera_rotation(camera.c2w)
+    return np.where(hit[..., None], n_cam, 0.0).astype(np.float32)
+
+
+def gt_view_maps(gt: GroundTruth, scene: Scene, fragments: Sequence) -> list[dict[str, np.ndarray]]:
+    """Per view, {map: (H, W, C) file-space GT} for the maps the GT provides."""
+    names = list(gt.pages)
+    stacked = [np.concatenate([gt.pages[m][o] for m in names], -1) for o in range(scene.num_objects)]
+    sampled = sample_pages(stacked, fragments, range(scene.num_objects)) if names else [None] * len(fragments)
+    out = []
+    for view, frag, image in zip(scene.views, fragments, sampled):
+        maps, start = {}, 0
+        for m in names:
+            c = gt.pages[m][0].shape[-1]
+            maps[m] = image[..., start:start + c]
+            start += c
+        if gt.geometry_normals:
+            maps["normal"] = geometry_normals(scene, frag, view.camera)
+        out.append(maps)
+    return out
+
+
+def evaluation_masks(gt: GroundTruth | None, scene: Scene, fragments: Sequence) -> list[np.ndarray]:
+    """Per view (H, W) bool: hit pixels not on excluded (emitter) objects."""
+    excluded = [scene.mesh.object_names.index(o) for o in (gt.exclude_objects if gt else ())]
+    return [metrics.evaluation_mask(f.hit, np.isin(f.object_id, excluded)) for f in fragments]
+
+
+@jax.jit
+def _render_batch(texels, plan):
+    return render(texels, plan)
+
+
+def render_views(texels, plan: GatherPlan, cameras: Sequence, channels: MapChannels,
+                 chunk: int = 8) -> list[dict[str, np.ndarray]]:
+    """Per view, {map: (H, W, C) file-space render} of model-space texels through the batched
+    `plan` (V views), `chunk` views at a time; normals in RGB<->X camera space, 0 on misses."""
+    texels = jnp.asarray(texels)
+    hits = np.asarray(plan.hit).reshape(-1, plan.height, plan.width)
+    out = []
+    for start in range(0, plan.num_views, chunk):
+        ids = np.arange(start, min(start + chunk, plan.num_views))
+        ids = np.pad(ids, (0, chunk - len(ids)), mode="edge")          # one shape: one compilation
+        images = np.asarray(_render_batch(texels, plan.select(ids)))
+        for j, v in enumerate(ids[:min(chunk, plan.num_views - start)]):
+            maps = channels.split(images[j])
+            if "normal" in maps:
+                maps["normal"] = maps["normal"] @ rgbx_camera_rotation(cameras[v].c2w).astype(np.float32)
+            out.append({m: np.where(hits[v][..., None], model_to_file(m, x), 0.0) for m, x in maps.items()})
+    return out
+
+
+def evaluate(pred: Sequence[dict], gt: Sequence[dict], masks: Sequence[np.ndarray]) -> dict[str, float]:
+    """Mean metrics over views (metrics.evaluate_view per view, then metrics.aggregate)."""
+    return metrics.aggregate([metrics.evaluate_view(p, {k: g[k] for k in p if k in g}, m)
+                              for p, g, m in zip(pred, gt, masks)])
+
+
+def albedo_psnr(pred: Sequence[dict], gt: Sequence[dict], masks: Sequence[np.ndarray]) -> float:
+    """Mean albedo PSNR (sRGB-encoded, as `metrics.evaluate_view`) over views: the quick progress figure."""
+    values = []
+    for p, g, m in zip(pred, gt, masks):
+        a, b = (imageio.linear_to_srgb(np.clip(x["albedo"], 0.0, 1.0)) for x in (p, g))
+        values.append(min(metrics.psnr(a, b, m), metrics.PSNR_CAP_DB))
+    return float(np.nanmean(values))
+
+
+def read_baseline(scene: Scene, maps: Sequence[str], shapes: Sequence[tuple[int, int]]) -> list[dict] | None:
+    """Per view, the scene's target images in file space (the per-view estimates), or None if any is missing."""
+    from jaxdistill.problem import read_target, resize
+
+    out = []
+    for view, (h, w) in zip(scene.views, shapes):
+        if not all(m in view.targets for m in maps):
+            return None
+        out.append({m: resize(read_target(m, view.targets[m]), h, w)[..., :3 if m not in ("roughness", "metallic")
+                                                                        else 1] for m in maps})
+    return out
+
+
+def write_renders(folder: Path, names: Sequence[str], views: Sequence[dict]) -> None:
+    """renders/<map>/<view>.png: albedo, irradiance sRGB; roughness, metallic grey; normals (n + 1) / 2."""
+    for name, maps in zip(names, views):
+        for m, image in maps.items():
+            display = display_image(m, image)
+            imageio.write_image(folder / m / f"{name}.png", display, encode_srgb=False)
+
+
+def display_image(name: str, image: np.ndarray) -> np.ndarray:
+    """(H, W, 3) display values in [0, 1] of a file-space map (sRGB-encoded colours)."""
+    if name == "normal":
+        return 0.5 * (image + 1.0)
+    if image.shape[-1] == 1:
+        return np.repeat(image, 3, axis=-1)
+    return imageio.linear_to_srgb(np.clip(image, 0.0, 1.0))

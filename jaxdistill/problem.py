@@ -1,0 +1,276 @@
+"""Everything the distillation needs that is computed once, outside jit (NumPy and I/O).
+
+`build_problem(config)` reads the scene, resamples views to the render size, ray casts
+fragments (cached), lays out the compact texel space, builds every view's gather plan,
+visibility counts and pixel weights, and sets up the prior (`choose_prior` says which and why).
+`Problem.batch(view_ids)` then assembles one step's host arrays.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+import jax
+import numpy as np
+from absl import logging
+from tqdm.auto import tqdm
+
+from jaxdistill import imageio
+from jaxdistill.cameras import Camera
+from jaxdistill.config import RGBX_DIR_ENV, DistillConfig, rgbx_dir
+from jaxdistill.errors import InputError, ProblemList
+from jaxdistill.maps import INITIAL_VALUE, MapChannels, file_to_model, rgbx_camera_rotation
+from jaxdistill.render import fragments as fr
+from jaxdistill.render.gather_plan import TexelSpace, build_gather_plans, build_texel_space
+from jaxdistill.render.layout import make_layout
+from jaxdistill.render.visibility import pixel_weights, view_counts
+from jaxdistill.scene import Scene, read_scene
+
+def rgbx_hint() -> str:
+    """How to obtain the RGB<->X weights, and their licence."""
+    return ("download them with `huggingface-cli download zheng95z/rgb-to-x --local-dir DIR` (needs internet; "
+            "Adobe Research License: non-commercial research use only, never redistribute them), then pass "
+            f"--rgbx_dir=DIR or set ${RGBX_DIR_ENV}=DIR")
+
+
+@dataclasses.dataclass(frozen=True)
+class PriorChoice:
+    """Which prior runs, why (for the log and metrics.json), and the weights folder if rgbx."""
+
+    kind: str
+    reason: str
+    folder: str | None = None
+
+
+def choose_prior(config: DistillConfig) -> PriorChoice:
+    """rgbx or views, from --prior, --rgbx_dir and $JAXDISTILL_RGBX_DIR (never a silent fallback:
+    a folder that was named but does not exist is an error, not a reason to use views)."""
+    folder = rgbx_dir(config)
+    source = "--rgbx_dir" if config.rgbx_dir else f"${RGBX_DIR_ENV}"
+    if folder and not Path(folder).expanduser().is_dir():
+        raise InputError.single("flags", source, f"{folder} does not exist; {rgbx_hint()}")
+    if config.prior == "views":
+        return PriorChoice("views", "--prior=views: the scene's per-view target images")
+    if config.prior == "rgbx":
+        if not folder:
+            raise InputError.single("flags", "--prior=rgbx", f"needs the RGB<->X weights; {rgbx_hint()}")
+        return PriorChoice("rgbx", f"--prior=rgbx with weights from {source}={folder}", folder)
+    if folder:
+        return PriorChoice("rgbx", f"--prior=auto found RGB<->X weights at {folder} ({source})", folder)
+    return PriorChoice("views", f"--prior=auto found no RGB<->X weights (--rgbx_dir unset, ${RGBX_DIR_ENV} unset): "
+                                "distilling the scene's per-view target images instead")
+
+
+def resolve_scene_path(scene: str) -> Path:
+    """--scene as a path; a bare embedded-scene name (e.g. 'bedroom') resolves to the package's copy."""
+    path = Path(scene).expanduser()
+    if path.exists():
+        return path
+    from jaxdistill.scenes import SCENES_DIR
+
+    if (SCENES_DIR / scene / "scene.json").is_file():
+        return SCENES_DIR / scene
+    raise InputError.single("flags", "--scene", f"{scene} not found (give scene.json, its folder, or an embedded "
+                            "scene name such as 'bedroom')")
+
+
+# ----------------------------------------------------------------------------- view resampling
+
+def render_shape(scene: Scene, render_size: int, multiple: int = 1) -> tuple[int, int]:
+    """(height, width) every view is rendered at: the photos' size, or longer side = render_size
+    (the shorter side rounded to `multiple`). All views must agree."""
+    sizes = {(v.camera.height, v.camera.width) for v in scene.views}
+    if render_size == 0:
+        if len(sizes) > 1:
+            raise InputError.single("flags", "--render_size", f"the views have different sizes {sorted(sizes)}; "
+                                    "set --render_size to render them all at one size")
+        h, w = sizes.pop()
+        if h % multiple or w % multiple:
+            raise InputError.single("flags", "--render_size", f"the photos are {w}x{h}, not multiples of {multiple} "
+                                    "(the rgbx prior's VAE needs that); set --render_size")
+        return h, w
+    h, w = max(sizes, key=lambda s: s[0] * s[1])
+    scale = render_size / max(h, w)
+    short = max(multiple, int(round(min(h, w) * scale / multiple)) * multiple)
+    return (render_size, short) if h >= w else (short, render_size)
+
+
+def scaled_camera(camera: Camera, height: int, width: int) -> Camera:
+    """The camera re-sampled to width x height pixels (same field of view; pixel centres at +0.5)."""
+    if (camera.height, camera.width) == (height, width):
+        return camera
+    scale = np.diag([width / camera.width, height / camera.height, 1.0])
+    return Camera(scale @ camera.K, camera.c2w, width, height)
+
+
+def resize(image: np.ndarray, height: int, width: int) -> np.ndarray:
+    """(H, W, C) float32 resized with an antialiased linear filter (area-like when shrinking)."""
+    if image.shape[:2] == (height, width):
+        return image
+    return np.asarray(jax.image.resize(image, (height, width, image.shape[2]), "linear", antialias=True))
+
+
+def read_target(name: str, path: Path) -> np.ndarray:
+    """A per-view target image in file space: albedo/irradiance linear (sRGB files decoded),
+    roughness/metallic grey values, normals as vectors (files hold (n + 1) / 2)."""
+    if name in ("albedo", "irradiance"):
+        return imageio.read_image(path)
+    values = imageio.read_image(path, linear=False)
+    return 2.0 * values[..., :3] - 1.0 if name == "normal" else values
+
+
+# ----------------------------------------------------------------------------- the problem
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Problem:
+    """The precomputed, fixed part of a run (host NumPy arrays unless noted).
+
+    plan_index (V, P, T) int32 / plan_weight (V, P, T) float32 / plan_hit (V, P) bool: gather
+    plans of all views at (height, width); pixel_weight (V, H, W) float32 loss weights;
+    counts (N,) int32 view counts per texel; normal_rotation (V, 3, 3) float32.
+    """
+
+    scene: Scene
+    channels: MapChannels
+    choice: PriorChoice
+    prior: Any
+    frozen: dict                      # device constants: {"chain", "prior", "alphas_cumprod"}
+    space: TexelSpace
+    fragments: list
+    native_fragments: list
+    height: int
+    width: int
+    plan_index: np.ndarray
+    plan_weight: np.ndarray
+    plan_hit: np.ndarray
+    pixel_weight: np.ndarray
+    counts: np.ndarray
+    normal_rotation: np.ndarray
+    timings: dict
+
+    @property
+    def num_views(self) -> int:
+        return len(self.scene.views)
+
+    def initial_texels(self) -> np.ndarray:
+        return self.channels.initial_texels(self.space.num_texels)
+
+    def batch(self, view_ids) -> dict:
+        """Host arrays of one step for `view_ids` (B,)."""
+        ids = np.asarray(view_ids)
+        return {"index": self.plan_index[ids], "weight": self.plan_weight[ids], "hit": self.plan_hit[ids],
+                "pixel_weight": self.pixel_weight[ids], "normal_rotation": self.normal_rotation[ids],
+                "prior": self.prior.view_data(ids)}
+
+    def view_ids(self, step: int, batch_size: int, seed: int) -> np.ndarray:
+        """The views of `step`: a function of (seed, step) only, so a resumed run samples the same."""
+        rng = np.random.default_rng([seed, step])
+        return rng.choice(self.num_views, batch_size, replace=batch_size > self.num_views)
+
+
+def read_view_targets(scene: Scene, maps: Sequence[str], height: int, width: int) -> np.ndarray:
+    """(V, H, W, C) float32 model-space targets of every view; InputError listing missing ones."""
+    problems = ProblemList()
+    for i, view in enumerate(scene.views):
+        for m in maps:
+            if m not in view.targets:
+                problems.add(scene.root / "scene.json" if scene.root else "scene", f"views[{i}].targets.{m}",
+                             f"view {view.name} has no {m} target: the views prior needs one per view and map "
+                             "(drop the map with --maps, or use --prior=rgbx)")
+    problems.raise_if_any()
+    channels = MapChannels(tuple(maps))
+    out = np.zeros((len(scene.views), height, width, channels.num_channels), np.float32)
+    for i, view in enumerate(tqdm(scene.views, desc="targets", unit="view", dynamic_ncols=True)):
+        parts = [file_to_model(m, resize(read_target(m, view.targets[m]), height, width)) for m in maps]
+        out[i] = np.concatenate(parts, axis=-1)
+    return out
+
+
+def _views_prior(scene, channels, height, width):
+    from jaxdistill.priors import ViewsPrior
+
+    return ViewsPrior(channels=channels, target_images=read_view_targets(scene, channels.maps, height, width)), {}
+
+
+def _rgbx_prior(config: DistillConfig, choice: PriorChoice, scene, channels, height, width):
+    import jax.numpy as jnp
+
+    from jaxdistill.models import convert
+    from jaxdistill.models import prior as rgbx
+    from jaxdistill.priors import make_rgbx_prior
+
+    dtype = {"float32": jnp.float32, "bfloat16": jnp.bfloat16}[config.prior_dtype]
+    loaded = convert.load_rgbx(choice.folder, dtype=dtype, cache_dir=config.convert_cache)
+    model = rgbx.load_prior(loaded)
+    logging.info("RGB<->X loaded from %s in %.1f s", choice.folder, sum(loaded.seconds.values()))
+    photos = (resize(imageio.read_photo_srgb(v.photo), height, width) for v in scene.views)
+    guidance = rgbx.Guidance(text=config.w_t, image=config.w_i)
+    prior, frozen = make_rgbx_prior(model, channels, photos, guidance=guidance, sample_latent=config.latent == "sample",
+                                    latent_space=config.loss_space == "latent",
+                                    progress=lambda it: tqdm(it, total=len(scene.views), desc="photo latents",
+                                                             unit="view", dynamic_ncols=True))
+    frozen["alphas_cumprod"] = np.asarray(rgbx.sched.alphas_cumprod(model.scheduler))
+    return prior, frozen
+
+
+def build_problem(config: DistillConfig, *, cache_dir=None) -> Problem:
+    """Reads and precomputes everything for `config`; InputError before any compute if input is bad."""
+    timings = {}
+    t0 = time.perf_counter()
+    choice = choose_prior(config)
+    scene = read_scene(resolve_scene_path(config.scene))
+    channels = MapChannels(tuple(config.maps))
+    height, width = render_shape(scene, config.render_size, 8 if choice.kind == "rgbx" else 1)
+    timings["read_scene_s"] = time.perf_counter() - t0
+    logging.info("scene %s: %d faces, %d objects, %d views rendered at %dx%d", scene.name, scene.mesh.num_faces,
+                 scene.num_objects, len(scene.views), width, height)
+
+    t0 = time.perf_counter()
+    cameras = [scaled_camera(v.camera, height, width) for v in scene.views]
+    frags = fr.compute_fragments(scene.mesh, cameras, cache_dir=cache_dir)
+    native = all((v.camera.height, v.camera.width) == (height, width) for v in scene.views)
+    native_frags = frags if native else fr.compute_fragments(scene.mesh, [v.camera for v in scene.views],
+                                                             cache_dir=cache_dir)
+    timings["fragments_s"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    trilinear = config.sampler == "trilinear"
+    size = config.texture_size if config.texture_size == "auto" else int(config.texture_size)
+    layout = make_layout(scene.num_objects, scene.texture_layout, size, frags, max_size=config.max_texture_size,
+                         mipmaps=trilinear)
+    # evaluation renders at the photos' size: its texels must exist too (they get no gradient)
+    space = build_texel_space(frags if native else list(frags) + list(native_frags), layout, config.sampler)
+    plan = build_gather_plans(frags, space, config.sampler)
+    counts = view_counts(plan, space.num_texels)
+    if config.visibility_weighting:
+        weights = np.asarray(pixel_weights(plan, counts), np.float32)
+    else:
+        weights = np.asarray(plan.hit, np.float32).reshape(len(frags), height, width)
+    timings["plans_s"] = time.perf_counter() - t0
+    logging.info("texels: %d parameters x %d channels (%s pages, %.1fx fewer than full pages), %d observed",
+                 space.num_texels, channels.num_channels, list(layout.page_sizes),
+                 layout.full_size() / max(space.num_texels, 1), int((counts > 0).sum()))
+
+    t0 = time.perf_counter()
+    if choice.kind == "views":
+        prior, prior_frozen = _views_prior(scene, channels, height, width)
+        alphas = None
+    else:
+        prior, prior_frozen = _rgbx_prior(config, choice, scene, channels, height, width)
+        alphas = prior_frozen.pop("alphas_cumprod")
+    timings["prior_setup_s"] = time.perf_counter() - t0
+    frozen = {"chain": plan.chain, "prior": prior_frozen, "alphas_cumprod": alphas}
+    rotations = np.stack([rgbx_camera_rotation(c.c2w) for c in cameras]).astype(np.float32)
+    return Problem(scene=scene, channels=channels, choice=choice, prior=prior, frozen=frozen, space=space,
+                   fragments=frags, native_fragments=native_frags, height=height, width=width, plan_index=np.asarray(plan.index),
+                   plan_weight=np.asarray(plan.weight), plan_hit=np.asarray(plan.hit), pixel_weight=weights,
+                   counts=counts, normal_rotation=rotations, timings=timings)
+
+
+def initial_file_values(maps: Sequence[str]) -> dict[str, float]:
+    """Per map, the file-space value of the initial texels (the fill of never-observed texels)."""
+    return {m: 0.5 * (INITIAL_VALUE[m] + 1.0) if m != "normal" else 0.0 for m in maps}
+

@@ -1,0 +1,278 @@
+"""The distillation run: setup, the step loop with checkpoints, and the outputs.
+
+`run(config)` is what `python -m jaxdistill.main` calls. The loop is thin: view ids for a step
+are a function of (seed, step); the host assembles that batch while the device runs the
+previous step (JAX dispatch is asynchronous); metrics are fetched every --log_every steps.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import resource
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+from absl import logging
+from tqdm.auto import tqdm
+
+from jaxdistill import checkpoint, evaluation, export, imageio
+from jaxdistill.config import DistillConfig, resumable_flags
+from jaxdistill.distill import (DistillState, StepSettings, data_mesh, init_state, jit_step, make_optimizer,
+                                make_step)
+from jaxdistill.errors import InputError
+from jaxdistill.maps import model_to_file
+from jaxdistill.problem import Problem, build_problem, initial_file_values
+from jaxdistill.render.gather_plan import GatherPlan, build_gather_plans
+from jaxdistill.render.sampler import expand
+
+
+class NonFiniteLoss(RuntimeError):
+    """The loss or gradient became NaN/inf; the last good state was checkpointed."""
+
+
+def step_settings(config: DistillConfig, problem: Problem) -> StepSettings:
+    num_train = 1000
+    if problem.choice.kind == "rgbx":
+        num_train = problem.prior.scheduler.num_train_timesteps
+    return StepSettings(channels=problem.channels, height=problem.height, width=problem.width,
+                        total_steps=config.steps, t_min=config.t_min, t_max=config.t_max, anneal=config.anneal,
+                        t_weighting=config.t_weighting, p_keep=config.p_keep, num_train_timesteps=num_train)
+
+
+def _history_path(out: Path) -> Path:
+    return out / "checkpoints" / "history.json"
+
+
+def _save(store, state, config: DistillConfig, history: dict, out: Path) -> None:
+    step = int(jax.device_get(state.step))
+    store.save(step, state, config.as_dict())
+    _history_path(out).write_text(json.dumps(history))
+
+
+def run(config: DistillConfig, *, progress: bool = True) -> dict:
+    """Runs the distillation described by `config`; returns the metrics written to metrics.json."""
+    wall_start = time.perf_counter()
+    out = Path(config.out_dir)
+    if out.exists() and (out / "checkpoints").exists() and not config.resume:
+        steps = checkpoint.CheckpointStore(out / "checkpoints").latest_step()
+        if steps is not None:
+            raise InputError.single("flags", "--out_dir", f"{out} already holds a run (checkpoint at step {steps}); "
+                                    "pass --resume to continue it, or choose another --out_dir")
+    problem = build_problem(config)
+    banner = f"PRIOR: {problem.choice.kind.upper()} -- {problem.choice.reason}"
+    logging.warning("%s\n%s\n%s", "=" * len(banner), banner, "=" * len(banner))
+
+    devices = jax.devices()
+    if config.views_per_step % len(devices):
+        raise InputError.single("flags", "--views_per_step", f"{config.views_per_step} does not split over "
+                                f"{len(devices)} devices; use a multiple of {len(devices)}")
+    mesh = data_mesh(devices)
+    optimizer = make_optimizer(config.lr, config.weight_decay, config.lr_schedule, config.steps)
+    settings = step_settings(config, problem)
+    state = init_state(problem.initial_texels(), optimizer, config.seed)
+    history = {"step": [], "loss": [], "eval_step": [], "albedo_psnr": []}
+
+    out.mkdir(parents=True, exist_ok=True)
+    store = checkpoint.CheckpointStore(out / "checkpoints")
+    if config.resume:
+        latest = store.latest_step()
+        if latest is None:
+            raise InputError.single("flags", "--resume", f"no complete checkpoint in {out / 'checkpoints'}; "
+                                    "run without --resume to start")
+        saved_state, saved_config = store.restore(latest, state)
+        checkpoint.check_compatible(saved_config, config.as_dict(), out / "checkpoints", ignore=resumable_flags(config))
+        state = DistillState(**{k: saved_state[k] for k in ("texels", "opt_state", "step", "key")}) \
+            if isinstance(saved_state, dict) else saved_state
+        if _history_path(out).is_file():
+            history = json.loads(_history_path(out).read_text())
+            for key, at in (("loss", "step"), ("albedo_psnr", "eval_step")):
+                keep = [i for i, s in enumerate(history[at]) if s <= latest]
+                history[key] = [history[key][i] for i in keep]
+                history[at] = [history[at][i] for i in keep]
+        logging.info("resumed from step %d in %s", latest, out / "checkpoints")
+
+    eval_context = _evaluation_context(config, problem)
+    first = problem.batch(problem.view_ids(0, config.views_per_step, config.seed))
+    step_fn, traces = jit_step(make_step(problem.prior, settings, optimizer), mesh, first, state, problem.frozen)
+    replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
+    by_view = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("data"))
+    state = jax.device_put(state, replicated)
+    frozen = jax.device_put(problem.frozen, replicated)
+
+    start_step = int(jax.device_get(state.step))
+    pending = []           # (step, metrics on device) not yet fetched
+    stopped_by = None
+    loop_start = time.perf_counter()
+    with checkpoint.StopSignals() as stop, tqdm(total=config.steps, initial=start_step, unit="step", desc="distil",
+                                                dynamic_ncols=True, disable=not progress) as bar:
+        for step in range(start_step, config.steps):
+            batch = jax.device_put(problem.batch(problem.view_ids(step, config.views_per_step, config.seed)), by_view)
+            state, step_metrics = step_fn(state, batch, frozen)
+            pending.append((step, step_metrics))
+            done = step + 1
+            if done % config.log_every == 0 or done == config.steps or stop.requested:
+                _drain(pending, history, bar, state, store, config, out)
+            traces.check(1)
+            bar.update()
+            if config.eval_every and done % config.eval_every == 0 and eval_context.gt is not None:
+                history["eval_step"].append(done)
+                history["albedo_psnr"].append(_quick_psnr(state, problem, eval_context))
+            if config.ckpt_every and done % config.ckpt_every == 0 and done < config.steps:
+                _save(store, state, config, history, out)
+            if stop.requested:
+                stopped_by = stop.signal_name
+                break
+    loop_seconds = time.perf_counter() - loop_start
+    _save(store, state, config, history, out)
+    store.close()
+    if stopped_by:
+        logging.warning("stopped by %s at step %d; checkpoint saved. Continue with the same flags and --resume.",
+                        stopped_by, int(jax.device_get(state.step)))
+        return {"stopped_by": stopped_by, "step": int(jax.device_get(state.step))}
+
+    texels = np.asarray(jax.device_get(state.texels))
+    summary = write_outputs(config, problem, texels, history, eval_context)
+    steps_run = config.steps - start_step
+    summary.update({
+        "steps": config.steps, "steps_this_run": steps_run, "resumed_from": start_step if config.resume else None,
+        "wall_seconds": time.perf_counter() - wall_start, "loop_seconds": loop_seconds,
+        "seconds_per_step": loop_seconds / max(steps_run, 1), "setup_timings": problem.timings,
+        "prior": {"kind": problem.choice.kind, "reason": problem.choice.reason, "folder": problem.choice.folder},
+        "device": {"backend": jax.default_backend(), "devices": [str(d) for d in devices],
+                   "kind": devices[0].device_kind},
+        "peak_host_memory_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+        "peak_device_memory_mb": _peak_device_memory_mb(devices),
+        "parameters": {"texels": problem.space.num_texels, "channels": problem.channels.num_channels,
+                       "page_sizes": list(problem.space.layout.page_sizes)},
+        "traces": traces.traces, "config": config.as_dict(),
+    })
+    (out / "metrics.json").write_text(json.dumps(_json_safe(summary), indent=1))
+    logging.info("wrote %s", out / "metrics.json")
+    return summary
+
+
+def _drain(pending: list, history: dict, bar, state, store, config, out: Path) -> None:
+    """Fetches pending step metrics into the history; stops the run on a non-finite step."""
+    fetched = jax.device_get([m for _, m in pending])
+    for (step, _), values in zip(pending, fetched):
+        if not values["finite"]:
+            _save(store, state, config, history, out)
+            store.close()
+            raise NonFiniteLoss(
+                f"the loss or its gradient became NaN/inf at step {step}; the state before that step is saved in "
+                f"{out / 'checkpoints'} (step {step}). Try a smaller --lr, --prior_dtype=float32, or check the "
+                "photos and targets for NaN/inf; resume with --resume.")
+        history["step"].append(step + 1)
+        history["loss"].append(float(values["loss"]))
+    pending.clear()
+    if fetched:
+        last = fetched[-1]
+        bar.set_postfix(loss=f"{float(last['loss']):.4g}", t=f"{float(last['t_mean']):.0f}", refresh=False)
+
+
+class _EvalContext:
+    """Native-resolution fragments, cameras, GT maps and masks, built once for evaluation."""
+
+    def __init__(self, gt, fragments, cameras, gt_maps, masks, plan):
+        self.gt, self.fragments, self.cameras, self.gt_maps, self.masks = gt, fragments, cameras, gt_maps, masks
+        self.plan = plan
+
+
+def _evaluation_context(config: DistillConfig, problem: Problem) -> _EvalContext:
+    scene = problem.scene
+    cameras = [v.camera for v in scene.views]
+    native = all((c.height, c.width) == (problem.height, problem.width) for c in cameras)
+    frags = problem.native_fragments
+    if native:
+        plan = GatherPlan(index=problem.plan_index, weight=problem.plan_weight, hit=problem.plan_hit,
+                          chain=problem.frozen["chain"], height=problem.height, width=problem.width)
+    else:
+        plan = build_gather_plans(frags, problem.space, config.sampler)
+    gt = evaluation.read_ground_truth(scene)
+    gt_maps = evaluation.gt_view_maps(gt, scene, frags) if gt else None
+    return _EvalContext(gt, frags, cameras, gt_maps, evaluation.evaluation_masks(gt, scene, frags), plan)
+
+
+def _quick_psnr(state, problem: Problem, ctx: _EvalContext) -> float:
+    if "albedo" not in problem.channels.maps:
+        return math.nan
+    texels = np.asarray(jax.device_get(state.texels))
+    pred = evaluation.render_views(texels, ctx.plan, ctx.cameras, problem.channels)
+    return evaluation.albedo_psnr(pred, ctx.gt_maps, ctx.masks)
+
+
+def write_outputs(config: DistillConfig, problem: Problem, texels: np.ndarray, history: dict,
+                  ctx: _EvalContext) -> dict:
+    """maps/, scene.glb, renders/, contact sheets, loss.png; returns the metrics part of metrics.json."""
+    out = Path(config.out_dir)
+    scene, channels, space = problem.scene, problem.channels, problem.space
+    observed = problem.counts > 0
+    fills = initial_file_values(channels.maps)
+    pages = {m: expand(model_to_file(m, texels[:, channels.slice(m)]), space, fills[m], observed=observed)
+             for m in channels.maps}
+    written = export.write_maps(out, pages, scene.mesh.object_names, space.layout.object_page)
+    export.write_gltf(out / "scene.glb", scene.mesh, space.layout.object_page, pages)
+
+    pred = evaluation.render_views(texels, ctx.plan, ctx.cameras, channels)
+    names = [v.name for v in scene.views]
+    if config.renders:
+        evaluation.write_renders(out / "renders", names, pred)
+    baseline = evaluation.read_baseline(scene, channels.maps, [f.shape for f in ctx.fragments])
+    result = {"maps_written": [str(p.relative_to(out)) for p in written]}
+    if ctx.gt_maps is not None:
+        result["ours"] = evaluation.evaluate(pred, ctx.gt_maps, ctx.masks)
+        if baseline is not None:
+            result["baseline_per_view_estimates"] = evaluation.evaluate(baseline, ctx.gt_maps, ctx.masks)
+            result["improvement"] = _improvement(result["ours"], result["baseline_per_view_estimates"])
+    else:
+        result["ours"] = None
+        result["note"] = "the scene has no ground truth (gt.json in jaxdistill-gt format): no metrics against GT"
+
+    if history["step"]:
+        extra = {"albedo PSNR (dB)": (history["eval_step"], history["albedo_psnr"])} if history["eval_step"] else None
+        export.write_loss_plot(out / "loss.png", history["step"], history["loss"], extra=extra,
+                               title=f"{scene.name}: {problem.choice.kind} prior, {len(channels.maps)} maps")
+    picks = np.linspace(0, len(names) - 1, min(config.contact_views, len(names))).round().astype(int)
+    if len(picks):
+        photos = [imageio.read_photo_srgb(scene.views[i].photo) for i in picks]
+        for m in channels.maps:
+            rows = []
+            for j, i in enumerate(picks):
+                row = [photos[j], evaluation.display_image(m, baseline[i][m]) if baseline else None,
+                       evaluation.display_image(m, pred[i][m])]
+                if ctx.gt_maps is not None and m in ctx.gt_maps[i]:
+                    row.append(evaluation.display_image(m, ctx.gt_maps[i][m]))
+                else:
+                    row.append(None)
+                rows.append(row)
+            export.write_contact_sheet(out / f"contact_{m}.png", rows, ["photo", "per-view estimate", "ours", "GT"],
+                                       [names[i] for i in picks])
+    result["history"] = history
+    return result
+
+
+def _improvement(ours: dict, baseline: dict) -> dict:
+    """ours - baseline for every metric both have (positive is better for PSNR/SSIM, worse for errors)."""
+    return {k: ours[k] - baseline[k] for k in ours if k in baseline and k != "num_views"}
+
+
+def _peak_device_memory_mb(devices) -> float | None:
+    stats = [d.memory_stats() for d in devices if hasattr(d, "memory_stats")]
+    peaks = [s.get("peak_bytes_in_use") for s in stats if s]
+    return max(peaks) / 2 ** 20 if peaks and all(p is not None for p in peaks) else None
+
+
+def _json_safe(value):
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    if isinstance(value, (np.floating, float)):
+        return float(value) if math.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    return value
+

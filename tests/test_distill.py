@@ -1,0 +1,229 @@
+"""The distillation step against a NumPy reference, its randomness, and what it differentiates."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxdistill.config import DistillConfig
+from jaxdistill.distill import (StepSettings, TraceCounter, data_mesh, init_state, jit_step, make_optimizer, make_step,
+                                sample_timesteps, t_weights, upper_t)
+from jaxdistill.maps import MapChannels
+from jaxdistill.problem import build_problem
+from tiny_scene import write_tiny_scene
+
+MAPS = ("albedo", "normal", "roughness")
+
+
+@pytest.fixture(scope="module")
+def tiny_scene(tmp_path_factory):
+    return write_tiny_scene(tmp_path_factory.mktemp("tiny_scene"))
+
+
+@pytest.fixture(scope="module")
+def problem(tiny_scene, tmp_path_factory):
+    config = DistillConfig(scene=str(tiny_scene), out_dir="unused", maps=MAPS, prior="views")
+    return build_problem(config, cache_dir=tmp_path_factory.mktemp("cache"))
+
+
+def settings_for(problem, **kw):
+    return StepSettings(channels=problem.channels, height=problem.height, width=problem.width, total_steps=10, **kw)
+
+
+def run_steps(problem, settings, optimizer, view_ids_per_step, seed=0, texels=None):
+    state = init_state(problem.initial_texels() if texels is None else texels, optimizer, seed)
+    step = jax.jit(make_step(problem.prior, settings, optimizer))
+    metrics = []
+    for ids in view_ids_per_step:
+        state, m = step(state, problem.batch(ids), problem.frozen)
+        metrics.append(jax.device_get(m))
+    return state, metrics
+
+
+def numpy_loss_and_grad(problem, texels, ids):
+    """Image-space loss (1/B) Σ W Σ_c (render − target)² and its texel gradient, in float64 NumPy."""
+    batch = problem.batch(ids)
+    channels = problem.channels
+    index, weight = batch["index"], batch["weight"].astype(np.float64)
+    images = np.einsum("bpt,bptc->bpc", weight, texels.astype(np.float64)[index])          # (B, P, C)
+    rot = batch["normal_rotation"].astype(np.float64)
+    normal = channels.slice("normal")
+    images[..., normal] = np.einsum("bpi,bij->bpj", images[..., normal], rot)
+    target = batch["prior"]["target"].reshape(images.shape).astype(np.float64)
+    w = batch["pixel_weight"].reshape(images.shape[:2]).astype(np.float64)
+    b = len(ids)
+    loss = np.sum(w[..., None] * (images - target) ** 2) / b
+    g_img = 2.0 * w[..., None] * (images - target) / b
+    g_img[..., normal] = np.einsum("bpj,bij->bpi", g_img[..., normal], rot)                  # back to world space
+    grad = np.zeros(texels.shape, np.float64)
+    np.add.at(grad, index.reshape(-1), (weight[..., None] * g_img[:, :, None, :]).reshape(-1, texels.shape[1]))
+    return loss, grad
+
+
+def test_one_step_matches_numpy_render_loss_gradient_and_adamw(problem):
+    rng = np.random.default_rng(0)
+    texels = rng.uniform(-0.8, 0.8, (problem.space.num_texels, problem.channels.num_channels)).astype(np.float32)
+    lr, wd, ids = 0.01, 0.05, np.array([0, 2])
+    optimizer = make_optimizer(lr, wd)
+    state, (metrics,) = run_steps(problem, settings_for(problem), optimizer, [ids], texels=texels)
+    loss, grad = numpy_loss_and_grad(problem, texels, ids)
+    assert metrics["finite"] == 1 and np.isclose(metrics["loss"], loss, rtol=1e-5)
+    assert np.isclose(metrics["grad_norm"], np.linalg.norm(grad), rtol=1e-5)
+    # AdamW's first step: bias-corrected m = g, v = g^2, so the update is -lr (g / (|g| + eps) + wd theta).
+    expected = texels - lr * (grad / (np.abs(grad) + 1e-8) + wd * texels)
+    np.testing.assert_allclose(np.asarray(state.texels), expected, atol=2e-6)
+    assert int(state.step) == 1
+
+
+def test_per_map_losses_sum_to_the_loss_and_initial_values_follow_the_thesis(problem):
+    channels = MapChannels(("albedo", "normal", "roughness", "metallic", "irradiance"))
+    row = channels.initial_texels(1)[0]
+    assert row.tolist() == [0, 0, 0, 0, 0, 0, 1, -1, 0, 0, 0]
+    _, (m,) = run_steps(problem, settings_for(problem), make_optimizer(0.01, 0.0), [np.array([1, 3])])
+    assert np.isclose(sum(m[f"loss_{k}"] for k in MAPS), m["loss"], rtol=1e-6)
+
+
+def test_a_run_is_a_function_of_its_seed(problem):
+    settings = settings_for(problem, p_keep=0.5)
+    optimizer = make_optimizer(0.01, 0.0)
+    steps = [np.array([0, 1]), np.array([2, 3]), np.array([1, 2])]
+    a, ma = run_steps(problem, settings, optimizer, steps, seed=3)
+    b, mb = run_steps(problem, settings, optimizer, steps, seed=3)
+    c, _ = run_steps(problem, settings, optimizer, steps, seed=4)
+    assert np.array_equal(np.asarray(a.texels), np.asarray(b.texels))
+    assert [m["loss"] for m in ma] == [m["loss"] for m in mb]
+    assert not np.array_equal(np.asarray(a.texels), np.asarray(c.texels))      # the dropout masks differ
+
+
+def test_dropout_keeps_about_p_keep_of_the_loss(problem):
+    ids = [np.array([0, 1, 2, 3])]
+    optimizer = make_optimizer(0.01, 0.0)
+    _, (full,) = run_steps(problem, settings_for(problem), optimizer, ids)
+    for p_keep in (0.25, 0.75):
+        _, (kept,) = run_steps(problem, settings_for(problem, p_keep=p_keep), optimizer, ids)
+        assert abs(kept["loss"] / full["loss"] - p_keep) < 0.1
+
+
+def test_timesteps_stay_in_range_and_annealing_shrinks_the_upper_end():
+    channels = MapChannels(("albedo",))
+    flat = StepSettings(channels=channels, height=1, width=1, total_steps=101, t_min=0.2, t_max=0.98)
+    t = np.asarray(sample_timesteps(jax.random.PRNGKey(0), jnp.int32(0), (4000,), flat))
+    assert t.min() >= 200 and t.max() <= 980 and t.min() < 220 and t.max() > 960
+    for anneal in ("linear", "sqrt"):
+        s = StepSettings(channels=channels, height=1, width=1, total_steps=101, anneal=anneal)
+        uppers = [float(upper_t(jnp.int32(i), s)) for i in (0, 25, 50, 100)]
+        assert uppers[0] == pytest.approx(0.98) and uppers[-1] == pytest.approx(0.2)
+        assert all(a > b for a, b in zip(uppers, uppers[1:]))
+        late = np.asarray(sample_timesteps(jax.random.PRNGKey(1), jnp.int32(100), (100,), s))
+        assert np.all(late == 200)
+    assert float(upper_t(jnp.int32(50), StepSettings(channels=channels, height=1, width=1, total_steps=101,
+                                                     anneal="sqrt"))) < 0.98 - 0.78 * 0.5
+    alphas = jnp.linspace(1.0, 0.0, 1000)
+    sds = StepSettings(channels=channels, height=1, width=1, total_steps=1, t_weighting="sds")
+    tt = jnp.array([[0, 500, 999]])
+    np.testing.assert_allclose(np.asarray(t_weights(tt, alphas, sds)), 1.0 - np.asarray(alphas)[[0, 500, 999]][None])
+    assert np.all(np.asarray(t_weights(tt, alphas, flat)) == 1.0)
+
+
+def test_a_non_finite_step_leaves_the_state_unchanged(problem):
+    optimizer = make_optimizer(0.01, 0.0)
+    texels = problem.initial_texels()
+    texels[5, 0] = np.nan
+    state, (m,) = run_steps(problem, settings_for(problem), optimizer, [np.arange(4)], texels=texels)
+    assert m["finite"] == 0 and int(state.step) == 0
+    np.testing.assert_array_equal(np.asarray(state.texels), texels)
+
+
+def test_the_jitted_step_compiles_once_and_reports_retraces(problem):
+    optimizer = make_optimizer(0.01, 0.0)
+    mesh = data_mesh()
+    first = problem.batch(np.array([0, 1]))
+    state = init_state(problem.initial_texels(), optimizer, 0)
+    step, traces = jit_step(make_step(problem.prior, settings_for(problem), optimizer), mesh, first, state,
+                            problem.frozen)
+    replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
+    state = jax.device_put(state, replicated)
+    for ids in ([0, 1], [2, 3], [3, 1]):
+        state, _ = step(state, problem.batch(np.array(ids)), problem.frozen)
+    traces.check(1)
+    assert traces.traces == 1
+    state, _ = step(state, problem.batch(np.array([0, 1, 2])), problem.frozen)     # a new batch shape
+    with pytest.raises(AssertionError, match="traced 2 times"):
+        traces.check(1)
+
+
+def test_trace_counter_counts_python_calls():
+    counter = TraceCounter(lambda x: x + 1)
+    f = jax.jit(counter)
+    f(1.0), f(2.0), f(jnp.ones(3))
+    assert counter.traces == 2
+
+
+# ----------------------------------------------------------------------------- the rgbx prior
+
+
+def count_primitive(jaxpr, name: str) -> int:
+    """Occurrences of primitive `name` in a jaxpr and every sub-jaxpr (pjit, scan, custom_vjp...)."""
+    total = 0
+    for eqn in jaxpr.eqns:
+        total += eqn.primitive.name == name
+        for param in eqn.params.values():
+            subs = param if isinstance(param, (list, tuple)) else [param]
+            for sub in subs:
+                inner = getattr(sub, "jaxpr", None)
+                if inner is not None:
+                    total += count_primitive(getattr(inner, "jaxpr", inner), name)
+                elif hasattr(sub, "eqns"):
+                    total += count_primitive(sub, name)
+    return total
+
+
+@pytest.fixture(scope="module")
+def rgbx_problems(tiny_scene, rgbx_dir, tmp_path_factory):
+    cache = tmp_path_factory.mktemp("cache_rgbx")
+    out = {}
+    for space in ("image", "latent"):
+        config = DistillConfig(scene=str(tiny_scene), out_dir="unused", maps=("albedo", "roughness"), prior="rgbx",
+                               rgbx_dir=str(rgbx_dir), loss_space=space)
+        out[space] = build_problem(config, cache_dir=cache)
+    return out
+
+
+def test_rgbx_step_runs_the_networks_forward_only(rgbx_problems):
+    """The step's program has exactly the convolutions of one prior forward pass (VAE encode, UNet,
+    VAE decode): a backward pass through any network would add the transposed convolutions. The
+    latent-space ablation, which does differentiate the encoder, shows the count would change."""
+    counts = {}
+    for space, problem in rgbx_problems.items():
+        settings = settings_for(problem)
+        optimizer = make_optimizer(0.01, 0.0)
+        state = init_state(problem.initial_texels(), optimizer, 0)
+        batch = problem.batch(np.array([0, 1]))
+        step_jaxpr = jax.make_jaxpr(make_step(problem.prior, settings, optimizer))(state, batch, problem.frozen)
+        images = {m: jnp.zeros((2, problem.height, problem.width, 3 if m == "albedo" else 1)) for m in ("albedo", "roughness")}
+        prior = problem.prior
+        features = jax.eval_shape(lambda im: prior.features(problem.frozen["prior"], im, jax.random.PRNGKey(0)), images)
+        features = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), features)
+        t = jnp.full((2, 2), 500, jnp.int32)
+        forward = jax.make_jaxpr(lambda f: prior.targets(problem.frozen["prior"], f, batch["prior"], t,
+                                                         jax.random.PRNGKey(0)))(features)
+        encode = jax.make_jaxpr(lambda im: prior.features(problem.frozen["prior"], im, jax.random.PRNGKey(0)))(images)
+        counts[space] = (count_primitive(step_jaxpr.jaxpr, "conv_general_dilated"),
+                         count_primitive(forward.jaxpr, "conv_general_dilated"),
+                         count_primitive(encode.jaxpr, "conv_general_dilated"))
+    step_convs, forward_convs, _ = counts["image"]
+    assert forward_convs > 20 and step_convs == forward_convs
+    step_convs, forward_convs, encoder_convs = counts["latent"]
+    assert encoder_convs > 0 and step_convs == forward_convs + 2 * encoder_convs    # encoder forward + its transpose
+
+
+def test_rgbx_step_is_finite_and_moves_the_texels(rgbx_problems):
+    problem = rgbx_problems["image"]
+    optimizer = make_optimizer(0.01, 0.0)
+    state, metrics = run_steps(problem, settings_for(problem), optimizer, [np.array([0, 1]), np.array([2, 3])])
+    assert all(m["finite"] == 1 and np.isfinite(m["loss"]) and m["loss"] > 0 for m in metrics)
+    assert 200 <= metrics[0]["t_mean"] <= 980
+    moved = np.abs(np.asarray(state.texels) - problem.initial_texels()).max()
+    assert 0.0 < moved <= 2 * 0.01 + 1e-6                                            # two Adam steps of lr 0.01

@@ -1,0 +1,229 @@
+"""The main job end to end on a tiny scene: outputs, resume, signals, NaN, bad input, the rgbx path."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+from absl import flags
+
+from jaxdistill import checkpoint, config as config_lib, imageio, train
+from jaxdistill.config import DistillConfig
+from jaxdistill.errors import InputError
+from jaxdistill.problem import Problem
+from tiny_scene import write_tiny_scene
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def tiny_scene(tmp_path_factory):
+    return write_tiny_scene(tmp_path_factory.mktemp("tiny_main"))
+
+
+@pytest.fixture(autouse=True)
+def fragment_cache(tmp_path_factory, monkeypatch):
+    monkeypatch.setenv("JAXDISTILL_CACHE", str(tmp_path_factory.getbasetemp() / "fragment_cache"))
+
+
+def tiny_config(scene, out, **kw) -> DistillConfig:
+    base = dict(scene=str(scene), out_dir=str(out), steps=6, views_per_step=2, prior="views", log_every=2,
+                eval_every=3, renders=True, contact_views=2, lr=0.05)
+    base.update(kw)
+    return config_lib.validate(DistillConfig(**base))
+
+
+def restored(out: Path, step: int):
+    """(state, config) of the checkpoint at `step`, which must be the latest in out/checkpoints."""
+    from jaxdistill.distill import init_state, make_optimizer
+
+    with checkpoint.CheckpointStore(out / "checkpoints") as store:
+        assert store.latest_step() == step
+        shape, _ = store.saved_shapes(step)["texels"]
+        like = init_state(np.zeros(shape, np.float32), make_optimizer(0.01, 0.0), 0)
+        return store.restore(step, like)
+
+
+def test_main_job_writes_every_output(tiny_scene, tmp_path):
+    out = tmp_path / "run"
+    summary = train.run(tiny_config(tiny_scene, out), progress=False)
+    doc = json.loads((out / "metrics.json").read_text())
+    assert doc["prior"]["kind"] == "views" and "per-view target" in doc["prior"]["reason"]
+    assert doc["traces"] == 1 and doc["steps"] == 6 and doc["wall_seconds"] > 0 and doc["peak_host_memory_mb"] > 0
+    for key in ("albedo_psnr", "albedo_ssim", "normal_angular_deg", "roughness_mse", "metallic_mse"):
+        assert np.isfinite(doc["ours"][key]) and np.isfinite(doc["baseline_per_view_estimates"][key])
+    assert doc["history"]["step"] == [1, 2, 3, 4, 5, 6] and doc["history"]["eval_step"] == [3, 6]
+    assert summary["ours"] == doc["ours"]
+    objects = ["room_floor", "room_ceiling", "room_wall_z0", "room_wall_z1", "room_wall_x0", "room_wall_x1"]
+    for m in ("albedo", "normal", "roughness", "metallic", "irradiance"):
+        for o in objects:
+            exr = imageio.read_image(out / "maps" / m / f"{o}.exr")
+            assert exr.shape[-1] == (1 if m in ("roughness", "metallic") else 3) and np.isfinite(exr).all()
+            assert (out / "maps" / m / f"{o}.png").is_file()
+        assert sorted(p.stem for p in (out / "renders" / m).glob("*.png")) == ["v0", "v1", "v2", "v3"]
+        assert (out / f"contact_{m}.png").is_file()
+    assert (out / "loss.png").is_file()
+    glb = trimesh.load(out / "scene.glb", force="scene")
+    assert sorted(glb.geometry) == sorted(objects)
+    material = glb.geometry["room_floor"].visual.material
+    assert material.baseColorTexture is not None and material.metallicRoughnessTexture is not None
+    assert material.normalTexture is not None
+
+
+def test_resumed_run_is_bit_identical_to_an_uninterrupted_one(tiny_scene, tmp_path):
+    full = tmp_path / "full"
+    train.run(tiny_config(tiny_scene, full, steps=8, p_keep=0.7, renders=False), progress=False)
+    part = tmp_path / "part"
+    train.run(tiny_config(tiny_scene, part, steps=4, p_keep=0.7, renders=False), progress=False)
+    train.run(tiny_config(tiny_scene, part, steps=8, p_keep=0.7, renders=False, resume=True), progress=False)
+    a, config_a = restored(full, 8)
+    b, _ = restored(part, 8)
+    assert config_a["p_keep"] == 0.7
+    for leaf_a, leaf_b in zip(*(jax_leaves(s) for s in (a, b))):
+        np.testing.assert_array_equal(leaf_a, leaf_b)
+    resumed = json.loads((part / "metrics.json").read_text())
+    assert resumed["resumed_from"] == 4 and resumed["steps_this_run"] == 4
+    assert resumed["history"]["step"] == json.loads((full / "metrics.json").read_text())["history"]["step"]
+
+
+def jax_leaves(tree):
+    import jax
+
+    return [np.asarray(x) for x in jax.tree.leaves(tree)]
+
+
+def test_resume_refuses_a_different_config_and_needs_a_checkpoint(tiny_scene, tmp_path):
+    out = tmp_path / "run"
+    train.run(tiny_config(tiny_scene, out, steps=2, renders=False), progress=False)
+    with pytest.raises(InputError, match=r"--lr.*0\.05.*0\.2"):
+        train.run(tiny_config(tiny_scene, out, steps=4, lr=0.2, resume=True), progress=False)
+    with pytest.raises(InputError, match="already holds a run.*--resume"):
+        train.run(tiny_config(tiny_scene, out, steps=4), progress=False)
+    with pytest.raises(InputError, match="no complete checkpoint"):
+        train.run(tiny_config(tiny_scene, tmp_path / "empty", resume=True), progress=False)
+    cosine = tmp_path / "cosine"
+    train.run(tiny_config(tiny_scene, cosine, steps=2, lr_schedule="cosine", renders=False), progress=False)
+    with pytest.raises(InputError, match="--steps"):       # the cosine schedule depends on the run's length
+        train.run(tiny_config(tiny_scene, cosine, steps=4, lr_schedule="cosine", resume=True), progress=False)
+
+
+def test_sigterm_saves_a_checkpoint_and_the_run_resumes_to_the_same_result(tiny_scene, tmp_path, monkeypatch):
+    reference = tmp_path / "reference"
+    train.run(tiny_config(tiny_scene, reference, steps=6, renders=False), progress=False)
+    original = Problem.batch
+    calls = {"n": 0}
+
+    def batch_then_signal(self, ids):
+        calls["n"] += 1
+        if calls["n"] == 4:                      # the batch of step 3
+            os.kill(os.getpid(), signal.SIGTERM)
+        return original(self, ids)
+
+    monkeypatch.setattr(Problem, "batch", batch_then_signal)
+    out = tmp_path / "interrupted"
+    result = train.run(tiny_config(tiny_scene, out, steps=6, renders=False), progress=False)
+    monkeypatch.setattr(Problem, "batch", original)
+    assert result == {"stopped_by": "SIGTERM", "step": 3}
+    assert not (out / "metrics.json").exists()
+    train.run(tiny_config(tiny_scene, out, steps=6, renders=False, resume=True), progress=False)
+    a, _ = restored(reference, 6)
+    b, _ = restored(out, 6)
+    np.testing.assert_array_equal(np.asarray(a.texels), np.asarray(b.texels))
+
+
+def test_a_nan_loss_stops_the_run_and_keeps_the_last_good_state(tiny_scene, tmp_path, monkeypatch):
+    from jaxdistill import problem as problem_lib
+
+    build = problem_lib.build_problem
+
+    def poisoned(config, **kw):
+        p = build(config, **kw)
+        targets = p.prior.target_images.copy()
+        targets[:] = np.nan                          # every view: the first step already fails
+        return dataclasses.replace(p, prior=dataclasses.replace(p.prior, target_images=targets))
+
+    monkeypatch.setattr(train, "build_problem", poisoned)
+    out = tmp_path / "nan"
+    with pytest.raises(train.NonFiniteLoss, match=r"NaN/inf at step 0.*--lr"):
+        train.run(tiny_config(tiny_scene, out, steps=4, renders=False), progress=False)
+    state, _ = restored(out, 0)
+    texels = np.asarray(state.texels)
+    assert np.isfinite(texels).all()
+
+
+def test_configs_parse_into_valid_configs():
+    for cfg in sorted((REPO / "configs").glob("*.cfg")):
+        fv = flags.FlagValues()
+        config_lib.define_flags(fv)
+        fv([sys.argv[0], f"--flagfile={cfg}"])
+        config = config_lib.config_from_flags(fv)
+        assert config.scene and config.out_dir, cfg
+    names = {p.stem for p in (REPO / "configs").glob("*.cfg")}
+    assert {"bedroom", "smoke", "thesis"} <= names
+
+
+def test_bad_flags_are_named_before_any_compute():
+    fv = flags.FlagValues()
+    config_lib.define_flags(fv)
+    fv([sys.argv[0], "--scene=x", "--out_dir=y", "--p_keep=0", "--maps=albedo,shiny", "--t_min=0.9", "--t_max=0.5",
+        "--texture_size=300", "--views_per_step=0"])
+    with pytest.raises(InputError) as err:
+        config_lib.config_from_flags(fv)
+    text = str(err.value)
+    for flag in ("--p_keep", "--maps", "--t_min/--t_max", "--texture_size", "--views_per_step"):
+        assert flag in text
+
+
+def run_main(*args, env=None):
+    return subprocess.run([sys.executable, "-m", "jaxdistill.main", *args], capture_output=True, text=True,
+                          env={**os.environ, **(env or {})}, cwd=REPO)
+
+
+def test_cli_explains_how_to_get_the_rgbx_weights(tiny_scene, tmp_path):
+    env = {"JAXDISTILL_RGBX_DIR": ""}
+    result = run_main(f"--scene={tiny_scene}", f"--out_dir={tmp_path}/o", "--prior=rgbx", env=env)
+    assert result.returncode != 0
+    assert "huggingface-cli download zheng95z/rgb-to-x" in result.stderr and "Adobe Research License" in result.stderr
+    partial = tmp_path / "rgbx"
+    (partial / "unet").mkdir(parents=True)
+    (partial / "model_index.json").write_text("{}")
+    result = run_main(f"--scene={tiny_scene}", f"--out_dir={tmp_path}/o", f"--rgbx_dir={partial}", env=env)
+    assert result.returncode != 0 and "vae/" in result.stderr and "missing" in result.stderr
+    result = run_main(f"--scene={tmp_path}/nowhere", f"--out_dir={tmp_path}/o", env=env)
+    assert result.returncode != 0 and "--scene" in result.stderr
+
+
+def test_views_prior_names_a_missing_target(tmp_path):
+    scene = write_tiny_scene(tmp_path / "scene", views=2)
+    doc = json.loads(scene.read_text())
+    del doc["views"][1]["targets"]["roughness"]
+    scene.write_text(json.dumps(doc))
+    with pytest.raises(InputError, match=r"views\[1\]\.targets\.roughness.*v1 has no roughness target"):
+        train.run(tiny_config(scene, tmp_path / "o", prior="views"), progress=False)
+
+
+def test_auto_prior_uses_rgbx_weights_end_to_end(tiny_scene, rgbx_dir, tmp_path, monkeypatch):
+    monkeypatch.setenv("JAXDISTILL_RGBX_DIR", str(rgbx_dir))
+    out = tmp_path / "rgbx"
+    train.run(tiny_config(tiny_scene, out, prior="auto", steps=2, maps=("albedo", "roughness"), renders=False,
+                          eval_every=0), progress=False)
+    doc = json.loads((out / "metrics.json").read_text())
+    assert doc["prior"]["kind"] == "rgbx" and "JAXDISTILL_RGBX_DIR" in doc["prior"]["reason"]
+    assert doc["traces"] == 1 and all(np.isfinite(doc["history"]["loss"]))
+    assert (out / "maps" / "albedo" / "room_wall_x0.exr").is_file()
+
+
+def test_smaller_renders_train_at_their_size_and_evaluate_at_the_photos_size(tiny_scene, tmp_path):
+    out = tmp_path / "small"
+    train.run(tiny_config(tiny_scene, out, render_size=16, steps=2, eval_every=0), progress=False)
+    doc = json.loads((out / "metrics.json").read_text())
+    assert doc["config"]["render_size"] == 16 and np.isfinite(doc["ours"]["albedo_psnr"])
+    assert imageio.read_image(out / "renders" / "albedo" / "v0.png").shape == (24, 32, 3)
