@@ -10,6 +10,7 @@ All per-view maps here are in file space (see maps.py), at the photos' native re
 from __future__ import annotations
 
 import dataclasses
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Sequence
 
@@ -154,12 +155,12 @@ def read_baseline(scene: Scene, maps: Sequence[str], shapes: Sequence[tuple[int,
     return out
 
 
-def write_renders(folder: Path, names: Sequence[str], views: Sequence[dict]) -> None:
+def write_renders(folder: Path, names: Sequence[str], views: Sequence[dict], threads: int = 2) -> None:
     """renders/<map>/<view>.png: albedo, irradiance sRGB; roughness, metallic grey; normals (n + 1) / 2."""
-    for name, maps in zip(names, views):
-        for m, image in maps.items():
-            display = display_image(m, image)
-            imageio.write_image(folder / m / f"{name}.png", display, encode_srgb=False)
+    jobs = [(folder / m / f"{name}.png", m, image) for name, maps in zip(names, views) for m, image in maps.items()]
+    with ThreadPoolExecutor(threads) as pool:       # encoding and NumPy release the GIL
+        list(pool.map(lambda job: imageio.write_image(job[0], display_image(job[1], job[2]), encode_srgb=False),
+                      jobs))
 
 
 def display_image(name: str, image: np.ndarray) -> np.ndarray:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+from concurrent.futures import ThreadPoolExecutor
 import resource
 import time
 from pathlib import Path
@@ -107,7 +108,8 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
     stopped_by = None
     loop_start = time.perf_counter()
     with checkpoint.StopSignals() as stop, tqdm(total=config.steps, initial=start_step, unit="step", desc="distil",
-                                                dynamic_ncols=True, disable=not progress) as bar:
+                                                dynamic_ncols=True, disable=not progress,
+                                                smoothing=0) as bar:   # steps run asynchronously: average rate
         for step in range(start_step, config.steps):
             batch = jax.device_put(problem.batch(problem.view_ids(step, config.views_per_step, config.seed)), by_view)
             state, step_metrics = step_fn(state, batch, frozen)
@@ -223,10 +225,13 @@ def write_outputs(config: DistillConfig, problem: Problem, texels: np.ndarray, h
     baseline = evaluation.read_baseline(scene, channels.maps, [f.shape for f in ctx.fragments])
     result = {"maps_written": [str(p.relative_to(out)) for p in written]}
     if ctx.gt_maps is not None:
-        result["ours"] = evaluation.evaluate(pred, ctx.gt_maps, ctx.masks)
-        if baseline is not None:
-            result["baseline_per_view_estimates"] = evaluation.evaluate(baseline, ctx.gt_maps, ctx.masks)
-            result["improvement"] = _improvement(result["ours"], result["baseline_per_view_estimates"])
+        with ThreadPoolExecutor(2) as pool:          # the metrics are NumPy: two threads, two cores
+            ours = pool.submit(evaluation.evaluate, pred, ctx.gt_maps, ctx.masks)
+            base = pool.submit(evaluation.evaluate, baseline, ctx.gt_maps, ctx.masks) if baseline else None
+            result["ours"] = ours.result()
+            if base is not None:
+                result["baseline_per_view_estimates"] = base.result()
+                result["improvement"] = _improvement(result["ours"], result["baseline_per_view_estimates"])
     else:
         result["ours"] = None
         result["note"] = "the scene has no ground truth (gt.json in jaxdistill-gt format): no metrics against GT"
