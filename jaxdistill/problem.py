@@ -50,10 +50,10 @@ def choose_prior(config: DistillConfig) -> PriorChoice:
     a folder that was named but does not exist is an error, not a reason to use views)."""
     folder = rgbx_dir(config)
     source = "--rgbx_dir" if config.rgbx_dir else f"${RGBX_DIR_ENV}"
-    if folder and not Path(folder).expanduser().is_dir():
-        raise InputError.single("flags", source, f"{folder} does not exist; {rgbx_hint()}")
     if config.prior == "views":
         return PriorChoice("views", "--prior=views: the scene's per-view target images")
+    if folder and not Path(folder).expanduser().is_dir():
+        raise InputError.single("flags", source, f"{folder} does not exist; {rgbx_hint()}")
     if config.prior == "rgbx":
         if not folder:
             raise InputError.single("flags", "--prior=rgbx", f"needs the RGB<->X weights; {rgbx_hint()}")
