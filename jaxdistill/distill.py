@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import math
 from typing import Any, Callable
 
 import flax.struct
@@ -221,7 +220,3 @@ def data_mesh(devices=None) -> jax.sharding.Mesh:
     devices = np.asarray(jax.devices() if devices is None else devices)
     return jax.sharding.Mesh(devices, ("data",))
 
-
-def mean_weighted_error(loss: float, weight_sum: float) -> float:
-    """Loss per unit pixel weight (comparable across batch sizes); NaN when nothing is weighted."""
-    return loss / weight_sum if weight_sum > 0 else math.nan

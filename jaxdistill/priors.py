@@ -39,10 +39,6 @@ class ViewsPrior:
     name: str = "views"
     latent_space: bool = False
 
-    @property
-    def frozen(self) -> dict:
-        return {}
-
     def view_data(self, view_ids) -> dict[str, np.ndarray]:
         return {"target": self.target_images[np.asarray(view_ids)]}
 
