@@ -10,7 +10,8 @@ Per step, for a batch of B views and the M requested maps (thesis §4.2, DESIGN.
    weights (or the hit mask), keep a Bernoulli(p_keep) image-space dropout mask;
 5. the gradient reaches the texels through the transpose of the gather (a scatter-add), and
    optax AdamW updates them. A step whose loss or gradient is not finite leaves the state as it
-   was and reports `finite = 0`, so the caller can stop with the last good state.
+   was, reports `finite = 0` and halts the state (later steps change nothing), so the caller can
+   stop with the last good state even when it fetches metrics only every few steps.
 
 The PRNG key of a step is fold_in(state.key, state.step): a run is a function of its seed.
 Texels, loss and optimizer state are float32 whatever the prior's activation dtype.
@@ -35,12 +36,14 @@ from jaxdistill.render.sampler import render
 
 @flax.struct.dataclass
 class DistillState:
-    """texels (N, C) float32 in model space; opt_state (AdamW); step () int32; key (2,) uint32."""
+    """texels (N, C) float32 in model space; opt_state (AdamW); step () int32; key (2,) uint32;
+    halted () bool: a step was not finite, and every later step leaves the state as it is."""
 
     texels: jax.Array
     opt_state: Any
     step: jax.Array
     key: jax.Array
+    halted: jax.Array
 
 
 @dataclasses.dataclass(frozen=True)
@@ -79,7 +82,7 @@ def init_state(texels: np.ndarray, optimizer: optax.GradientTransformation, seed
     """Step-0 state: the given initial texels (float32), fresh AdamW state, key PRNGKey(seed)."""
     texels = jnp.asarray(texels, jnp.float32)
     return DistillState(texels=texels, opt_state=optimizer.init(texels), step=jnp.zeros((), jnp.int32),
-                        key=jax.random.PRNGKey(seed))
+                        key=jax.random.PRNGKey(seed), halted=jnp.zeros((), bool))
 
 
 def render_maps(texels, plan: GatherPlan, normal_rotation, channels: MapChannels) -> dict:
@@ -167,14 +170,16 @@ def make_step(prior, settings: StepSettings, optimizer: optax.GradientTransforma
         updates, opt_state = optimizer.update(grad, state.opt_state, state.texels)
         texels = optax.apply_updates(state.texels, updates)
         finite = jnp.isfinite(loss) & jnp.all(jnp.isfinite(grad))
-        keep_new = functools.partial(jnp.where, finite)
+        ok = finite & ~state.halted            # after a non-finite step, nothing moves any more
+        keep_new = functools.partial(jnp.where, ok)
         new_state = DistillState(texels=keep_new(texels, state.texels),
                                  opt_state=jax.tree.map(keep_new, opt_state, state.opt_state),
-                                 step=state.step + finite.astype(jnp.int32), key=state.key)
+                                 step=state.step + ok.astype(jnp.int32), key=state.key,
+                                 halted=state.halted | ~finite)
         per_map = {f"loss_{m}": weighted_square_error({m: features[m]}, {m: targets[m]}, weights,
                                                       sample_weights[:, i:i + 1], (m,))
                    for i, m in enumerate(maps)}
-        metrics = {"loss": loss, "finite": finite.astype(jnp.int32), "grad_norm": optax.tree.norm(grad),
+        metrics = {"loss": loss, "finite": ok.astype(jnp.int32), "grad_norm": optax.tree.norm(grad),
                    "t_mean": jnp.mean(t.astype(jnp.float32)), **per_map}
         return new_state, metrics
 

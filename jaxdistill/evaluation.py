@@ -20,7 +20,7 @@ import numpy as np
 
 from jaxdistill import imageio, metrics
 from jaxdistill.errors import InputError, read_json
-from jaxdistill.maps import MapChannels, model_to_file, rgbx_camera_rotation
+from jaxdistill.maps import CHANNELS, MapChannels, model_to_file, rgbx_camera_rotation
 from jaxdistill.render.gather_plan import GatherPlan
 from jaxdistill.render.sampler import render, sample_pages
 from jaxdistill.scene import Scene
@@ -51,11 +51,14 @@ def read_ground_truth(scene: Scene) -> GroundTruth | None:
         raise InputError.single(path, "textures", "per-object GT textures need a scene with texture_layout 'pages'")
     pages = {}
     for name, per_object in doc.get("textures", {}).items():
+        if name not in CHANNELS or name == "normal":
+            raise InputError.single(path, f"textures.{name}", "GT textures can be albedo, roughness, metallic or "
+                                    "irradiance (normals come from the geometry with \"normal\": \"geometry\")")
         missing = [o for o in names if o not in per_object]
         if missing:
             raise InputError.single(path, f"textures.{name}", f"no texture for objects {missing}")
         encoding = doc.get("texture_encoding", {}).get(name, "linear")
-        pages[name] = [imageio.read_image(scene.root / per_object[o], linear=encoding == "srgb")[..., :3 if name == "albedo" else 1]
+        pages[name] = [imageio.read_image(scene.root / per_object[o], linear=encoding == "srgb")[..., :CHANNELS[name]]
                        for o in names]
     unknown = [o for o in doc.get("exclude_objects", []) if o not in names]
     if unknown:

@@ -92,6 +92,9 @@ def render_shape(scene: Scene, render_size: int, multiple: int = 1) -> tuple[int
             raise InputError.single("flags", "--render_size", f"the photos are {w}x{h}, not multiples of {multiple} "
                                     "(the rgbx prior's VAE needs that); set --render_size")
         return h, w
+    if render_size % multiple:
+        raise InputError.single("flags", "--render_size", f"{render_size} is not a multiple of {multiple} "
+                                "(the rgbx prior's VAE needs that)")
     h, w = max(sizes, key=lambda s: s[0] * s[1])
     scale = render_size / max(h, w)
     short = max(multiple, int(round(min(h, w) * scale / multiple)) * multiple)

@@ -21,11 +21,11 @@ from tqdm.auto import tqdm
 
 from jaxdistill import checkpoint, evaluation, export, imageio
 from jaxdistill.config import DistillConfig, resumable_flags
-from jaxdistill.distill import (DistillState, StepSettings, data_mesh, init_state, jit_step, make_optimizer,
+from jaxdistill.distill import (StepSettings, data_mesh, init_state, jit_step, make_optimizer,
                                 make_step)
 from jaxdistill.errors import InputError
 from jaxdistill.maps import model_to_file
-from jaxdistill.problem import Problem, build_problem, initial_file_values
+from jaxdistill.problem import Problem, build_problem, choose_prior, initial_file_values
 from jaxdistill.render.gather_plan import GatherPlan, build_gather_plans
 from jaxdistill.render.sampler import expand
 
@@ -47,29 +47,59 @@ def _history_path(out: Path) -> Path:
     return out / "checkpoints" / "history.json"
 
 
-def _save(store, state, config: DistillConfig, history: dict, out: Path) -> None:
+def _recorded_config(config: DistillConfig, prior_kind: str) -> dict:
+    """The flags saved with a checkpoint, plus the prior --prior=auto resolved to."""
+    return {**config.as_dict(), "prior_kind": prior_kind}
+
+
+def _save(store, state, recorded: dict, history: dict, out: Path) -> None:
     step = int(jax.device_get(state.step))
-    store.save(step, state, config.as_dict())
+    store.save(step, state, recorded)
     _history_path(out).write_text(json.dumps(history))
+
+
+def _check_before_compute(config: DistillConfig, out: Path, choice) -> int | None:
+    """Flag problems found without any compute: device split, --resume, an existing run.
+    Returns the checkpoint step to resume from (None for a fresh run)."""
+    devices = jax.devices()
+    if config.views_per_step % len(devices):
+        raise InputError.single("flags", "--views_per_step", f"{config.views_per_step} does not split over "
+                                f"{len(devices)} devices; use a multiple of {len(devices)}")
+    if choice.kind == "views" and config.loss_space == "latent":
+        raise InputError.single("flags", "--loss_space", "latent needs the rgbx prior, but the views prior was "
+                                f"chosen ({choice.reason}); use --loss_space=image or give --rgbx_dir")
+    directory = out / "checkpoints"
+    if not config.resume:
+        if directory.exists():
+            steps = checkpoint.CheckpointStore(directory).latest_step()
+            if steps is not None:
+                raise InputError.single("flags", "--out_dir", f"{out} already holds a run (checkpoint at step {steps})"
+                                        "; pass --resume to continue it, or choose another --out_dir")
+        return None
+    with checkpoint.CheckpointStore(directory) as store:
+        latest = store.latest_step()
+        if latest is None:
+            raise InputError.single("flags", "--resume", f"no complete checkpoint in {directory}; "
+                                    "run without --resume to start")
+        checkpoint.check_compatible(store.read_config(latest), _recorded_config(config, choice.kind), directory,
+                                    ignore=resumable_flags(config))
+    if latest > config.steps:
+        raise InputError.single("flags", "--steps", f"{config.steps} is below the checkpoint's step {latest} in "
+                                f"{directory}; give --steps >= {latest}")
+    return latest
 
 
 def run(config: DistillConfig, *, progress: bool = True) -> dict:
     """Runs the distillation described by `config`; returns the metrics written to metrics.json."""
     wall_start = time.perf_counter()
     out = Path(config.out_dir)
-    if out.exists() and (out / "checkpoints").exists() and not config.resume:
-        steps = checkpoint.CheckpointStore(out / "checkpoints").latest_step()
-        if steps is not None:
-            raise InputError.single("flags", "--out_dir", f"{out} already holds a run (checkpoint at step {steps}); "
-                                    "pass --resume to continue it, or choose another --out_dir")
+    latest = _check_before_compute(config, out, choose_prior(config))
     problem = build_problem(config)
+    recorded = _recorded_config(config, problem.choice.kind)
     banner = f"PRIOR: {problem.choice.kind.upper()} -- {problem.choice.reason}"
     logging.warning("%s\n%s\n%s", "=" * len(banner), banner, "=" * len(banner))
 
     devices = jax.devices()
-    if config.views_per_step % len(devices):
-        raise InputError.single("flags", "--views_per_step", f"{config.views_per_step} does not split over "
-                                f"{len(devices)} devices; use a multiple of {len(devices)}")
     mesh = data_mesh(devices)
     optimizer = make_optimizer(config.lr, config.weight_decay, config.lr_schedule, config.steps)
     settings = step_settings(config, problem)
@@ -78,15 +108,8 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
 
     out.mkdir(parents=True, exist_ok=True)
     store = checkpoint.CheckpointStore(out / "checkpoints")
-    if config.resume:
-        latest = store.latest_step()
-        if latest is None:
-            raise InputError.single("flags", "--resume", f"no complete checkpoint in {out / 'checkpoints'}; "
-                                    "run without --resume to start")
-        saved_state, saved_config = store.restore(latest, state)
-        checkpoint.check_compatible(saved_config, config.as_dict(), out / "checkpoints", ignore=resumable_flags(config))
-        state = DistillState(**{k: saved_state[k] for k in ("texels", "opt_state", "step", "key")}) \
-            if isinstance(saved_state, dict) else saved_state
+    if latest is not None:
+        state, _ = store.restore(latest, state)
         if _history_path(out).is_file():
             history = json.loads(_history_path(out).read_text())
             for key, at in (("loss", "step"), ("albedo_psnr", "eval_step")):
@@ -116,19 +139,21 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
             pending.append((step, step_metrics))
             done = step + 1
             if done % config.log_every == 0 or done == config.steps or stop.requested:
-                _drain(pending, history, bar, state, store, config, out)
+                _drain(pending, history, bar, state, store, recorded, out)
             traces.check(1)
             bar.update()
             if config.eval_every and done % config.eval_every == 0 and eval_context.gt is not None:
                 history["eval_step"].append(done)
                 history["albedo_psnr"].append(_quick_psnr(state, problem, eval_context))
             if config.ckpt_every and done % config.ckpt_every == 0 and done < config.steps:
-                _save(store, state, config, history, out)
+                _drain(pending, history, bar, state, store, recorded, out)     # history matches the checkpoint
+                _save(store, state, recorded, history, out)
             if stop.requested:
                 stopped_by = stop.signal_name
                 break
+        _drain(pending, history, bar, state, store, recorded, out)
     loop_seconds = time.perf_counter() - loop_start
-    _save(store, state, config, history, out)
+    _save(store, state, recorded, history, out)
     store.close()
     if stopped_by:
         logging.warning("stopped by %s at step %d; checkpoint saved. Continue with the same flags and --resume.",
@@ -149,19 +174,19 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
         "peak_device_memory_mb": _peak_device_memory_mb(devices),
         "parameters": {"texels": problem.space.num_texels, "channels": problem.channels.num_channels,
                        "page_sizes": list(problem.space.layout.page_sizes)},
-        "traces": traces.traces, "config": config.as_dict(),
+        "traces": traces.traces, "config": recorded,
     })
     (out / "metrics.json").write_text(json.dumps(_json_safe(summary), indent=1))
     logging.info("wrote %s", out / "metrics.json")
     return summary
 
 
-def _drain(pending: list, history: dict, bar, state, store, config, out: Path) -> None:
+def _drain(pending: list, history: dict, bar, state, store, recorded: dict, out: Path) -> None:
     """Fetches pending step metrics into the history; stops the run on a non-finite step."""
     fetched = jax.device_get([m for _, m in pending])
     for (step, _), values in zip(pending, fetched):
         if not values["finite"]:
-            _save(store, state, config, history, out)
+            _save(store, state, recorded, history, out)
             store.close()
             raise NonFiniteLoss(
                 f"the loss or its gradient became NaN/inf at step {step}; the state before that step is saved in "

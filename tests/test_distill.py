@@ -77,6 +77,21 @@ def test_one_step_matches_numpy_render_loss_gradient_and_adamw(problem):
     assert int(state.step) == 1
 
 
+def test_value_spaces_and_the_camera_rotation_of_normals():
+    from jaxdistill.maps import file_to_model, model_to_file, rgbx_camera_rotation
+
+    rot = rgbx_camera_rotation(np.eye(4))          # OpenCV camera at the origin looking down +z
+    np.testing.assert_allclose(np.array([0.0, 0.0, -1.0]) @ rot, [0, 0, 1])   # facing the camera: +z
+    np.testing.assert_allclose(np.array([0.0, -1.0, 0.0]) @ rot, [0, 1, 0])   # world up (-y in OpenCV): +y
+    np.testing.assert_allclose(np.array([1.0, 0.0, 0.0]) @ rot, [1, 0, 0])    # right stays right
+    grey = np.full((2, 2, 3), 0.25, np.float32)
+    assert file_to_model("roughness", grey).shape == (2, 2, 1) and np.allclose(file_to_model("roughness", grey), -0.5)
+    colour = np.random.default_rng(0).uniform(0, 1, (2, 2, 3)).astype(np.float32)
+    np.testing.assert_allclose(model_to_file("albedo", file_to_model("albedo", colour)), colour, atol=1e-7)
+    n = np.array([[[0.0, 0.0, 2.0], [0.0, 0.0, 0.0]]], np.float32)
+    np.testing.assert_allclose(model_to_file("normal", n), [[[0, 0, 1], [0, 0, 0]]])
+
+
 def test_per_map_losses_sum_to_the_loss_and_initial_values_follow_the_thesis(problem):
     channels = MapChannels(("albedo", "normal", "roughness", "metallic", "irradiance"))
     row = channels.initial_texels(1)[0]
@@ -132,8 +147,13 @@ def test_a_non_finite_step_leaves_the_state_unchanged(problem):
     texels = problem.initial_texels()
     texels[5, 0] = np.nan
     state, (m,) = run_steps(problem, settings_for(problem), optimizer, [np.arange(4)], texels=texels)
-    assert m["finite"] == 0 and int(state.step) == 0
+    assert m["finite"] == 0 and int(state.step) == 0 and bool(state.halted)
     np.testing.assert_array_equal(np.asarray(state.texels), texels)
+    step = jax.jit(make_step(problem.prior, settings_for(problem), optimizer))
+    state = state.replace(texels=jnp.asarray(problem.initial_texels()))   # finite again, but the run halted
+    after, m = step(state, problem.batch(np.arange(4)), problem.frozen)
+    assert m["finite"] == 0 and int(after.step) == 0
+    np.testing.assert_array_equal(np.asarray(after.texels), problem.initial_texels())
 
 
 def test_the_jitted_step_compiles_once_and_reports_retraces(problem):

@@ -78,7 +78,7 @@ def test_main_job_writes_every_output(tiny_scene, tmp_path):
     assert material.normalTexture is not None
 
 
-def test_resumed_run_is_bit_identical_to_an_uninterrupted_one(tiny_scene, tmp_path):
+def test_resumed_run_is_bit_identical_to_an_uninterrupted_one(tiny_scene, tmp_path, monkeypatch):
     full = tmp_path / "full"
     train.run(tiny_config(tiny_scene, full, steps=8, p_keep=0.7, renders=False), progress=False)
     part = tmp_path / "part"
@@ -86,12 +86,36 @@ def test_resumed_run_is_bit_identical_to_an_uninterrupted_one(tiny_scene, tmp_pa
     train.run(tiny_config(tiny_scene, part, steps=8, p_keep=0.7, renders=False, resume=True), progress=False)
     a, config_a = restored(full, 8)
     b, _ = restored(part, 8)
-    assert config_a["p_keep"] == 0.7
+    assert config_a["p_keep"] == 0.7 and config_a["prior_kind"] == "views"
     for leaf_a, leaf_b in zip(*(jax_leaves(s) for s in (a, b))):
         np.testing.assert_array_equal(leaf_a, leaf_b)
     resumed = json.loads((part / "metrics.json").read_text())
+    uninterrupted = json.loads((full / "metrics.json").read_text())
     assert resumed["resumed_from"] == 4 and resumed["steps_this_run"] == 4
-    assert resumed["history"]["step"] == json.loads((full / "metrics.json").read_text())["history"]["step"]
+    assert resumed["history"]["step"] == uninterrupted["history"]["step"] == list(range(1, 9))
+    assert resumed["history"]["loss"] == uninterrupted["history"]["loss"]
+
+    # a crash between metric fetches: the checkpoint's history still has every step up to it
+    crashed = tmp_path / "crashed"
+    original = Problem.batch
+    calls = {"n": 0}
+
+    def batch_then_crash(self, ids):
+        calls["n"] += 1
+        if calls["n"] == 6:                     # call 1 is the jit example: this is step 4, after the checkpoint at 3
+            raise RuntimeError("simulated crash")
+        return original(self, ids)
+
+    monkeypatch.setattr(Problem, "batch", batch_then_crash)
+    with pytest.raises(RuntimeError, match="simulated crash"):
+        train.run(tiny_config(tiny_scene, crashed, steps=8, p_keep=0.7, renders=False, ckpt_every=3, log_every=2),
+                  progress=False)
+    monkeypatch.setattr(Problem, "batch", original)
+    train.run(tiny_config(tiny_scene, crashed, steps=8, p_keep=0.7, renders=False, resume=True), progress=False)
+    again = json.loads((crashed / "metrics.json").read_text())
+    assert again["resumed_from"] == 3
+    assert again["history"]["step"] == list(range(1, 9))
+    assert again["history"]["loss"] == uninterrupted["history"]["loss"]
 
 
 def jax_leaves(tree):
@@ -109,6 +133,10 @@ def test_resume_refuses_a_different_config_and_needs_a_checkpoint(tiny_scene, tm
         train.run(tiny_config(tiny_scene, out, steps=4), progress=False)
     with pytest.raises(InputError, match="no complete checkpoint"):
         train.run(tiny_config(tiny_scene, tmp_path / "empty", resume=True), progress=False)
+    with pytest.raises(InputError, match=r"--steps: 1 is below the checkpoint's step 2"):
+        train.run(tiny_config(tiny_scene, out, steps=1, resume=True), progress=False)
+    with pytest.raises(InputError, match=r"--loss_space.*views prior"):
+        train.run(tiny_config(tiny_scene, tmp_path / "latent", prior="auto", loss_space="latent"), progress=False)
     cosine = tmp_path / "cosine"
     train.run(tiny_config(tiny_scene, cosine, steps=2, lr_schedule="cosine", renders=False), progress=False)
     with pytest.raises(InputError, match="--steps"):       # the cosine schedule depends on the run's length
@@ -143,20 +171,30 @@ def test_a_nan_loss_stops_the_run_and_keeps_the_last_good_state(tiny_scene, tmp_
     from jaxdistill import problem as problem_lib
 
     build = problem_lib.build_problem
+    seed, poisoned_view = 0, {}
 
     def poisoned(config, **kw):
         p = build(config, **kw)
+        # poison the one view that first appears at step >= 2, so steps before it are good
+        first_seen = {}
+        for step in range(config.steps):
+            for v in p.view_ids(step, config.views_per_step, seed):
+                first_seen.setdefault(int(v), step)
+        view, step = max(first_seen.items(), key=lambda kv: kv[1])
+        poisoned_view.update(view=view, step=step)
         targets = p.prior.target_images.copy()
-        targets[:] = np.nan                          # every view: the first step already fails
+        targets[view] = np.nan
         return dataclasses.replace(p, prior=dataclasses.replace(p.prior, target_images=targets))
 
     monkeypatch.setattr(train, "build_problem", poisoned)
     out = tmp_path / "nan"
-    with pytest.raises(train.NonFiniteLoss, match=r"NaN/inf at step 0.*--lr"):
-        train.run(tiny_config(tiny_scene, out, steps=4, renders=False), progress=False)
-    state, _ = restored(out, 0)
-    texels = np.asarray(state.texels)
-    assert np.isfinite(texels).all()
+    with pytest.raises(train.NonFiniteLoss, match=r"NaN/inf at step (\d+).*--lr") as err:
+        train.run(tiny_config(tiny_scene, out, steps=8, log_every=4, renders=False), progress=False)
+    bad = poisoned_view["step"]
+    assert bad >= 1 and f"at step {bad};" in str(err.value)
+    state, _ = restored(out, bad)          # the checkpoint is the state before the bad step, not after
+    assert int(state.step) == bad and bool(state.halted)
+    assert np.isfinite(np.asarray(state.texels)).all()
 
 
 def test_configs_parse_into_valid_configs():
@@ -212,6 +250,14 @@ def test_views_prior_names_a_missing_target(tmp_path):
 
 def test_auto_prior_uses_rgbx_weights_end_to_end(tiny_scene, rgbx_dir, tmp_path, monkeypatch):
     monkeypatch.setenv("JAXDISTILL_RGBX_DIR", str(rgbx_dir))
+    views_run = tmp_path / "views_run"
+    monkeypatch.delenv("JAXDISTILL_RGBX_DIR")
+    train.run(tiny_config(tiny_scene, views_run, prior="auto", steps=1, maps=("albedo", "roughness"), renders=False,
+                          eval_every=0), progress=False)
+    monkeypatch.setenv("JAXDISTILL_RGBX_DIR", str(rgbx_dir))
+    with pytest.raises(InputError, match=r"--prior_kind.*views.*rgbx"):     # auto resolved differently now
+        train.run(tiny_config(tiny_scene, views_run, prior="auto", steps=2, maps=("albedo", "roughness"),
+                              resume=True), progress=False)
     out = tmp_path / "rgbx"
     train.run(tiny_config(tiny_scene, out, prior="auto", steps=2, maps=("albedo", "roughness"), renders=False,
                           eval_every=0), progress=False)
