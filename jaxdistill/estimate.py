@@ -4,9 +4,10 @@
         [--maps=albedo,normal,roughness,metallic,irradiance] [--steps=50] [--seed=0]
         [--views=all|NAME,NAME] [--dtype=float32|bfloat16] [--convert_cache=DIR]
 
-Writes OUT/<map>/<view>.png in the encoding of our scene targets (albedo and irradiance
-display-encoded with x**(1/2.2) as the authors' demo, roughness/metallic grey values, normals
-(n+1)/2 in camera space) and OUT/estimate.json (settings, load and sampling times). Photos:
+Writes OUT/<map>/<view>.png in the encoding of our scene targets, so that a scene can list them
+as per-view targets for the `views` prior: albedo and irradiance sRGB-encoded (the model's
+decoded values (x+1)/2 are linear; the authors' demo displays them with x**(1/2.2) instead),
+roughness/metallic grey values, normals (n+1)/2 in camera space) and OUT/estimate.json (settings, load and sampling times). Photos:
 PNG/JPG are taken as sRGB; EXR photos are clipped to [0, 1] and sRGB-encoded first. Width and
 height must be multiples of 8. Noise is seeded per view and map (fold_in of --seed).
 """
@@ -114,8 +115,11 @@ def run(cfg: EstimateConfig) -> dict:
                 t0 = time.perf_counter()
                 view_key = jax.random.fold_in(jax.random.fold_in(key, zlib.crc32(name.encode())),
                                               list(MAP_PROMPTS).index(map_name))
-                result = prior.estimate_from_latent(rgbx, image_latent, map_name, view_key, num_steps=cfg.steps)
-                imageio.write_image(out / map_name / f"{name}.png", result, encode_srgb=False)
+                # linear values, sRGB-encoded into the PNG: exactly how scene targets are read back
+                result = prior.estimate_from_latent(rgbx, image_latent, map_name, view_key, num_steps=cfg.steps,
+                                                    gamma=False)
+                imageio.write_image(out / map_name / f"{name}.png", result,
+                                    encode_srgb=map_name in prior.GAMMA_MAPS)
                 seconds.append(time.perf_counter() - t0)
                 bar.update()
     summary = {"config": dataclasses.asdict(cfg), "load_seconds": loaded.seconds,

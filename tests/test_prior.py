@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import zlib
 
 import jax
 import jax.numpy as jnp
@@ -187,6 +188,12 @@ def test_estimate_command_writes_maps(rgbx_dir, tmp_path):
     metallic = imageio.read_image(tmp_path / "out" / "metallic" / "kitchen.png", linear=False)
     assert albedo.shape == (48, 64, 3) and metallic.shape == (48, 64, 3)
     np.testing.assert_array_equal(metallic[..., 0], metallic[..., 1])   # grey map
+    # albedo PNGs are sRGB like scene targets: read back as linear they equal the model's linear output
+    linear = prior.estimate(prior.load_prior(convert.load_rgbx(rgbx_dir)),
+                            imageio.read_photo_srgb(tmp_path / "kitchen.png"), "albedo",
+                            jax.random.fold_in(jax.random.fold_in(jax.random.key(cfg.seed), zlib.crc32(b"kitchen")), 0),
+                            num_steps=2, gamma=False)
+    np.testing.assert_allclose(imageio.read_image(tmp_path / "out" / "albedo" / "kitchen.png"), linear, atol=0.01)
     assert summary["views"] == ["kitchen"] and (tmp_path / "out" / "estimate.json").exists()
     with pytest.raises(InputError, match="--photo"):
         estimate.run(dataclasses.replace(cfg, photo=str(tmp_path / "missing.png")))
