@@ -383,6 +383,11 @@ def from_scannetpp(transform_matrix, fl_x, fl_y, cx, cy, width, height) -> Camer
     return Camera(K, _algorithm1(m @ _FLIP_XZ, "transform_matrix"), width, height)
 
 
+def rgbx_camera_rotation(c2w) -> np.ndarray:
+    """(3, 3) M with n_camera = n_world @ M, RGB<->X's camera axes: x right, y up, z towards the camera."""
+    return np.asarray(c2w, np.float64)[:3, :3] @ np.diag([1.0, -1.0, -1.0])
+
+
 def rgbx_camera_normals(normals_world, camera: Camera) -> np.ndarray:
     """(..., 3) world-space normals in RGB<->X's camera space: x right, y up, z towards the camera."""
-    return (np.asarray(normals_world, np.float64) @ camera.c2w[:3, :3]) * np.array([1.0, -1.0, -1.0])
+    return np.asarray(normals_world, np.float64) @ rgbx_camera_rotation(camera.c2w)

@@ -124,13 +124,14 @@ def pool_weights(weights, factor: int):
     return weights.reshape(b, h // factor, factor, w // factor, factor).mean(axis=(2, 4))
 
 
-def weighted_square_error(features: dict, targets: dict, weights, sample_weights, maps) -> jax.Array:
-    """(1/B) Σ_b Σ_m w_bm Σ_hw weights_bhw Σ_c (features − targets)²; weights (B, h, w), w (B, M)."""
-    total = 0.0
+def weighted_square_error(features: dict, targets: dict, weights, sample_weights, maps):
+    """(loss, {map: its term}): loss = (1/B) Σ_b Σ_m w_bm Σ_hw weights_bhw Σ_c (features − targets)²,
+    weights (B, h, w), w (B, M); the per-map terms sum to the loss."""
+    terms = {}
     for i, m in enumerate(maps):
         sq = jnp.sum(jnp.square(features[m].astype(jnp.float32) - targets[m].astype(jnp.float32)), axis=-1)
-        total = total + jnp.sum(sample_weights[:, i] * jnp.sum(weights * sq, axis=(1, 2)))
-    return total / weights.shape[0]
+        terms[m] = jnp.sum(sample_weights[:, i] * jnp.sum(weights * sq, axis=(1, 2))) / weights.shape[0]
+    return sum(terms.values()), terms
 
 
 def make_step(prior, settings: StepSettings, optimizer: optax.GradientTransformation) -> Callable:
@@ -164,8 +165,8 @@ def make_step(prior, settings: StepSettings, optimizer: optax.GradientTransforma
         if settings.p_keep < 1.0:
             weights = weights * jax.random.bernoulli(k_keep, settings.p_keep, weights.shape).astype(jnp.float32)
         sample_weights = t_weights(t, frozen.get("alphas_cumprod"), settings)
-        loss, grad_features = jax.value_and_grad(weighted_square_error)(features, targets, weights, sample_weights,
-                                                                        maps)
+        (loss, terms), grad_features = jax.value_and_grad(weighted_square_error, has_aux=True)(
+            features, targets, weights, sample_weights, maps)
         (grad,) = pullback(grad_features)
         updates, opt_state = optimizer.update(grad, state.opt_state, state.texels)
         texels = optax.apply_updates(state.texels, updates)
@@ -176,9 +177,7 @@ def make_step(prior, settings: StepSettings, optimizer: optax.GradientTransforma
                                  opt_state=jax.tree.map(keep_new, opt_state, state.opt_state),
                                  step=state.step + ok.astype(jnp.int32), key=state.key,
                                  halted=state.halted | ~finite)
-        per_map = {f"loss_{m}": weighted_square_error({m: features[m]}, {m: targets[m]}, weights,
-                                                      sample_weights[:, i:i + 1], (m,))
-                   for i, m in enumerate(maps)}
+        per_map = {f"loss_{m}": term for m, term in terms.items()}
         metrics = {"loss": loss, "finite": ok.astype(jnp.int32), "grad_norm": optax.tree.norm(grad),
                    "t_mean": jnp.mean(t.astype(jnp.float32)), **per_map}
         return new_state, metrics

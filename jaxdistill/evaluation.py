@@ -20,7 +20,9 @@ import numpy as np
 
 from jaxdistill import imageio, metrics
 from jaxdistill.errors import InputError, read_json
-from jaxdistill.maps import CHANNELS, MapChannels, model_to_file, rgbx_camera_rotation
+from jaxdistill.export import png_pixels
+from jaxdistill.cameras import rgbx_camera_normals, rgbx_camera_rotation
+from jaxdistill.maps import CHANNELS, MapChannels, model_to_file
 from jaxdistill.render.gather_plan import GatherPlan
 from jaxdistill.render.sampler import render, sample_pages
 from jaxdistill.scene import Scene
@@ -67,19 +69,18 @@ def read_ground_truth(scene: Scene) -> GroundTruth | None:
                        exclude_objects=tuple(doc.get("exclude_objects", [])))
 
 
-def face_normals(scene: Scene) -> np.ndarray:
-    """(F, 3) unit geometric normals (cross(e1, e2) of each triangle)."""
-    t = scene.mesh.triangles()
+def face_normals(mesh) -> np.ndarray:
+    """(F, 3) unit geometric normals, cross(e1, e2) of each triangle (as the mesh orients it)."""
+    t = mesh.triangles()
     n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
     return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
 
 
-def geometry_normals(scene: Scene, frag, camera) -> np.ndarray:
-    """(H, W, 3) camera-space (RGB<->X) normals of the hit faces as the mesh orients them; 0 on misses."""
-    hit = frag.triangle >= 0
-    n_world = face_normals(scene)[np.where(hit, frag.triangle, 0)]
-    n_cam = n_world @ rgbx_camera_rotation(camera.c2w)
-    return np.where(hit[..., None], n_cam, 0.0).astype(np.float32)
+def camera_normals(normals_world: np.ndarray, triangle: np.ndarray, camera) -> np.ndarray:
+    """(H, W, 3) float32 RGB<->X camera-space normals of the faces `triangle` (H, W) hits; 0 on misses."""
+    hit = triangle >= 0
+    n = rgbx_camera_normals(normals_world[np.where(hit, triangle, 0)], camera)
+    return np.where(hit[..., None], n, 0.0).astype(np.float32)
 
 
 def gt_view_maps(gt: GroundTruth, scene: Scene, fragments: Sequence) -> list[dict[str, np.ndarray]]:
@@ -87,6 +88,7 @@ def gt_view_maps(gt: GroundTruth, scene: Scene, fragments: Sequence) -> list[dic
     names = list(gt.pages)
     stacked = [np.concatenate([gt.pages[m][o] for m in names], -1) for o in range(scene.num_objects)]
     sampled = sample_pages(stacked, fragments, range(scene.num_objects)) if names else [None] * len(fragments)
+    normals = face_normals(scene.mesh)
     out = []
     for view, frag, image in zip(scene.views, fragments, sampled):
         maps, start = {}, 0
@@ -95,7 +97,7 @@ def gt_view_maps(gt: GroundTruth, scene: Scene, fragments: Sequence) -> list[dic
             maps[m] = image[..., start:start + c]
             start += c
         if gt.geometry_normals:
-            maps["normal"] = geometry_normals(scene, frag, view.camera)
+            maps["normal"] = camera_normals(normals, frag.triangle, view.camera)
         out.append(maps)
     return out
 
@@ -159,17 +161,19 @@ def read_baseline(scene: Scene, maps: Sequence[str], shapes: Sequence[tuple[int,
 
 
 def write_renders(folder: Path, names: Sequence[str], views: Sequence[dict], threads: int = 2) -> None:
-    """renders/<map>/<view>.png: albedo, irradiance sRGB; roughness, metallic grey; normals (n + 1) / 2."""
+    """renders/<map>/<view>.png in the maps' PNG encoding (`export.png_pixels`)."""
+    def write(job):
+        path, name, image = job
+        pixels, encode = png_pixels(name, image)
+        imageio.write_image(path, pixels, encode_srgb=encode)
+
     jobs = [(folder / m / f"{name}.png", m, image) for name, maps in zip(names, views) for m, image in maps.items()]
     with ThreadPoolExecutor(threads) as pool:       # encoding and NumPy release the GIL
-        list(pool.map(lambda job: imageio.write_image(job[0], display_image(job[1], job[2]), encode_srgb=False),
-                      jobs))
+        list(pool.map(write, jobs))
 
 
 def display_image(name: str, image: np.ndarray) -> np.ndarray:
-    """(H, W, 3) display values in [0, 1] of a file-space map (sRGB-encoded colours)."""
-    if name == "normal":
-        return 0.5 * (image + 1.0)
-    if image.shape[-1] == 1:
-        return np.repeat(image, 3, axis=-1)
-    return imageio.linear_to_srgb(np.clip(image, 0.0, 1.0))
+    """(H, W, 3) display values in [0, 1] of a file-space map: its PNG encoding, grey as RGB."""
+    pixels, encode = png_pixels(name, image)
+    pixels = imageio.linear_to_srgb(pixels) if encode else pixels
+    return np.repeat(pixels, 3, axis=-1) if pixels.shape[-1] == 1 else pixels

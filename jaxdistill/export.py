@@ -112,7 +112,7 @@ def page_names(object_names: Sequence[str], object_page: Sequence[int]) -> list[
     return names
 
 
-def _png_pixels(name: str, page: np.ndarray) -> tuple[np.ndarray, bool]:
+def png_pixels(name: str, page: np.ndarray) -> tuple[np.ndarray, bool]:
     """(pixels in what write_image expects, encode_srgb) for the PNG of one map page."""
     page = np.nan_to_num(page, nan=0.0, posinf=1.0, neginf=0.0)
     if name in ("albedo", "irradiance"):
@@ -139,7 +139,7 @@ def write_maps(out_dir, pages: Mapping[str, Sequence[np.ndarray]], object_names:
             base = root / name if len(stems) == 1 else root / name / stems[p]
             exr, png = base.with_name(base.name + ".exr"), base.with_name(base.name + ".png")
             imageio.write_image(exr, page)
-            pixels, encode = _png_pixels(name, page)
+            pixels, encode = png_pixels(name, page)
             imageio.write_image(png, pixels, encode_srgb=encode)
             written += [exr, png]
     return written

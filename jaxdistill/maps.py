@@ -20,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdistill import MAP_NAMES
+from jaxdistill.cameras import rgbx_camera_rotation  # noqa: F401  (the step's per-view normal rotation)
 
 CHANNELS = {"albedo": 3, "normal": 3, "roughness": 1, "metallic": 1, "irradiance": 3}
 INITIAL_VALUE = {"albedo": 0.0, "normal": 0.0, "roughness": 1.0, "metallic": -1.0, "irradiance": 0.0}
@@ -63,11 +64,6 @@ class MapChannels:
         """(N, num_channels) float32 texels at the thesis's initial values."""
         row = np.concatenate([np.full(CHANNELS[m], INITIAL_VALUE[m], np.float32) for m in self.maps])
         return np.tile(row, (num_texels, 1))
-
-
-def rgbx_camera_rotation(c2w: np.ndarray) -> np.ndarray:
-    """(3, 3) matrix M with n_camera = n_world @ M: camera axes x right, y up, z towards the camera."""
-    return np.asarray(c2w, np.float64)[:3, :3] @ np.diag([1.0, -1.0, -1.0])
 
 
 def file_to_model(name: str, values: np.ndarray) -> np.ndarray:

@@ -22,7 +22,8 @@ from jaxdistill import imageio
 from jaxdistill.cameras import Camera
 from jaxdistill.config import RGBX_DIR_ENV, DistillConfig, rgbx_dir
 from jaxdistill.errors import InputError, ProblemList
-from jaxdistill.maps import INITIAL_VALUE, MapChannels, file_to_model, rgbx_camera_rotation
+from jaxdistill.cameras import rgbx_camera_rotation
+from jaxdistill.maps import INITIAL_VALUE, MapChannels, file_to_model
 from jaxdistill.render import fragments as fr
 from jaxdistill.render.gather_plan import TexelSpace, build_gather_plans, build_texel_space
 from jaxdistill.render.layout import make_layout

@@ -42,6 +42,7 @@ from tqdm import tqdm
 
 from jaxdistill import cameras, imageio
 from jaxdistill import mitsuba_bridge as mb
+from jaxdistill.evaluation import camera_normals, face_normals  # GT normals exactly as evaluation makes them
 from jaxdistill.render import fragments as fr
 from jaxdistill.render.sampler import sample_pages
 from jaxdistill.scene import Mesh, Scene, View, write_scene
@@ -453,20 +454,6 @@ def place_views(mesh: Mesh, rng, count: int, width: int, height: int) -> list[ca
             continue
         out.append(cam)
     return out
-
-
-def face_normals(mesh: Mesh) -> np.ndarray:
-    """(F, 3) unit normals (edge_u x edge_v of each rectangle: outwards for furniture, into the room for walls)."""
-    t = mesh.triangles()
-    n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
-    return n / np.linalg.norm(n, axis=1, keepdims=True)
-
-
-def camera_normals(normals_world: np.ndarray, triangle: np.ndarray, camera: cameras.Camera) -> np.ndarray:
-    """(H, W, 3) camera-space normals, x right, y up, z towards the camera (RGB<->X); 0 on misses."""
-    hit = triangle >= 0
-    n = cameras.rgbx_camera_normals(normals_world[np.where(hit, triangle, 0)], camera)
-    return np.where(hit[..., None], n, 0.0).astype(np.float32)
 
 
 # ----------------------------------------------------------------------------- estimates

@@ -78,7 +78,8 @@ def test_one_step_matches_numpy_render_loss_gradient_and_adamw(problem):
 
 
 def test_value_spaces_and_the_camera_rotation_of_normals():
-    from jaxdistill.maps import file_to_model, model_to_file, rgbx_camera_rotation
+    from jaxdistill.cameras import rgbx_camera_rotation
+    from jaxdistill.maps import file_to_model, model_to_file
 
     rot = rgbx_camera_rotation(np.eye(4))          # OpenCV camera at the origin looking down +z
     np.testing.assert_allclose(np.array([0.0, 0.0, -1.0]) @ rot, [0, 0, 1])   # facing the camera: +z

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxdistill import cameras, imageio
-from jaxdistill.evaluation import geometry_normals
+from jaxdistill.evaluation import camera_normals, face_normals
 from jaxdistill.render import fragments as fr
 from jaxdistill.render.sampler import sample_pages
 from jaxdistill.scene import Scene, View, write_scene
@@ -57,7 +57,7 @@ def write_tiny_scene(folder, *, views: int = 4, width: int = 32, height: int = 2
                    "roughness": np.clip(g[..., 3:4] + 0.05 * rng.normal(size=(height, width, 1)), 0, 1),
                    "metallic": np.clip(g[..., 4:5] + 0.03 * rng.normal(size=(height, width, 1)), 0, 1),
                    "irradiance": np.clip(np.repeat(shading, 3, -1) / 2.0, 0, 1),
-                   "normal": 0.5 * (geometry_normals_of(mesh, frag, cam) + 1.0)}
+                   "normal": 0.5 * (camera_normals(face_normals(mesh), frag.triangle, cam) + 1.0)}
             for key, values in est.items():
                 paths[key] = folder / "targets" / key / f"{name}.png"
                 imageio.write_image(paths[key], np.where(frag.hit[..., None], values, 0.0),
@@ -76,8 +76,3 @@ def write_tiny_scene(folder, *, views: int = 4, width: int = 32, height: int = 2
                "normal": "geometry", "exclude_objects": [], "sampler": "bilinear"}
         (folder / "gt.json").write_text(json.dumps(doc))
     return path
-
-
-def geometry_normals_of(mesh, frag, camera) -> np.ndarray:
-    """Camera-space normals of the mesh's faces seen in `frag` (as evaluation.geometry_normals)."""
-    return geometry_normals(Scene(name="x", mesh=mesh, views=()), frag, camera)
