@@ -79,7 +79,17 @@ def make_optimizer(lr: float, weight_decay: float, schedule: str = "constant",
 
 
 def init_state(texels: np.ndarray, optimizer: optax.GradientTransformation, seed: int) -> DistillState:
-    """Step-0 state: the given initial texels (float32), fresh AdamW state, key PRNGKey(seed)."""
+    """Step-0 state: the given initial texels (float32), fresh AdamW state, key PRNGKey(seed).
+
+    Floating texels narrower than float32 (float16, bfloat16) are refused with a ValueError:
+    small AdamW updates (~1e-4, e.g. late in a cosine schedule) vanish in 16-bit floats (the
+    thesis: fp16 made gradients vanish). Wider or integer inputs are cast to float32."""
+    dtype = np.dtype(texels.dtype if hasattr(texels, "dtype") else np.asarray(texels).dtype)
+    if jnp.issubdtype(dtype, jnp.floating) and dtype.itemsize < 4:
+        raise ValueError(f"texels are {dtype.name}, but texels must be float32: AdamW updates of ~1e-4 vanish in "
+                         "16-bit floats (0.5 + 1e-4 rounds back to 0.5 in float16 and bfloat16); keep texels, "
+                         "loss and optimizer state in float32 (only the frozen networks may run in bfloat16, "
+                         "--prior_dtype)")
     texels = jnp.asarray(texels, jnp.float32)
     return DistillState(texels=texels, opt_state=optimizer.init(texels), step=jnp.zeros((), jnp.int32),
                         key=jax.random.PRNGKey(seed), halted=jnp.zeros((), bool))

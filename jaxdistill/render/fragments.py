@@ -25,6 +25,7 @@ from jaxdistill.scene import Mesh
 
 CACHE_VERSION = 1
 RAYS_PER_CALL = 1 << 20
+NEAR_TRIANGLE = 1e-2  # how far (barycentric units) the exact hit may lie outside Embree's triangle
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -112,37 +113,60 @@ def cast_view(caster: RayCaster, camera: Camera):
 
 def derive_fragments(mesh: Mesh, camera: Camera, triangle: np.ndarray, barycentric: np.ndarray,
                      distance: np.ndarray) -> Fragments:
-    """Fragments from a ray cast: UV, camera depth and exact analytic UV derivatives per pixel."""
+    """Fragments from a ray cast: UV, camera depth and exact analytic UV derivatives per pixel.
+
+    Embree only decides which triangle a ray hits. The hit point is recomputed in float64 as the
+    ray's intersection with that triangle's plane: Embree's float32 barycentrics lose about
+    eps32 x the aspect ratio on sliver triangles (7e-4 in UV at aspect 1e4) and its distance
+    about eps32 / sin(angle) at grazing angles. Where that point lies outside the triangle by more
+    than NEAR_TRIANGLE (barycentric units: a float32 near miss of a ray almost parallel to it, or
+    Embree chose a neighbouring sliver), Embree's hit point o + t d is projected onto it instead.
+    """
     h, w = triangle.shape
     hit = triangle >= 0
     tri = triangle[hit]
-    b = barycentric[hit].astype(np.float64)
+    d = camera.pixel_directions().reshape(h, w, 3)[hit]
+    origin = camera.c2w[:3, 3]
+    corners = mesh.vertices[mesh.faces[tri]]                       # (N, 3, 3)
     corner_uv = mesh.uv[tri]                                       # (N, 3, 2)
+    e1, e2 = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
+    normal = np.cross(e1, e2)
+    g11, g12, g22 = (np.einsum("nc,nc->n", a, b_) for a, b_ in ((e1, e1), (e1, e2), (e2, e2)))
+    det = np.einsum("nc,nc->n", normal, normal)                    # g11 g22 - g12², without cancellation
+    n_dot_d = np.einsum("nc,nc->n", normal, d)
+
+    def barycentrics(t):
+        """(N, 2) weights of corners 1 and 2 of the point origin + t d, projected onto the triangle."""
+        rel = origin + t[:, None] * d - corners[:, 0]
+        r1, r2 = np.einsum("nc,nc->n", e1, rel), np.einsum("nc,nc->n", e2, rel)
+        return np.stack([(g22 * r1 - g12 * r2) / det, (g11 * r2 - g12 * r1) / det], axis=1)
+
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_embree = distance[hit] / np.linalg.norm(d, axis=1)       # hit = origin + t * d
+        t_plane = np.einsum("nc,nc->n", normal, corners[:, 0] - origin) / n_dot_d
+        b_plane, b_embree = barycentrics(t_plane), barycentrics(t_embree)
+        inside = (np.isfinite(b_plane).all(axis=1) & (b_plane.min(axis=1) >= -NEAR_TRIANGLE)
+                  & (b_plane.sum(axis=1) <= 1 + NEAR_TRIANGLE))
+        t = np.where(inside, t_plane, t_embree)
+        b = np.where(inside[:, None], b_plane, b_embree)
+        b = np.where(np.isfinite(b), b, barycentric[hit])
     weights = np.stack([1.0 - b[:, 0] - b[:, 1], b[:, 0], b[:, 1]], axis=1)
     uv = np.zeros((h, w, 2), np.float32)
     uv[hit] = np.clip(np.einsum("nk,nkc->nc", weights, corner_uv), 0.0, 1.0)
+    bary = barycentric.astype(np.float32)
+    bary[hit] = b
 
-    d = camera.pixel_directions().reshape(h, w, 3)[hit]
-    forward = camera.c2w[:3, 2]
-    dist = distance[hit]
     depth = np.full((h, w), np.inf, np.float32)
-    depth[hit] = dist * (d @ forward) / np.linalg.norm(d, axis=1)
+    depth[hit] = t * (d @ camera.c2w[:3, 2])
 
     # d(hit point)/d(pixel) on the triangle's plane, then barycentric and UV derivatives.
-    corners = mesh.vertices[mesh.faces[tri]]                       # (N, 3, 3)
-    e1, e2 = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
-    normal = np.cross(e1, e2)
-    t = (dist / np.linalg.norm(d, axis=1))[:, None]                # hit = origin + t * d
-    n_dot_d = np.einsum("nc,nc->n", normal, d)[:, None]
     step = camera.c2w[:3, :3] @ np.linalg.inv(camera.K)            # columns: d(d)/dx, d(d)/dy
-    g11, g12, g22 = (np.einsum("nc,nc->n", a, b_) for a, b_ in ((e1, e1), (e1, e2), (e2, e2)))
-    det = g11 * g22 - g12 * g12
     uv_grad = np.zeros((h, w, 2, 2), np.float32)
     grads = []
     with np.errstate(divide="ignore", invalid="ignore"):
         for axis in range(2):
             dd = step[:, axis][None, :]
-            dp = t * (dd - d * (normal @ step[:, axis])[:, None] / n_dot_d)
+            dp = t[:, None] * (dd - d * (normal @ step[:, axis])[:, None] / n_dot_d[:, None])
             r1, r2 = np.einsum("nc,nc->n", e1, dp), np.einsum("nc,nc->n", e2, dp)
             db1 = (g22 * r1 - g12 * r2) / det
             db2 = (g11 * r2 - g12 * r1) / det
@@ -152,8 +176,8 @@ def derive_fragments(mesh: Mesh, camera: Camera, triangle: np.ndarray, barycentr
 
     object_id = np.full((h, w), -1, np.int32)
     object_id[hit] = mesh.face_object[tri]
-    return Fragments(triangle=triangle.astype(np.int32), barycentric=barycentric.astype(np.float32),
-                     depth=depth, uv=uv, uv_grad=uv_grad, object_id=object_id)
+    return Fragments(triangle=triangle.astype(np.int32), barycentric=bary, depth=depth, uv=uv, uv_grad=uv_grad,
+                     object_id=object_id)
 
 
 def default_cache_dir() -> Path:
