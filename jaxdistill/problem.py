@@ -9,6 +9,7 @@ visibility counts and pixel weights, and sets up the prior (`choose_prior` says 
 from __future__ import annotations
 
 import dataclasses
+import os
 import time
 from pathlib import Path
 from typing import Any, Sequence
@@ -220,6 +221,39 @@ def _rgbx_prior(config: DistillConfig, choice: PriorChoice, scene, channels, hei
     return prior, frozen
 
 
+STATE_COPIES = 3        # texels and AdamW's two moments, float32
+
+
+def memory_budget() -> tuple[int, str]:
+    """(bytes, what): the accelerator's memory limit when the default device reports one, else
+    the host's physical memory."""
+    stats = jax.devices()[0].memory_stats() if jax.default_backend() != "cpu" else None
+    if stats and stats.get("bytes_limit"):
+        return int(stats["bytes_limit"]), f"{jax.devices()[0].device_kind} memory"
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"), "host RAM"
+
+
+def check_state_fits(num_texels: int, channels: int, config: DistillConfig, full_texels: int,
+                     budget: tuple[int, str] | None = None) -> None:
+    """InputError before any allocation when the optimiser state alone (texels + AdamW moments,
+    float32) cannot fit in memory, naming the flags that size it. The step needs more than the
+    state (gathered taps, their cotangents): this only catches runs that cannot possibly fit."""
+    need = num_texels * channels * 4 * STATE_COPIES
+    limit, what = budget or memory_budget()
+    if need <= limit:
+        return
+    hint = ("--texture_size=auto sizes pages by what the closest view resolves"
+            if config.texture_size != "auto" else "lower --max_texture_size")
+    if config.sampler == "trilinear":
+        hint += ("; with --sampler=trilinear every texel under a coarse mip entry a view reads is a parameter, "
+                 "so pages finer than the views resolve cost nearly full pages (--sampler=bilinear keeps only "
+                 "the texels the views' taps read)")
+    raise InputError.single("flags", "--texture_size/--max_texture_size",
+                            f"{num_texels:,} texels x {channels} channels (of {full_texels:,} in full pages) need "
+                            f"{need / 2**30:.1f} GiB for texels and AdamW state alone, more than the "
+                            f"{limit / 2**30:.1f} GiB of {what}: {hint}")
+
+
 def build_problem(config: DistillConfig, *, cache_dir=None) -> Problem:
     """Reads and precomputes everything for `config`; InputError before any compute if input is bad."""
     timings = {}
@@ -247,6 +281,7 @@ def build_problem(config: DistillConfig, *, cache_dir=None) -> Problem:
                          mipmaps=trilinear)
     # evaluation renders at the photos' size: its texels must exist too (they get no gradient)
     space = build_texel_space(frags if native else list(frags) + list(native_frags), layout, config.sampler)
+    check_state_fits(space.num_texels, channels.num_channels, config, layout.full_size())
     plan = build_gather_plans(frags, space, config.sampler)
     counts = view_counts(plan, space.num_texels)
     if config.visibility_weighting:

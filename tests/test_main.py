@@ -273,3 +273,22 @@ def test_smaller_renders_train_at_their_size_and_evaluate_at_the_photos_size(tin
     doc = json.loads((out / "metrics.json").read_text())
     assert doc["config"]["render_size"] == 16 and np.isfinite(doc["ours"]["albedo_psnr"])
     assert imageio.read_image(out / "renders" / "albedo" / "v0.png").shape == (24, 32, 3)
+
+
+def test_state_that_cannot_fit_in_memory_is_refused_before_any_allocation(tiny_scene, tmp_path, monkeypatch):
+    """A run whose texels + AdamW moments exceed the memory budget stops in build_problem with an
+    InputError naming the sizing flags (the budget is shrunk to make the tiny scene 'too big')."""
+    from jaxdistill import problem as problem_lib
+
+    config = tiny_config(tiny_scene, tmp_path / "big", texture_size="64", sampler="trilinear")
+    fits = problem_lib.build_problem(config)
+    need = fits.space.num_texels * fits.channels.num_channels * 4 * problem_lib.STATE_COPIES
+    monkeypatch.setattr(problem_lib, "memory_budget", lambda: (need - 1, "test RAM"))
+    with pytest.raises(InputError) as err:
+        problem_lib.build_problem(config)
+    message = str(err.value)
+    assert "--texture_size/--max_texture_size" in message and "test RAM" in message
+    assert f"{fits.space.num_texels:,} texels x {fits.channels.num_channels} channels" in message
+    assert "--texture_size=auto" in message and "--sampler=bilinear" in message
+    monkeypatch.setattr(problem_lib, "memory_budget", lambda: (need, "test RAM"))
+    assert problem_lib.build_problem(config).space.num_texels == fits.space.num_texels   # exactly fits: runs

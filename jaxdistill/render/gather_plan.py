@@ -75,7 +75,7 @@ class TexelSpace:
     """The compact tile set of a scene (NumPy, outside jit).
 
     tile_page, tile_row, tile_col (N_tiles,) int64: page and tile-grid position of each tile,
-    sorted by (page, row, col). tile_map[p]: (S_p / B, S_p / B) int64 compact tile id or -1.
+    sorted by (page, row, col). tile_map[p]: (S_p / B, S_p / B) int32 compact tile id or -1.
     coarse_maps[p][j]: index of each level-(k+1+j) entry of page p within that level, or -1;
     children[j]: (N, 4) indices, within level k+j, of the children of level k+1+j's entries.
     """
@@ -125,7 +125,7 @@ class TexelSpace:
         out = np.full(page.shape, -1, np.int64)
         for p in np.unique(page):
             sel = page == p
-            t = self.tile_map[p][row[sel] // b, col[sel] // b]
+            t = self.tile_map[p][row[sel] // b, col[sel] // b].astype(np.int64)
             out[sel] = np.where(t >= 0, (t * b + row[sel] % b) * b + col[sel] % b, -1)
         return out
 
@@ -211,7 +211,7 @@ def build_texel_space(fragments: Sequence[Fragments], layout: TextureLayout, sam
     count = 0
     for p, grids in enumerate(need):
         rows, cols = np.nonzero(grids[0])
-        ids = np.full(grids[0].shape, -1, np.int64)
+        ids = np.full(grids[0].shape, -1, np.int32)     # int32: a 4096² page of 1x1 tiles is 64 MB, not 128
         ids[rows, cols] = np.arange(count, count + len(rows))
         count += len(rows)
         tile_page.append(np.full(len(rows), p, np.int64))
@@ -231,7 +231,7 @@ def build_texel_space(fragments: Sequence[Fragments], layout: TextureLayout, sam
                 maps.append(None)
                 continue
             rows, cols = np.nonzero(grids[j])
-            ids = np.full(grids[j].shape, -1, np.int64)
+            ids = np.full(grids[j].shape, -1, np.int32)
             ids[rows, cols] = np.arange(count, count + len(rows))
             count += len(rows)
             below = prev_maps[p]
@@ -257,10 +257,10 @@ def tap_indices(space: TexelSpace, page, level, row, col, weight) -> np.ndarray:
             r, c = row[sel], col[sel]
             if lv <= k:
                 side = b >> lv
-                t = space.tile_map[p][r // side, c // side]
+                t = space.tile_map[p][r // side, c // side].astype(np.int64)
                 out[sel] = space.level_offset(lv) + (t * side + r % side) * side + c % side
             else:
-                entry = space.coarse_maps[p][lv - k - 1][r, c]
+                entry = space.coarse_maps[p][lv - k - 1][r, c].astype(np.int64)
                 out[sel] = np.where(entry >= 0, space.coarse_offset(lv - k) + entry, -1)
     if (out[used] < 0).any():
         raise AssertionError("a tap reads a texel outside the compact space (plan and space disagree)")
