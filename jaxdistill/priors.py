@@ -71,7 +71,7 @@ class RgbxPrior:
     def view_data(self, view_ids) -> dict[str, np.ndarray]:
         return {"photo_latent": self.photo_latents[np.asarray(view_ids)]}
 
-    def _encode(self, frozen, images: dict, key):
+    def encode(self, frozen, images: dict, key):
         """Scaled latents (B, M, h, w, 4) of all maps' renders, view-major (sharding-friendly)."""
         stacked = jnp.stack([_three_channels(images[m]) for m in self.channels.maps], axis=1)   # (B, M, H, W, 3)
         b, m = stacked.shape[:2]
@@ -85,7 +85,7 @@ class RgbxPrior:
     def features(self, frozen, images: dict, key) -> dict:
         if not self.latent_space:
             return images
-        z = self._encode(frozen, images, key)
+        z = self.encode(frozen, images, key)
         return {name: z[:, i] for i, name in enumerate(self.channels.maps)}
 
     def targets(self, frozen, features: dict, data: dict, t, key) -> dict:
@@ -97,22 +97,34 @@ class RgbxPrior:
         if self.latent_space:
             z0 = jnp.stack([features[m] for m in maps], axis=1)
         else:
-            z0 = self._encode(frozen, features, k_enc)
+            z0 = self.encode(frozen, features, k_enc)
+        x0 = self.denoise(frozen, z0, data, t, k_noise)
+        if self.latent_space:
+            return {name: x0[:, i] for i, name in enumerate(maps)}
+        return self.decode(frozen, x0)
+
+    def denoise(self, frozen, z0, data: dict, t, key):
+        """x̂0 (B, M, h, w, 4) from scaled latents z0 (B, M, h, w, 4): noise at t (B, M), then
+        one guided UNet pass with each view's photo latent and each map's prompt."""
         b, m = z0.shape[:2]
         z0 = z0.reshape(b * m, *z0.shape[2:])
         t = t.reshape(b * m)
-        noise = jax.random.normal(k_noise, z0.shape, jnp.float32)
+        noise = jax.random.normal(key, z0.shape, jnp.float32)
         alpha_bar = sched.alphas_cumprod(self.scheduler)[t]
         z_t = sched.add_noise(z0, noise, alpha_bar)
         photo = jnp.repeat(data["photo_latent"], m, axis=0)                  # view-major, like z0
         text = batch_text_embedding(frozen, b)
         x0 = predict_x0(self.networks.unet, self.scheduler, frozen["unet"], z_t, t, photo, text, self.guidance)
-        if self.latent_space:
-            x0 = x0.reshape(b, m, *x0.shape[1:])
-            return {name: x0[:, i] for i, name in enumerate(maps)}
-        decoded = self.networks.vae.apply(frozen["vae"], x0 / self.scaling_factor, method="decode")
+        return x0.reshape(b, m, *x0.shape[1:])
+
+    def decode(self, frozen, x0) -> dict:
+        """Per map, (B, H, W, C_map) float32 images in [-1, 1] decoded from x̂0 (B, M, h, w, 4)."""
+        b, m = x0.shape[:2]
+        decoded = self.networks.vae.apply(frozen["vae"], x0.reshape(b * m, *x0.shape[2:]) / self.scaling_factor,
+                                          method="decode")
         decoded = jnp.clip(decoded.astype(jnp.float32), -1.0, 1.0).reshape(b, m, *decoded.shape[1:])
-        return {name: decoded[:, i, ..., :1] if name in GREY_MAPS else decoded[:, i] for i, name in enumerate(maps)}
+        return {name: decoded[:, i, ..., :1] if name in GREY_MAPS else decoded[:, i]
+                for i, name in enumerate(self.channels.maps)}
 
 
 def batch_text_embedding(frozen, batch: int) -> TextEmbedding:

@@ -1,23 +1,44 @@
-"""Seconds per distillation step with the rgbx prior, at the real RGB↔X size (random weights).
+"""Where the time of a distillation step goes, against the thesis's PyTorch recipe, at real size.
 
-    python scripts/make_random_rgbx.py --size=full --out=/tmp/fullrgbx/rgb-to-x     # once, ~1 min, 4.8 GB
-    python scripts/bench_step.py --rgbx_dir=/tmp/fullrgbx/rgb-to-x [--render_size=256] [--maps=albedo]
-        [--views_per_step=1] [--prior_dtype=float32] [--steps=3] [--json]
+    python scripts/make_random_rgbx.py --size=full --out=/tmp/fullrgbx/rgb-to-x    # once, ~1 min, 4.8 GB
+    python scripts/bench_step.py --rgbx_dir=/tmp/fullrgbx/rgb-to-x \\
+        [--render_sizes=256,512] [--map_counts=1,5] [--dtypes=float32,bfloat16] [--frameworks=jax,torch]
+        [--views_per_step=1] [--repeats=3] [--threads=N] [--json]
+    python scripts/bench_step.py --size=tiny          # a tiny random folder: a quick check of this script
 
-Runs the real step (`distill.make_step` + `jit_step`, the same code `python -m jaxdistill.main`
-runs) on the embedded bedroom with the rgbx prior: gather-render, VAE encode, one guided UNet pass
-(w_t = w_i = 1), VAE decode, image-space loss, texel gradient, AdamW. Reports setup (weight
-conversion, photo latents), compile, and the median of `--steps` timed steps after the compiled
-warm-up step. `--size=tiny` uses a tiny random folder made on the fly (a quick check of this
-script). The weights are random: the figures are timings, the images are meaningless.
+One run measures, side by side, for every render size (longer side; the bedroom is 4:3) and
+number of maps per step:
+
+- **jax** (ours, one child process per prior dtype): the real step (`distill.make_step` +
+  `jit_step`, what `python -m jaxdistill.main` runs; rgbx prior, w_t = w_i = 1 so one UNet branch,
+  photo latents encoded once at setup, all maps of a view in one network call), and its stages
+  jitted one by one on the same inputs: gather-render, VAE encode, UNet (noise + guided x̂0),
+  VAE decode, loss + gradient (the transpose of the gather), AdamW. FLOPs per step from XLA's
+  cost analysis and the achieved FLOP/s.
+- **torch** (the thesis's recipe on diffusers, one child process): fp32, the photo re-encoded
+  every step, all three classifier-free-guidance branches every step (one UNet call of batch 3),
+  one map per pass (the thesis distils each map in its own run, so M maps cost M passes), loss
+  backward through the same gather-render (torch autograd), torch.optim.AdamW. Networks run
+  under `torch.inference_mode()`. The thesis rasterised with nvdiffrast every step; here both
+  sides use the precomputed gather plan, so the ratio measures the prior recipe and framework.
+
+Fairness: both sides use the same weights (one diffusers folder), scene, views, plans and thread
+count (`--threads`, default all cores: each child is pinned to that many cores, XLA sizes its
+pool by them and torch.set_num_threads gets the count); each does a warm-up (compilation for JAX) before `--repeats` timed runs; figures
+are medians. Each framework runs in a fresh child process so peak RSS is its own.
+The weights are random: the figures are timings; the images are meaningless.
+The last line with --json is a JSON object whose "headline" states the ratio.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
+import os
 import platform
 import resource
+import subprocess
 import sys
 import tempfile
 import time
@@ -28,87 +49,436 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 
+ALL_MAPS = ("albedo", "normal", "roughness", "metallic", "irradiance")
+STAGES = ("render", "vae_encode", "unet", "vae_decode", "loss_grad", "optimizer")
+TORCH_STAGES = ("render", "photo_encode", "vae_encode", "unet", "vae_decode", "loss_grad", "optimizer")
+
 
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--rgbx_dir", help="RGB<->X folder (diffusers format); required unless --size=tiny")
     p.add_argument("--size", choices=("given", "tiny"), default="given", help="tiny: make a tiny random folder")
-    p.add_argument("--render_size", type=int, default=256, help="longer side of the renders (multiple of 8)")
-    p.add_argument("--maps", default="albedo", help="comma-separated maps distilled per step")
-    p.add_argument("--views_per_step", type=int, default=1)
-    p.add_argument("--prior_dtype", choices=("float32", "bfloat16"), default="float32")
+    p.add_argument("--render_sizes", default="256,512", help="longer sides of the renders (multiples of 8)")
+    p.add_argument("--map_counts", default="1,5", help="maps per step: 1 = albedo, 5 = all five")
+    p.add_argument("--dtypes", default="float32,bfloat16", help="activation dtypes of our prior")
+    p.add_argument("--frameworks", default="jax,torch")
+    p.add_argument("--views_per_step", type=int, default=1, help="views per step (the thesis: 1)")
     p.add_argument("--max_texture_size", type=int, default=1024)
-    p.add_argument("--steps", type=int, default=3, help="timed steps after the warm-up step")
+    p.add_argument("--repeats", type=int, default=3, help="timed runs after the warm-up")
+    p.add_argument("--threads", type=int, default=os.cpu_count(), help="CPU threads for both frameworks")
+    p.add_argument("--convert_cache", default=None, help="cache of converted weights (faster JAX loading)")
     p.add_argument("--json", action="store_true")
+    p.add_argument("--worker", help=argparse.SUPPRESS)     # jax:<dtype> or torch: a child process
     args = p.parse_args(argv)
     if args.size == "given" and not args.rgbx_dir:
         p.error("--rgbx_dir is required (or --size=tiny)")
-    if args.render_size % 8:
-        p.error("--render_size must be a multiple of 8")
+    args.render_sizes = [int(s) for s in args.render_sizes.split(",")]
+    args.map_counts = [int(s) for s in args.map_counts.split(",")]
+    args.dtypes = args.dtypes.split(",")
+    args.frameworks = args.frameworks.split(",")
+    for s in args.render_sizes:
+        if s % 8:
+            p.error(f"--render_sizes: {s} is not a multiple of 8")
+    for m in args.map_counts:
+        if not 1 <= m <= len(ALL_MAPS):
+            p.error(f"--map_counts: {m} is not in 1..{len(ALL_MAPS)}")
     return args
+
+
+def median_of(fn, repeats: int) -> float:
+    """Median wall seconds of fn() (which must block until its work is done)."""
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times))
+
+
+def peak_rss_gb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20
+
+
+def views_problem(args, size: int, maps):
+    """The bedroom at `size` with the views prior: scene, plans, weights (no networks)."""
+    from jaxdistill import config as config_lib
+    from jaxdistill.problem import build_problem
+
+    config = config_lib.validate(config_lib.DistillConfig(
+        scene="bedroom", out_dir="unused", maps=tuple(maps), prior="views", render_size=size,
+        views_per_step=args.views_per_step, max_texture_size=args.max_texture_size, sampler="bilinear", steps=1000))
+    problem = build_problem(config)
+    if problem.height % 8 or problem.width % 8:
+        raise SystemExit(f"render size {problem.width}x{problem.height}: sides must be multiples of 8")
+    return config, problem
+
+
+def cases(args):
+    """(maps, config, problem, view ids) of every render size x map count, in order."""
+    for size in args.render_sizes:
+        for count in args.map_counts:
+            maps = ALL_MAPS[:count]
+            config, problem = views_problem(args, size, maps)
+            yield maps, config, problem, np.arange(args.views_per_step) % problem.num_views
+
+
+def batch_photos(problem, view_ids):
+    """(B, H, W, 3) sRGB [0, 1] photos of the batch views at the render size."""
+    from jaxdistill import imageio
+    from jaxdistill.problem import resize
+
+    return [resize(imageio.read_photo_srgb(problem.scene.views[i].photo), problem.height, problem.width)
+            for i in view_ids]
+
+
+def cost_flops(compiled) -> float | None:
+    """FLOPs of a compiled XLA program from its cost analysis (None when the backend gives none)."""
+    analysis = compiled.cost_analysis()
+    if isinstance(analysis, (list, tuple)):
+        analysis = analysis[0] if analysis else {}
+    flops = (analysis or {}).get("flops")
+    return float(flops) if flops is not None and flops > 0 else None
+
+
+# ----------------------------------------------------------------------------- ours (JAX)
+
+def jax_worker(args, folder: str, dtype_name: str) -> list[dict]:
+    import jax
+    import jax.numpy as jnp
+    import optax
+
+    from jaxdistill.distill import (data_mesh, init_state, jit_step, make_optimizer, make_step, render_maps,
+                                    sample_timesteps, weighted_square_error)
+    from jaxdistill.models import convert
+    from jaxdistill.models import prior as rgbx
+    from jaxdistill.priors import make_rgbx_prior
+    from jaxdistill.render.gather_plan import GatherPlan
+    from jaxdistill.train import step_settings
+
+    t0 = time.perf_counter()
+    dtype = {"float32": jnp.float32, "bfloat16": jnp.bfloat16}[dtype_name]
+    model = rgbx.load_prior(convert.load_rgbx(folder, dtype=dtype, cache_dir=args.convert_cache))
+    load_s = time.perf_counter() - t0
+    rows = []
+    for maps, config, problem, ids in cases(args):
+        count = len(maps)
+        t0 = time.perf_counter()
+        prior, prior_frozen = make_rgbx_prior(model, problem.channels, batch_photos(problem, ids),
+                                              guidance=rgbx.Guidance(1.0, 1.0), sample_latent=False,
+                                              latent_space=False)
+        photo_s = time.perf_counter() - t0
+        frozen = {"chain": problem.frozen["chain"], "prior": prior_frozen,
+                  "alphas_cumprod": np.asarray(rgbx.sched.alphas_cumprod(model.scheduler))}
+        # the batch's photo latents are rows 0..B-1 of the prior; the plans are the views `ids`
+        batch_host = problem.batch(ids)
+        batch_host["prior"] = prior.view_data(np.arange(len(ids)))
+        problem = dataclasses.replace(problem, prior=prior, frozen=frozen)
+        settings = step_settings(config, problem)
+        optimizer = make_optimizer(config.lr, config.weight_decay)
+        mesh = data_mesh()
+        replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
+        by_view = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("data"))
+        frozen = jax.device_put(frozen, replicated)
+        batch = jax.device_put(batch_host, by_view)
+
+        # --- the whole step, as the main job runs it
+        state = init_state(problem.initial_texels(), optimizer, config.seed)
+        step, traces = jit_step(make_step(prior, settings, optimizer), mesh, batch, state, frozen)
+        state = jax.device_put(state, replicated)
+        t0 = time.perf_counter()
+        compiled = step.lower(state, batch, frozen).compile()
+        compile_s = time.perf_counter() - t0
+        step_flops = cost_flops(compiled)
+        state, metrics = compiled(state, batch, frozen)          # warm-up
+        jax.block_until_ready(metrics["loss"])
+        step_times = []
+        for _ in range(args.repeats):
+            t0 = time.perf_counter()
+            state, metrics = compiled(state, batch, frozen)
+            jax.block_until_ready(metrics["loss"])
+            step_times.append(time.perf_counter() - t0)
+        traces.check(1)
+        finite = int(metrics["finite"])
+
+        # --- the same work, stage by stage (each jitted alone, fed the previous stage's output)
+        texels = jnp.asarray(problem.initial_texels())
+        key = jax.random.PRNGKey(0)
+        t = sample_timesteps(key, jnp.int32(0), (len(ids), count), settings)
+        fp = frozen["prior"]
+
+        def plan_of(b):
+            return GatherPlan(index=b["index"], weight=b["weight"], hit=b["hit"], chain=frozen["chain"],
+                              height=settings.height, width=settings.width)
+
+        def render_stage(texels, b):
+            return render_maps(texels, plan_of(b), b["normal_rotation"], settings.channels)
+
+        def loss_grad_stage(texels, b, images, targets):
+            (loss, _), g_images = jax.value_and_grad(weighted_square_error, has_aux=True)(
+                images, targets, b["pixel_weight"], jnp.ones(t.shape, jnp.float32), settings.channels.maps)
+            (grad,) = jax.linear_transpose(lambda x: render_stage(x, b), texels)(g_images)
+            return loss, grad
+
+        def optimizer_stage(grad, opt_state, texels):
+            updates, opt_state = optimizer.update(grad, opt_state, texels)
+            return optax.apply_updates(texels, updates), opt_state
+
+        # each stage: (function, its inputs from the earlier stages' outputs `out`)
+        stages = {
+            "render": (render_stage, lambda out: (texels, batch)),
+            "vae_encode": (lambda fp, images: prior.encode(fp, images, key), lambda out: (fp, out["render"])),
+            "unet": (lambda fp, z0, d: prior.denoise(fp, z0, d, t, key),
+                     lambda out: (fp, out["vae_encode"], batch["prior"])),
+            "vae_decode": (prior.decode, lambda out: (fp, out["unet"])),
+            "loss_grad": (loss_grad_stage, lambda out: (texels, batch, out["render"], out["vae_decode"])),
+            "optimizer": (optimizer_stage, lambda out: (out["loss_grad"][1], optimizer.init(texels), texels)),
+        }
+        outputs, stage_s, stage_flops = {}, {}, {}
+        for name, (fn, inputs_of) in stages.items():
+            inputs = inputs_of(outputs)
+            compiled_stage = jax.jit(fn).lower(*inputs).compile()
+            stage_flops[name] = cost_flops(compiled_stage)
+            outputs[name] = jax.block_until_ready(compiled_stage(*inputs))
+            stage_s[name] = median_of(lambda: jax.block_until_ready(compiled_stage(*inputs)), args.repeats)
+        median = float(np.median(step_times))
+        rows.append({
+            "framework": "jax", "dtype": dtype_name, "render": [problem.height, problem.width], "maps": list(maps),
+            "views_per_step": len(ids), "unet_batch_per_step": len(ids) * count,
+            "step_s": median, "step_s_all": step_times, "stages_s": stage_s,
+            "stages_sum_s": float(sum(stage_s.values())), "compile_s": compile_s, "finite": finite,
+            "flops_per_step": step_flops, "stage_flops": stage_flops,
+            "achieved_gflops_per_s": step_flops / median / 1e9 if step_flops else None,
+            "texels": problem.space.num_texels, "load_s": load_s, "photo_latents_s": photo_s,
+        })
+        print(f"[jax {dtype_name}] {problem.width}x{problem.height} {count} map(s): {median:.2f} s/step "
+              f"(stages {', '.join(f'{k} {v:.2f}' for k, v in stage_s.items())})", file=sys.stderr)
+        del state, step, compiled, outputs
+    for row in rows:
+        row["peak_rss_gb"] = peak_rss_gb()
+    return rows
+
+
+# ----------------------------------------------------------------------------- the thesis recipe (PyTorch)
+
+def torch_worker(args, folder: str) -> list[dict]:
+    import torch
+    from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
+    from transformers import CLIPTextModel, CLIPTokenizer
+
+    from jaxdistill.maps import GREY_MAPS
+    from jaxdistill.models.prior import DEMO_SCHEDULER_OVERRIDES, photo_to_model_space
+    from jaxdistill.models.tokenizer import MAP_PROMPTS
+
+    torch.set_num_threads(args.threads)
+    folder = Path(folder)
+    t0 = time.perf_counter()
+    unet = UNet2DConditionModel.from_pretrained(folder / "unet").eval()
+    vae = AutoencoderKL.from_pretrained(folder / "vae").eval()
+    tokenizer = CLIPTokenizer.from_pretrained(folder / "tokenizer")
+    text_encoder = CLIPTextModel.from_pretrained(folder / "text_encoder").eval()
+    with torch.inference_mode():
+        ids = tokenizer([MAP_PROMPTS[m] for m in ALL_MAPS] + [""], padding="max_length",
+                        max_length=tokenizer.model_max_length, truncation=True, return_tensors="pt").input_ids
+        hidden = text_encoder(ids)[0]
+    prompt_of = {m: hidden[i:i + 1] for i, m in enumerate(ALL_MAPS)}
+    empty = hidden[-1:]
+    del text_encoder
+    scheduler = DDIMScheduler.from_pretrained(folder / "scheduler", **DEMO_SCHEDULER_OVERRIDES)
+    alphas = scheduler.alphas_cumprod.float()
+    sf = vae.config.scaling_factor
+    load_s = time.perf_counter() - t0
+    gen = torch.Generator().manual_seed(0)
+    rows = []
+    for maps, config, problem, view_ids in cases(args):
+        count = len(maps)
+        b = problem.batch(view_ids)
+        index = torch.from_numpy(b["index"]).long()                  # (B, P, T)
+        weight = torch.from_numpy(b["weight"])                       # (B, P, T)
+        pixel_weight = torch.from_numpy(b["pixel_weight"])           # (B, H, W)
+        rotation = torch.from_numpy(b["normal_rotation"])            # (B, 3, 3)
+        photos = torch.from_numpy(np.asarray(photo_to_model_space(np.stack(batch_photos(problem, view_ids)))))
+        photos = photos.permute(0, 3, 1, 2).contiguous()             # (B, 3, H, W) in [-1, 1]
+        texels = torch.tensor(problem.initial_texels(), requires_grad=True)
+        opt = torch.optim.AdamW([texels], lr=config.lr, weight_decay=config.weight_decay)
+        h, w, nb = problem.height, problem.width, len(view_ids)
+        lo, hi = config.t_min * 1000, config.t_max * 1000
+
+        def step():
+            times = {}
+            t0 = time.perf_counter()
+            image = (texels[index] * weight[..., None]).sum(-2).reshape(nb, h, w, -1)
+            images = {m: image[..., problem.channels.slice(m)] for m in maps}
+            if "normal" in images:
+                images["normal"] = torch.einsum("bhwi,bij->bhwj", images["normal"], rotation)
+            times["render"] = time.perf_counter() - t0
+            targets = {}
+            for k in ("photo_encode", "vae_encode", "unet", "vae_decode"):
+                times[k] = 0.0
+            for m in maps:                     # the thesis: one map per run, so one pass per map
+                with torch.inference_mode():
+                    t0 = time.perf_counter()
+                    photo_latent = vae.encode(photos).latent_dist.mode() * sf        # re-encoded every step
+                    times["photo_encode"] += time.perf_counter() - t0
+                    t0 = time.perf_counter()
+                    x = images[m].detach()
+                    x = x.repeat(1, 1, 1, 3) if x.shape[-1] == 1 else x
+                    z0 = vae.encode(x.permute(0, 3, 1, 2)).latent_dist.mode() * sf
+                    times["vae_encode"] += time.perf_counter() - t0
+                    t0 = time.perf_counter()
+                    t = torch.randint(int(lo), int(hi) + 1, (nb,), generator=gen)
+                    a = alphas[t].view(-1, 1, 1, 1)
+                    z_t = a.sqrt() * z0 + (1 - a).sqrt() * torch.randn(z0.shape, generator=gen)
+                    sample = torch.cat([torch.cat([z_t, photo_latent], 1), torch.cat([z_t, photo_latent], 1),
+                                        torch.cat([z_t, torch.zeros_like(photo_latent)], 1)])
+                    context = torch.cat([prompt_of[m].expand(nb, -1, -1), empty.expand(2 * nb, -1, -1)])
+                    v_full, v_image, v_uncond = unet(sample, t.repeat(3), context).sample.chunk(3)
+                    v = v_uncond + 1.0 * (v_full - v_image) + 1.0 * (v_image - v_uncond)
+                    x0 = a.sqrt() * z_t - (1 - a).sqrt() * v
+                    times["unet"] += time.perf_counter() - t0
+                    t0 = time.perf_counter()
+                    decoded = vae.decode(x0 / sf).sample.clamp(-1, 1).permute(0, 2, 3, 1)
+                    targets[m] = decoded[..., :1] if m in GREY_MAPS else decoded
+                    times["vae_decode"] += time.perf_counter() - t0
+            t0 = time.perf_counter()
+            loss = sum(((images[m] - targets[m].clone()) ** 2).sum(-1).mul(pixel_weight).sum() for m in maps) / nb
+            loss.backward()
+            times["loss_grad"] = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            opt.step()
+            opt.zero_grad(set_to_none=True)
+            times["optimizer"] = time.perf_counter() - t0
+            return times, float(loss.detach())
+
+        step()                                                       # warm-up
+        runs = []
+        for _ in range(args.repeats):
+            t0 = time.perf_counter()
+            times, loss = step()
+            runs.append((time.perf_counter() - t0, times))
+        step_times = [r[0] for r in runs]
+        stage_s = {k: float(np.median([r[1][k] for r in runs])) for k in TORCH_STAGES}
+        rows.append({
+            "framework": "torch", "dtype": "float32", "render": [h, w], "maps": list(maps),
+            "views_per_step": nb, "unet_batch_per_step": 3 * nb * count,
+            "step_s": float(np.median(step_times)), "step_s_all": step_times, "stages_s": stage_s,
+            "stages_sum_s": float(sum(stage_s.values())), "finite": int(np.isfinite(loss)),
+            "load_s": load_s, "torch_threads": torch.get_num_threads(),
+        })
+        print(f"[torch] {w}x{h} {count} map(s): {rows[-1]['step_s']:.2f} s/step "
+              f"(stages {', '.join(f'{k} {v:.2f}' for k, v in stage_s.items())})", file=sys.stderr)
+    for row in rows:
+        row["peak_rss_gb"] = peak_rss_gb()
+    return rows
+
+
+# ----------------------------------------------------------------------------- the parent
+
+def run_child(args, folder: str, worker: str) -> list[dict]:
+    """Runs one worker in a fresh process; its rows are the last line of its stdout."""
+    cmd = [sys.executable, __file__, f"--worker={worker}", f"--rgbx_dir={folder}",
+           f"--render_sizes={','.join(map(str, args.render_sizes))}",
+           f"--map_counts={','.join(map(str, args.map_counts))}", f"--views_per_step={args.views_per_step}",
+           f"--max_texture_size={args.max_texture_size}", f"--repeats={args.repeats}", f"--threads={args.threads}"]
+    if args.convert_cache:
+        cmd.append(f"--convert_cache={args.convert_cache}")
+    cores = sorted(os.sched_getaffinity(0))[:args.threads]
+    print(f"--- {worker} on cores {cores}: {' '.join(cmd[1:])}", file=sys.stderr)
+    # both frameworks see the same cores (XLA sizes its pool by them; torch also gets the count)
+    proc = subprocess.run(cmd, stdout=subprocess.PIPE, text=True, preexec_fn=lambda: os.sched_setaffinity(0, cores))
+    if proc.returncode:
+        raise SystemExit(f"the {worker} worker failed (exit {proc.returncode}); its log is above")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def fmt(x, spec=".2f") -> str:
+    return "-" if x is None else format(x, spec)
+
+
+def summarise(rows: list[dict]) -> dict:
+    """Per (render, maps): JAX steps per dtype, the torch step, and torch / JAX ratios."""
+    groups = {}
+    for r in rows:
+        groups.setdefault((tuple(r["render"]), len(r["maps"])), {})[f"{r['framework']}_{r['dtype']}"] = r
+    table = []
+    for (render, count), g in groups.items():
+        entry = {"render": list(render), "maps": count}
+        for name, r in g.items():
+            entry[f"{name}_s"] = r["step_s"]
+        ref = g.get("torch_float32")
+        ours = g.get("jax_float32")
+        if ref and ours and all(ours["stage_flops"].get(k) for k in ("vae_encode", "unet", "vae_decode")):
+            # the recipe's work in our XLA counts: the photo encoded as often as the renders, three
+            # UNet branches, one decode (the same images in total, one map per pass)
+            f = ours["stage_flops"]
+            ref["flops_per_step"] = 2 * f["vae_encode"] + 3 * f["unet"] + f["vae_decode"]
+            ref["flops_estimated_from"] = "jax stage cost analysis (2 encodes, 3 UNet branches, 1 decode)"
+            ref["achieved_gflops_per_s"] = ref["flops_per_step"] / ref["step_s"] / 1e9
+            entry["work_ratio_torch_over_jax"] = ref["flops_per_step"] / ours["flops_per_step"]
+        for name in ("jax_float32", "jax_bfloat16"):
+            if ref and name in g:
+                entry[f"speedup_{name}"] = ref["step_s"] / g[name]["step_s"]
+        table.append(entry)
+    return {"table": table}
+
+
+def print_tables(rows: list[dict], summary: dict, file=sys.stdout) -> None:
+    print("\nper-stage medians (seconds); sum of stages vs the whole step", file=file)
+    names = list(dict.fromkeys(TORCH_STAGES))
+    print(f"{'framework':10s} {'dtype':9s} {'render':9s} {'maps':>4s} " + " ".join(f"{n:>12s}" for n in names)
+          + f" {'sum':>8s} {'step':>8s} {'GFLOP':>8s} {'GFLOP/s':>8s} {'RSS GB':>7s}", file=file)
+    for r in rows:
+        stages = " ".join(f"{fmt(r['stages_s'].get(n)):>12s}" for n in names)
+        gflop = r["flops_per_step"] / 1e9 if r.get("flops_per_step") else None
+        print(f"{r['framework']:10s} {r['dtype']:9s} {r['render'][1]}x{r['render'][0]:<5d} {len(r['maps']):4d} "
+              f"{stages} {r['stages_sum_s']:8.2f} {r['step_s']:8.2f} {fmt(gflop, '.0f'):>8s} "
+              f"{fmt(r.get('achieved_gflops_per_s'), '.1f'):>8s} {r['peak_rss_gb']:7.1f}", file=file)
+    print("(torch GFLOP: the recipe's work counted with our XLA stage costs: 2 encodes, 3 UNet branches, 1 decode)",
+          file=file)
+    print("\nseconds per step, side by side (torch = the thesis's recipe; speed-up = torch / jax)", file=file)
+    print(f"{'render':9s} {'maps':>4s} {'jax fp32':>9s} {'jax bf16':>9s} {'torch':>9s} {'x fp32':>7s} {'x bf16':>7s}",
+          file=file)
+    for e in summary["table"]:
+        print(f"{e['render'][1]}x{e['render'][0]:<5d} {e['maps']:4d} {fmt(e.get('jax_float32_s')):>9s} "
+              f"{fmt(e.get('jax_bfloat16_s')):>9s} {fmt(e.get('torch_float32_s')):>9s} "
+              f"{fmt(e.get('speedup_jax_float32')):>7s} {fmt(e.get('speedup_jax_bfloat16')):>7s}", file=file)
+
+
+def headline(summary: dict) -> str:
+    ratios = [(e, e["speedup_jax_float32"]) for e in summary["table"] if "speedup_jax_float32" in e]
+    if not ratios:
+        return "no torch/jax pair measured: no ratio"
+    parts = [f"{e['render'][1]}x{e['render'][0]} {e['maps']} map(s): {r:.2f}x" for e, r in ratios]
+    return "jax fp32 step vs the thesis's PyTorch recipe (torch s / jax s): " + "; ".join(parts)
 
 
 def main(argv=None) -> int:
     args = parse_args(argv)
-    import jax
-
-    from jaxdistill import config as config_lib
-    from jaxdistill.distill import StepSettings, data_mesh, init_state, jit_step, make_optimizer, make_step
-    from jaxdistill.problem import build_problem
-
     folder = args.rgbx_dir
+    if args.worker:
+        kind, _, dtype = args.worker.partition(":")
+        rows = jax_worker(args, folder, dtype) if kind == "jax" else torch_worker(args, folder)
+        print(json.dumps(rows))
+        return 0
     if args.size == "tiny":
         import tiny_rgbx
 
         folder = str(tiny_rgbx.write_tiny_rgbx(Path(tempfile.mkdtemp()) / "rgb-to-x"))
-    config = config_lib.validate(config_lib.DistillConfig(
-        scene="bedroom", out_dir="unused", maps=tuple(args.maps.split(",")), prior="rgbx", rgbx_dir=folder,
-        prior_dtype=args.prior_dtype, render_size=args.render_size, views_per_step=args.views_per_step,
-        max_texture_size=args.max_texture_size, steps=1000))
-    t0 = time.perf_counter()
-    problem = build_problem(config)
-    setup_s = time.perf_counter() - t0
-    optimizer = make_optimizer(config.lr, config.weight_decay)
-    settings = StepSettings(channels=problem.channels, height=problem.height, width=problem.width,
-                            total_steps=config.steps, num_train_timesteps=problem.prior.scheduler.num_train_timesteps)
-    mesh = data_mesh()
-    replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
-    by_view = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("data"))
-    state = init_state(problem.initial_texels(), optimizer, config.seed)
-    first = problem.batch(problem.view_ids(0, config.views_per_step, config.seed))
-    step, traces = jit_step(make_step(problem.prior, settings, optimizer), mesh, first, state, problem.frozen)
-    state = jax.device_put(state, replicated)
-    frozen = jax.device_put(problem.frozen, replicated)
-    times = []
-    for i in range(args.steps + 1):
-        batch = jax.device_put(problem.batch(problem.view_ids(i, config.views_per_step, config.seed)), by_view)
-        t0 = time.perf_counter()
-        state, metrics = step(state, batch, frozen)
-        jax.block_until_ready(metrics["loss"])
-        times.append(time.perf_counter() - t0)
-        print(f"step {i}: {times[-1]:.2f} s, loss {float(metrics['loss']):.4g}, finite {int(metrics['finite'])}",
-              file=sys.stderr)
-    traces.check(1)
-    median = float(np.median(times[1:])) if len(times) > 1 else float("nan")
-    result = {
-        "folder": folder, "render": [problem.height, problem.width], "maps": list(problem.channels.maps),
-        "views_per_step": config.views_per_step, "prior_dtype": config.prior_dtype,
-        "unet_passes_per_step": config.views_per_step * len(problem.channels.maps),
-        "texels": problem.space.num_texels, "setup_s": setup_s, "setup_timings": problem.timings,
-        "first_step_s_with_compile": times[0], "median_step_s": median, "steps_timed": len(times) - 1,
-        "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20,
-        "backend": jax.default_backend(), "device": jax.devices()[0].device_kind, "cpus": platform.processor() or None,
-    }
+    rows = []
+    for fw in args.frameworks:
+        for dtype in (args.dtypes if fw == "jax" else ["float32"]):
+            rows += run_child(args, folder, f"{fw}:{dtype}" if fw == "jax" else "torch")
+    summary = summarise(rows)
+    print_tables(rows, summary)
+    import jax
+
+    result = {"rows": rows, **summary, "folder": folder, "threads": args.threads, "repeats": args.repeats,
+              "machine": {"backend": jax.default_backend(), "device": jax.devices()[0].device_kind,
+                          "cpu_count": os.cpu_count(), "platform": platform.platform()},
+              "headline": headline(summary)}
+    print("\n" + result["headline"])
     if args.json:
-        print(json.dumps(result, indent=1))
-    else:
-        for key in ("render", "maps", "views_per_step", "prior_dtype", "unet_passes_per_step", "texels", "setup_s",
-                    "first_step_s_with_compile", "median_step_s", "peak_rss_gb", "backend"):
-            value = result[key]
-            print(f"{key:28s} {value:.2f}" if isinstance(value, float) else f"{key:28s} {value}")
-    print(f"median seconds per step: {median:.2f} ({result['unet_passes_per_step']} UNet passes per step, "
-          f"{problem.height}x{problem.width} renders, {config.prior_dtype}, {jax.default_backend()})")
+        print(json.dumps(result))
     return 0
 
 
