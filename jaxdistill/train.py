@@ -118,7 +118,7 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
                 history[at] = [history[at][i] for i in keep]
         logging.info("resumed from step %d in %s", latest, out / "checkpoints")
 
-    eval_context = _evaluation_context(config, problem)
+    eval_context = evaluation_context(config, problem)
     first = problem.batch(problem.view_ids(0, config.views_per_step, config.seed))
     step_fn, traces = jit_step(make_step(problem.prior, settings, optimizer), mesh, first, state, problem.frozen)
     replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
@@ -144,7 +144,7 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
             bar.update()
             if config.eval_every and done % config.eval_every == 0 and eval_context.gt is not None:
                 history["eval_step"].append(done)
-                history["albedo_psnr"].append(_quick_psnr(state, problem, eval_context))
+                history["albedo_psnr"].append(quick_psnr(state, problem, eval_context))
             if config.ckpt_every and done % config.ckpt_every == 0 and done < config.steps:
                 _drain(pending, history, bar, state, store, recorded, out)     # history matches the checkpoint
                 _save(store, state, recorded, history, out)
@@ -200,7 +200,7 @@ def _drain(pending: list, history: dict, bar, state, store, recorded: dict, out:
         bar.set_postfix(loss=f"{float(last['loss']):.4g}", t=f"{float(last['t_mean']):.0f}", refresh=False)
 
 
-class _EvalContext:
+class EvalContext:
     """Native-resolution fragments, cameras, GT maps and masks, built once for evaluation."""
 
     def __init__(self, gt, fragments, cameras, gt_maps, masks, plan):
@@ -208,7 +208,9 @@ class _EvalContext:
         self.plan = plan
 
 
-def _evaluation_context(config: DistillConfig, problem: Problem) -> _EvalContext:
+def evaluation_context(config: DistillConfig, problem: Problem) -> EvalContext:
+    """What evaluating at the photos' native size needs, built once: plans at native size (the
+    training plans when the run renders at native size), GT maps and masks (None without GT)."""
     scene = problem.scene
     cameras = [v.camera for v in scene.views]
     native = all((c.height, c.width) == (problem.height, problem.width) for c in cameras)
@@ -220,10 +222,12 @@ def _evaluation_context(config: DistillConfig, problem: Problem) -> _EvalContext
         plan = build_gather_plans(frags, problem.space, config.sampler)
     gt = evaluation.read_ground_truth(scene)
     gt_maps = evaluation.gt_view_maps(gt, scene, frags) if gt else None
-    return _EvalContext(gt, frags, cameras, gt_maps, evaluation.evaluation_masks(gt, scene, frags), plan)
+    return EvalContext(gt, frags, cameras, gt_maps, evaluation.evaluation_masks(gt, scene, frags), plan)
 
 
-def _quick_psnr(state, problem: Problem, ctx: _EvalContext) -> float:
+def quick_psnr(state, problem: Problem, ctx: EvalContext) -> float:
+    """Albedo PSNR (dB, sRGB, masked) of the state's renders against GT at native size; NaN
+    when albedo is not distilled."""
     if "albedo" not in problem.channels.maps:
         return math.nan
     texels = np.asarray(jax.device_get(state.texels))
@@ -232,7 +236,7 @@ def _quick_psnr(state, problem: Problem, ctx: _EvalContext) -> float:
 
 
 def write_outputs(config: DistillConfig, problem: Problem, texels: np.ndarray, history: dict,
-                  ctx: _EvalContext) -> dict:
+                  ctx: EvalContext) -> dict:
     """maps/, scene.glb, renders/, contact sheets, loss.png; returns the metrics part of metrics.json."""
     out = Path(config.out_dir)
     scene, channels, space = problem.scene, problem.channels, problem.space
