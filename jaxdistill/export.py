@@ -298,25 +298,45 @@ def _to_uint8(x: np.ndarray) -> np.ndarray:
     return np.round(np.clip(np.nan_to_num(x), 0.0, 1.0) * 255.0).astype(np.uint8)
 
 
-def _material_images(pages: dict, mesh: Mesh, object_page: Sequence[int]) -> list[dict]:
-    """Per page the glTF images (uint8 arrays) of its material: baseColor (sRGB), packed
-    metallicRoughness (R 255, G roughness, B metallic; linear) and tangent-space normal."""
-    num_pages = len(next(iter(pages.values())))
-    normals = tangent_space_normals(pages["normal"], mesh, object_page) if "normal" in pages else None
+def material_layers(name: str, pages: Sequence[np.ndarray], mesh: Mesh, object_page: Sequence[int]):
+    """What one map contributes to each page's glTF material, as uint8 arrays (one per page):
+    albedo (S, S, 3) sRGB baseColor; roughness, metallic (S, S) linear; normal (S, S, 3)
+    tangent-space (`tangent_space_normals`); None for irradiance (no place in a glTF material).
+    Lets a caller expand, write and convert one map at a time (see `combine_material_layers`)."""
+    if name == "albedo":
+        return [_to_uint8(imageio.linear_to_srgb(np.nan_to_num(page))) for page in pages]
+    if name in ("roughness", "metallic"):
+        return [_to_uint8(np.asarray(page)[..., 0]) for page in pages]
+    if name == "normal":
+        return [_to_uint8(page) for page in tangent_space_normals(pages, mesh, object_page)]
+    return None
+
+
+def combine_material_layers(layers: Mapping[str, Sequence[np.ndarray]], num_pages: int) -> list[dict]:
+    """Per page the glTF images of its material from `material_layers` of some maps:
+    baseColorTexture, packed metallicRoughnessTexture (R 255, G roughness, B metallic; a missing
+    roughness is 255, a missing metallic 0) and normalTexture."""
     images = []
     for p in range(num_pages):
         page = {}
-        if "albedo" in pages:
-            page["baseColorTexture"] = _to_uint8(imageio.linear_to_srgb(np.nan_to_num(pages["albedo"][p])))
-        if "roughness" in pages or "metallic" in pages:
-            size = next(iter(pages.values()))[p].shape[0]
-            rough = pages["roughness"][p][..., 0] if "roughness" in pages else np.ones((size, size), np.float32)
-            metal = pages["metallic"][p][..., 0] if "metallic" in pages else np.zeros((size, size), np.float32)
-            page["metallicRoughnessTexture"] = _to_uint8(np.stack([np.ones_like(rough), rough, metal], axis=-1))
-        if normals is not None:
-            page["normalTexture"] = _to_uint8(normals[p])
+        if "albedo" in layers:
+            page["baseColorTexture"] = layers["albedo"][p]
+        if "roughness" in layers or "metallic" in layers:
+            shape = (layers["roughness"] if "roughness" in layers else layers["metallic"])[p].shape
+            rough = layers["roughness"][p] if "roughness" in layers else np.full(shape, 255, np.uint8)
+            metal = layers["metallic"][p] if "metallic" in layers else np.zeros(shape, np.uint8)
+            page["metallicRoughnessTexture"] = np.stack([np.full(shape, 255, np.uint8), rough, metal], axis=-1)
+        if "normal" in layers:
+            page["normalTexture"] = layers["normal"][p]
         images.append(page)
     return images
+
+
+def _material_images(pages: Mapping[str, Sequence[np.ndarray]], mesh: Mesh, object_page: Sequence[int]) -> list[dict]:
+    """Per page the glTF images (uint8 arrays) of its material, from float pages of every map."""
+    layers = {m: material_layers(m, pages[m], mesh, object_page) for m in pages}
+    return combine_material_layers({m: v for m, v in layers.items() if v is not None},
+                                   len(next(iter(pages.values()))))
 
 
 def write_gltf(path, mesh: Mesh, object_page: Sequence[int], pages: Mapping[str, Sequence[np.ndarray]]) -> Path:
@@ -333,18 +353,26 @@ def write_gltf(path, mesh: Mesh, object_page: Sequence[int], pages: Mapping[str,
     place in a glTF material and is not written. trimesh writes TEXCOORD_0 as (u, 1 - v), so a
     texel's row 0 (our v = 1) is the image's top row, as glTF samples it.
     """
+    if Path(path).suffix.lower() != ".glb":
+        raise ValueError(f"{path}: write_gltf writes binary glTF; use a .glb file name")
+    checked = _check_pages(pages, object_page)
+    _check_mesh_pages(mesh, object_page, len(next(iter(checked.values()))))
+    return write_gltf_images(path, mesh, object_page, _material_images(checked, mesh, object_page))
+
+
+def write_gltf_images(path, mesh: Mesh, object_page: Sequence[int], material_images: Sequence[dict]) -> Path:
+    """`write_gltf` from per-page uint8 material images (`combine_material_layers`), so the
+    float pages of every map never need to be in memory at once."""
     import PIL.Image
     import trimesh
 
     path = Path(path)
     if path.suffix.lower() != ".glb":
         raise ValueError(f"{path}: write_gltf writes binary glTF; use a .glb file name")
-    checked = _check_pages(pages, object_page)
-    num_pages = len(next(iter(checked.values())))
-    _check_mesh_pages(mesh, object_page, num_pages)
+    _check_mesh_pages(mesh, object_page, len(material_images))
     stems = page_names(mesh.object_names, object_page)
     materials = []
-    for p, images in enumerate(_material_images(checked, mesh, object_page)):
+    for p, images in enumerate(material_images):
         has_mr = "metallicRoughnessTexture" in images
         materials.append(trimesh.visual.material.PBRMaterial(
             name=stems[p], metallicFactor=1.0 if has_mr else 0.0, roughnessFactor=1.0,

@@ -19,7 +19,7 @@ import numpy as np
 from absl import logging
 from tqdm.auto import tqdm
 
-from jaxdistill import checkpoint, evaluation, export, imageio
+from jaxdistill import MAP_NAMES, checkpoint, evaluation, export, imageio
 from jaxdistill.config import DistillConfig, resumable_flags
 from jaxdistill.distill import (StepSettings, data_mesh, init_state, jit_step, make_optimizer,
                                 make_step)
@@ -242,10 +242,17 @@ def write_outputs(config: DistillConfig, problem: Problem, texels: np.ndarray, h
     scene, channels, space = problem.scene, problem.channels, problem.space
     observed = problem.counts > 0
     fills = initial_file_values(channels.maps)
-    pages = {m: expand(model_to_file(m, texels[:, channels.slice(m)]), space, fills[m], observed=observed)
-             for m in channels.maps}
-    written = export.write_maps(out, pages, scene.mesh.object_names, space.layout.object_page)
-    export.write_gltf(out / "scene.glb", scene.mesh, space.layout.object_page, pages)
+    # one map at a time: full float pages of all maps at once would be 20 GiB at 30 pages of 4096²
+    written, layers = [], {}
+    for m in [m for m in MAP_NAMES if m in channels.maps]:
+        pages = expand(model_to_file(m, texels[:, channels.slice(m)]), space, fills[m], observed=observed)
+        written += export.write_maps(out, {m: pages}, scene.mesh.object_names, space.layout.object_page)
+        layer = export.material_layers(m, pages, scene.mesh, space.layout.object_page)
+        if layer is not None:
+            layers[m] = layer
+        del pages
+    export.write_gltf_images(out / "scene.glb", scene.mesh, space.layout.object_page,
+                             export.combine_material_layers(layers, space.layout.num_pages))
 
     pred = evaluation.render_views(texels, ctx.plan, ctx.cameras, channels)
     names = [v.name for v in scene.views]

@@ -344,3 +344,34 @@ def test_write_contact_sheet(tmp_path):
     assert imageio.read_image(plain, linear=False).shape == (16 + 24 + 2 * 3, 37 + 2 * 4, 3)
     with pytest.raises(ValueError, match="row 1: 2 images for 3 columns"):
         export.write_contact_sheet(tmp_path / "bad.png", [rows[0], rows[1][:2]], ["a", "b", "c"])
+
+
+@pytest.mark.parametrize("maps", [("albedo", "normal", "roughness", "metallic", "irradiance"), ("roughness",),
+                                  ("metallic", "irradiance"), ("irradiance",)])
+def test_material_images_built_one_map_at_a_time(maps):
+    """write_outputs converts one map at a time (material_layers, then combine_material_layers),
+    so the float pages of every map are never held together. Against the glTF packing written
+    out in NumPy: baseColor = 8-bit sRGB albedo; metallicRoughness = (255, roughness, metallic),
+    G 255 without roughness, B 0 without metallic; normal = 8-bit tangent_space_normals; no
+    texture from irradiance."""
+    mesh, pages = gltf_scene()
+    pages = {m: pages[m] for m in maps}
+    layers = {m: export.material_layers(m, pages[m], mesh, [0, 1]) for m in maps}
+    assert layers.get("irradiance", None) is None
+    images = export.combine_material_layers({m: v for m, v in layers.items() if v is not None}, 2)
+    u8 = lambda x: np.round(np.clip(x, 0.0, 1.0) * 255.0).astype(np.uint8)  # noqa: E731
+    for p, page in enumerate(images):
+        size = (8, 4)[p]
+        expected = {}
+        if "albedo" in maps:
+            expected["baseColorTexture"] = u8(srgb_encode(pages["albedo"][p]))
+        if "roughness" in maps or "metallic" in maps:
+            rough = u8(pages["roughness"][p][..., 0]) if "roughness" in maps else np.full((size, size), 255, np.uint8)
+            metal = u8(pages["metallic"][p][..., 0]) if "metallic" in maps else np.zeros((size, size), np.uint8)
+            expected["metallicRoughnessTexture"] = np.stack([np.full((size, size), 255, np.uint8), rough, metal], -1)
+        if "normal" in maps:
+            expected["normalTexture"] = u8(export.tangent_space_normals(pages["normal"], mesh, [0, 1])[p])
+        assert sorted(page) == sorted(expected)
+        for key, want in expected.items():
+            assert page[key].dtype == np.uint8
+            np.testing.assert_allclose(page[key].astype(int), want.astype(int), atol=1, err_msg=key)
