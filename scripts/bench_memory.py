@@ -17,7 +17,7 @@ Every case runs the library's real job, `jaxdistill.train.run(config)` (what
                            the 30 pages 4096^2), the run issue 6 asks about.
   bedroom_4096_bilinear_no_outputs
                            4096^2 pages with --sampler=bilinear, and write_outputs replaced by a
-                           stub (full 4096^2 pages of all maps do not fit in memory; see below).
+                           stub (the outputs of 30 pages of 4096^2 write ~150 large image files).
   bedroom_auto_4096        bedroom.cfg with --max_texture_size=4096 (the flag's default cap):
                            auto-sized pages up to 2048 here.
   room_1m                  a >= 1M-triangle synthetic room (scripts/bench_render.py's geometry:
@@ -67,7 +67,7 @@ first step, steps (the remaining steps), checkpoint (orbax, at the end), outputs
 
 Before the steps a guard estimates the memory a case needs at least, from the texel space it
 has just built: state (texels + 2 moments) + gradient, + the trilinear pyramid and its
-cotangent, and for the outputs + the full pages of every map (write_outputs holds them all).
+cotangent, and for the outputs + one map's full pages (write_outputs expands one map at a time).
 A case whose estimate exceeds --max_gb (default 90% of MemAvailable when the script starts) is
 stopped there and reported as "skipped" with its figures; this process also kills a child whose
 RSS passes --max_gb. The machine (cores, RAM) and jax's backend and devices are printed first;
@@ -252,7 +252,10 @@ def child_run(args, flag_argv) -> int:
         word = 4 * channels
         state = 3 * n * word
         step_need = state + n * word + (2 * pyramid * word if layout.mipmaps else 0)
-        out_need = state + n * word + full * word if args.outputs else 0
+        slices = [MapChannels(tuple(config.maps)).slice(m) for m in config.maps]
+        widest = max(sl.stop - sl.start for sl in slices)
+        # write_outputs holds one map's full pages at a time
+        out_need = state + n * word + full * 4 * widest if args.outputs else 0
         tile_maps = sum(m.nbytes for m in space.tile_map) + sum(m.nbytes for ms in space.coarse_maps for m in ms)
         rec.info.update({
             "texels": n, "channels": channels, "params": n * channels, "full_texels": full,
