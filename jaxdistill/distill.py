@@ -29,6 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from jaxdistill.config import DistillConfig
 from jaxdistill.maps import MapChannels
 from jaxdistill.render.gather_plan import GatherPlan
 from jaxdistill.render.sampler import render
@@ -48,17 +49,17 @@ class DistillState:
 
 @dataclasses.dataclass(frozen=True)
 class StepSettings:
-    """Static settings of the step (hashable; part of the jit cache key)."""
+    """Static settings of the step (hashable; part of the jit cache key). Defaults are the flags'."""
 
     channels: MapChannels
     height: int
     width: int
     total_steps: int
-    t_min: float = 0.2
-    t_max: float = 0.98
-    anneal: str = "none"
-    t_weighting: str = "none"
-    p_keep: float = 1.0
+    t_min: float = DistillConfig.t_min
+    t_max: float = DistillConfig.t_max
+    anneal: str = DistillConfig.anneal
+    t_weighting: str = DistillConfig.t_weighting
+    p_keep: float = DistillConfig.p_keep
     num_train_timesteps: int = 1000
     latent_factor: int = 8
 
