@@ -125,6 +125,15 @@ def nearest_rotation(m) -> np.ndarray:
     return u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
 
 
+def quaternion_to_rotation(q) -> np.ndarray:
+    """(3, 3) rotation of a Hamilton quaternion (w, x, y, z), normalised first (COLMAP's order)."""
+    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
 # ----------------------------------------------------------------------------- camera
 
 
@@ -329,6 +338,22 @@ def from_mitsuba(to_world, fov_deg, width, height, fov_axis="x",
     oy = float(_as_float(principal_point_offset_y, (), "principal_point_offset_y"))
     K[0, 2], K[1, 2] = W * (0.5 - ox), H * (0.5 - oy)
     return Camera(K, _algorithm1(m, "to_world"), W, H)
+
+
+def from_fipt(transform_matrix, camera_angle_x, width, height) -> Camera:
+    """Returns a Camera for one frame of a FIPT/IRIS `transforms.json` (camera x left, y up, z forward).
+
+    FIPT generates the ray of pixel (i, j) as R [-(i + .5 - W/2) / f, -(j + .5 - H/2) / f, 1]
+    from the c2w (4, 4) `transform_matrix`, f = W / 2 / tan(camera_angle_x / 2) (radians), so
+    square pixels, a centred principal point, and the pose by thesis Algorithm 1.
+    """
+    m = _as_float(transform_matrix, (4, 4), "transform_matrix")
+    _raise_if(_last_row_problems(m), "transform_matrix")
+    angle = float(_as_float(camera_angle_x, (), "camera_angle_x"))
+    if not 0.0 < angle < math.pi:
+        raise ValueError(f"camera_angle_x: must be in (0, pi) radians, got {angle:g}")
+    W, H = _size(width, "width"), _size(height, "height")
+    return Camera(intrinsics_from_fov(math.degrees(angle), W, H, "x"), _algorithm1(m, "transform_matrix"), W, H)
 
 
 def intrinsics_to_pytorch3d_ndc(K, width, height) -> tuple[np.ndarray, np.ndarray]:

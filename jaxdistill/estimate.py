@@ -79,23 +79,23 @@ def config_from_flags() -> EstimateConfig:
                           dtype=FLAGS.dtype, convert_cache=FLAGS.convert_cache)
 
 
-def photos_to_estimate(cfg: EstimateConfig) -> list[tuple[str, Path]]:
-    """(view name, photo path) pairs selected by the config."""
+def photos_to_estimate(cfg: EstimateConfig) -> list[tuple[str, Path, float]]:
+    """(view name, photo path, exposure in stops) selected by the config."""
     if cfg.photo:
         path = Path(cfg.photo)
         if not path.is_file():
             raise InputError.single("flags", "--photo", f"{path} not found")
-        return [(path.stem, path)]
-    from jaxdistill.scene import read_scene
+        return [(path.stem, path, 0.0)]
+    from jaxdistill.datasets import open_scene
 
-    scene = read_scene(cfg.scene)
-    views = [(v.name, v.photo) for v in scene.views]
+    scene = open_scene(cfg.scene)
+    views = [(v.name, v.photo, v.exposure) for v in scene.views]
     if cfg.views != ("all",):
-        names = {n for n, _ in views}
+        names = {n for n, _, _ in views}
         missing = [n for n in cfg.views if n not in names]
         if missing:
             raise InputError.single("flags", "--views", f"{missing} are not views of {cfg.scene}")
-        views = [(n, p) for n, p in views if n in cfg.views]
+        views = [v for v in views if v[0] in cfg.views]
     return views
 
 
@@ -109,8 +109,8 @@ def run(cfg: EstimateConfig) -> dict:
     key = jax.random.key(cfg.seed)
     seconds = []
     with tqdm(total=len(photos) * len(cfg.maps), desc="RGB→X estimates", unit="map") as bar:
-        for name, path in photos:
-            image_latent = prior.encode_photo(rgbx, imageio.read_photo_srgb(path), str(path))   # c_v, shared by the maps
+        for name, path, exposure in photos:
+            image_latent = prior.encode_photo(rgbx, imageio.read_photo_srgb(path, exposure), str(path))   # c_v, shared by the maps
             for map_name in cfg.maps:
                 t0 = time.perf_counter()
                 view_key = jax.random.fold_in(jax.random.fold_in(key, zlib.crc32(name.encode())),

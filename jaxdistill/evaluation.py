@@ -3,13 +3,16 @@
 Ground truth comes from the scene's `gt.json` (format "jaxdistill-gt", as the embedded bedroom
 ships): per-object GT texture pages sampled through the scene's UVs with our bilinear gather,
 normals from the geometry (face normals as the mesh orients them, in RGB<->X camera space),
-and emitter objects excluded. Scenes without one are evaluated against nothing (metrics say so).
+and emitter objects excluded. Without one, the views' `ground_truth` images (image space, as
+datasets such as FIPT's ship them) are used; views' masks drop pixels in both cases. Scenes
+with neither are evaluated against nothing (metrics say so).
 All per-view maps here are in file space (see maps.py), at the photos' native resolution.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Sequence
@@ -103,9 +106,34 @@ def gt_view_maps(gt: GroundTruth, scene: Scene, fragments: Sequence) -> list[dic
 
 
 def evaluation_masks(gt: GroundTruth | None, scene: Scene, fragments: Sequence) -> list[np.ndarray]:
-    """Per view (H, W) bool: hit pixels not on excluded (emitter) objects."""
+    """Per view (H, W) bool: hit pixels not on excluded (emitter) objects nor masked by the view's mask."""
+    from jaxdistill.problem import read_mask
+
     excluded = [scene.mesh.object_names.index(o) for o in (gt.exclude_objects if gt else ())]
-    return [metrics.evaluation_mask(f.hit, np.isin(f.object_id, excluded)) for f in fragments]
+    masks = []
+    for view, f in zip(scene.views, fragments):
+        drop = np.isin(f.object_id, excluded)
+        if view.mask is not None:
+            drop |= ~read_mask(view.mask, *f.shape)
+        masks.append(metrics.evaluation_mask(f.hit, drop))
+    return masks
+
+
+def image_ground_truth(scene: Scene, fragments: Sequence) -> list[dict[str, np.ndarray]] | None:
+    """Per view, {map: (H, W, C) file-space GT} from the views' `ground_truth` images (at the
+    fragments' size), or None when no view has any. Views without one get {} (no metric)."""
+    from jaxdistill.problem import read_target, resize
+
+    if not any(v.ground_truth for v in scene.views):
+        return None
+    out = []
+    for view, f in zip(scene.views, fragments):
+        maps = {}
+        for m, path in view.ground_truth.items():
+            image = resize(read_target(m, path), *f.shape)
+            maps[m] = image[..., :CHANNELS[m]]
+        out.append(maps)
+    return out
 
 
 @jax.jit
@@ -142,9 +170,11 @@ def albedo_psnr(pred: Sequence[dict], gt: Sequence[dict], masks: Sequence[np.nda
     """Mean albedo PSNR (sRGB-encoded, as `metrics.evaluate_view`) over views: the quick progress figure."""
     values = []
     for p, g, m in zip(pred, gt, masks):
+        if "albedo" not in g:                       # a view without albedo ground truth
+            continue
         a, b = (imageio.linear_to_srgb(np.clip(x["albedo"], 0.0, 1.0)) for x in (p, g))
         values.append(min(metrics.psnr(a, b, m), metrics.PSNR_CAP_DB))
-    return float(np.nanmean(values))
+    return float(np.nanmean(values)) if values else math.nan
 
 
 def read_baseline(scene: Scene, maps: Sequence[str], shapes: Sequence[tuple[int, int]]) -> list[dict] | None:

@@ -94,9 +94,12 @@ def write_image(path, pixels: np.ndarray, *, encode_srgb: bool | None = None, ha
     os.replace(tmp, path)
 
 
-def read_photo_srgb(path: Path) -> np.ndarray:
-    """(H, W, 3) float32 sRGB-encoded values in [0, 1] from an LDR or HDR photo file."""
-    if is_linear_format(path):
+def read_photo_srgb(path: Path, exposure: float = 0.0) -> np.ndarray:
+    """(H, W, 3) float32 sRGB-encoded values in [0, 1] from an LDR or HDR photo file, after
+    scaling its linear values by 2**exposure (stops; `exposure.py`)."""
+    if exposure:
+        pixels = linear_to_srgb(np.clip(read_image(path) * np.float32(2.0 ** exposure), 0.0, 1.0))
+    elif is_linear_format(path):
         pixels = linear_to_srgb(np.clip(read_image(path), 0.0, 1.0))
     else:
         pixels = read_image(path, linear=False)

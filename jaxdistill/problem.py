@@ -29,7 +29,7 @@ from jaxdistill.render import fragments as fr
 from jaxdistill.render.gather_plan import TexelSpace, build_gather_plans, build_texel_space
 from jaxdistill.render.layout import make_layout
 from jaxdistill.render.visibility import pixel_weights, view_counts
-from jaxdistill.scene import Scene, read_scene
+from jaxdistill.scene import Scene
 
 def rgbx_hint() -> str:
     """How to obtain the RGB<->X weights, and their licence."""
@@ -127,6 +127,12 @@ def read_target(name: str, path: Path) -> np.ndarray:
     return 2.0 * values[..., :3] - 1.0 if name == "normal" else values
 
 
+def read_mask(path: Path, height: int, width: int) -> np.ndarray:
+    """(height, width) bool: True where the view's mask image (first channel, resampled) is >= 0.5."""
+    values = imageio.read_image(path, linear=False)[..., :1]
+    return resize(values, height, width)[..., 0] >= 0.5
+
+
 # ----------------------------------------------------------------------------- the problem
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -211,7 +217,7 @@ def _rgbx_prior(config: DistillConfig, choice: PriorChoice, scene, channels, hei
     loaded = convert.load_rgbx(choice.folder, dtype=dtype, cache_dir=config.convert_cache)
     model = rgbx.load_prior(loaded)
     logging.info("RGB<->X loaded from %s in %.1f s", choice.folder, sum(loaded.seconds.values()))
-    photos = (resize(imageio.read_photo_srgb(v.photo), height, width) for v in scene.views)
+    photos = (resize(imageio.read_photo_srgb(v.photo, v.exposure), height, width) for v in scene.views)
     guidance = rgbx.Guidance(text=config.w_t, image=config.w_i)
     prior, frozen = make_rgbx_prior(model, channels, photos, guidance=guidance, sample_latent=config.latent == "sample",
                                     latent_space=config.loss_space == "latent",
@@ -259,7 +265,9 @@ def build_problem(config: DistillConfig, *, cache_dir=None) -> Problem:
     timings = {}
     t0 = time.perf_counter()
     choice = choose_prior(config)
-    scene = read_scene(resolve_scene_path(config.scene))
+    from jaxdistill.datasets import open_scene
+
+    scene = open_scene(config.scene)
     channels = MapChannels(tuple(config.maps))
     height, width = render_shape(scene, config.render_size, 8 if choice.kind == "rgbx" else 1)
     timings["read_scene_s"] = time.perf_counter() - t0
@@ -288,6 +296,9 @@ def build_problem(config: DistillConfig, *, cache_dir=None) -> Problem:
         weights = np.asarray(pixel_weights(plan, counts), np.float32)
     else:
         weights = np.asarray(plan.hit, np.float32).reshape(len(frags), height, width)
+    for v, view in enumerate(scene.views):
+        if view.mask is not None:                    # emitters, anonymised faces, unfilled pixels
+            weights[v] *= read_mask(view.mask, height, width)
     timings["plans_s"] = time.perf_counter() - t0
     logging.info("texels: %d parameters x %d channels (%s pages, %.1fx fewer than full pages), %d observed",
                  space.num_texels, channels.num_channels, list(layout.page_sizes),

@@ -17,9 +17,22 @@ Format, version 1 (paths relative to the folder holding scene.json):
         "K": [[fx, 0, cx], [0, fy, cy], [0, 0, 1]],     # pixels, pixel centres at +0.5
         "c2w": [[...], [...], [...], [0, 0, 0, 1]],     # OpenCV camera-to-world
         "photo": "photos/view_000.exr",                 # EXR linear, PNG/JPG sRGB
-        "targets": {"albedo": "targets/albedo/view_000.exr"}   # optional, per map
+        "exposure": 0.0,                                # optional, stops: photo x 2**exposure
+        "mask": "masks/view_000.png",                   # optional: pixels < 0.5 are ignored
+        "targets": {"albedo": "targets/albedo/view_000.exr"},        # optional, per map
+        "ground_truth": {"albedo": "gt/albedo/view_000.exr"}         # optional, evaluation only
       }]
     }
+
+Instead of "mesh", a scene may list its objects with their transforms (the thesis's scene
+config): "meshes": [{"name": "bed", "file": "bed.obj", "transform": {...}}, ...] — see
+`scene_config.py`. Each object keeps its own texture page.
+
+`exposure` scales the linear photo before RGB<->X sees it (clipped to [0, 1], sRGB-encoded),
+so HDR photos can be brought into the range the model was trained on (`exposure.py`).
+`mask` (grey, 1 = use) drops pixels from the loss and the metrics: emitters, anonymised
+faces, pixels an undistortion could not fill. `ground_truth` images (file space of each map,
+as targets) are what evaluation compares renders with when the scene has no gt.json.
 
 Mesh files: each geometry node of the file is one object (its node transform applied);
 object ids follow `objects` when given, else sorted node names. UVs are per vertex in the
@@ -74,12 +87,16 @@ class Mesh:
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class View:
-    """One posed photo: canonical camera, photo path, optional per-map target image paths."""
+    """One posed photo: canonical camera, photo path (x 2**exposure), optional per-map target
+    images (what a per-view estimator says), mask (1 = use the pixel) and ground-truth images."""
 
     name: str
     camera: Camera
     photo: Path
     targets: Mapping[str, Path] = dataclasses.field(default_factory=dict)
+    exposure: float = 0.0
+    mask: Path | None = None
+    ground_truth: Mapping[str, Path] = dataclasses.field(default_factory=dict)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -135,17 +152,23 @@ def mesh_problems(mesh: Mesh, file: str, problems: ProblemList) -> None:
 
 
 def view_problems(photo: Path, targets: Mapping[str, Path], cam: Camera | None, where: str, file: str,
-                  problems: ProblemList, *, check_pixels: bool = True) -> None:
+                  problems: ProblemList, *, check_pixels: bool = True, mask: Path | None = None,
+                  ground_truth: Mapping[str, Path] | None = None, exposure: float = 0.0) -> None:
     """Adds to `problems` what is wrong with a view's images: unknown map names, missing,
     unreadable or non-finite images, and (given the view's camera) a size that differs from it.
     The camera itself is valid by construction (`Camera` validates K and c2w)."""
     image_problems(photo, f"{where}.photo", cam, file, problems, check_pixels=check_pixels)
-    for map_name, path in targets.items():
-        if map_name not in MAP_NAMES:
-            problems.add(file, f"{where}.targets.{map_name}",
-                         f"unknown map name {map_name!r}; known maps: {', '.join(MAP_NAMES)}")
-            continue
-        image_problems(path, f"{where}.targets.{map_name}", cam, file, problems, check_pixels=check_pixels)
+    if not (isinstance(exposure, (int, float)) and not isinstance(exposure, bool) and abs(exposure) <= 64):
+        problems.add(file, f"{where}.exposure", f"expected a number of stops in [-64, 64], got {exposure!r}")
+    if mask is not None:
+        image_problems(mask, f"{where}.mask", cam, file, problems, check_pixels=check_pixels)
+    for field, images in (("targets", targets), ("ground_truth", ground_truth or {})):
+        for map_name, path in images.items():
+            if map_name not in MAP_NAMES:
+                problems.add(file, f"{where}.{field}.{map_name}",
+                             f"unknown map name {map_name!r}; known maps: {', '.join(MAP_NAMES)}")
+                continue
+            image_problems(path, f"{where}.{field}.{map_name}", cam, file, problems, check_pixels=check_pixels)
 
 
 def image_problems(path: Path, field: str, cam: Camera | None, file: str, problems: ProblemList, *,
@@ -192,15 +215,20 @@ def validate_scene(scene: Scene, *, scene_file: str = "scene.json", mesh_file: s
         if names.index(view.name) != i:
             problems.add(scene_file, f"views[{index}].name", f"duplicate view name {view.name!r}")
         view_problems(view.photo, view.targets, view.camera, f"views[{index}]", scene_file, problems,
-                      check_pixels=check_pixels)
+                      check_pixels=check_pixels, mask=view.mask, ground_truth=view.ground_truth,
+                      exposure=view.exposure)
     problems.raise_if_any()
 
 
 # ----------------------------------------------------------------------------- mesh I/O
 
 
-def load_mesh(path: Path, object_names: list[str] | None = None) -> Mesh:
-    """Reads a trimesh-readable file; every geometry node becomes one object (transform applied)."""
+def load_mesh(path: Path, object_names: list[str] | None = None, *, require_uv: bool = True) -> Mesh:
+    """Reads a trimesh-readable file; every geometry node becomes one object (transform applied).
+
+    A node without texture coordinates is an InputError, or with `require_uv=False` gets NaN
+    UVs (what `unwrap.ensure_uvs` replaces with an xatlas layout).
+    """
     import trimesh
 
     path = Path(path)
@@ -233,6 +261,8 @@ def load_mesh(path: Path, object_names: list[str] | None = None) -> Mesh:
         if not hasattr(geom, "faces"):
             raise InputError.single(path, f"mesh node {name!r}", "is not a triangle mesh (point cloud or path)")
         uv = getattr(geom.visual, "uv", None)
+        if uv is None and not require_uv:
+            uv = np.full((len(geom.vertices), 2), np.nan)
         if uv is None:
             raise InputError.single(path, f"mesh node {name!r} uv", "has no texture coordinates (TEXCOORD_0/vt); "
                                     "unwrap the mesh (e.g. xatlas) before building a scene")
@@ -300,14 +330,21 @@ def read_scene(path, *, check_pixels: bool = True) -> Scene:
         problems.add(file, "format", f"expected {FORMAT_NAME!r}, got {doc.get('format')!r}")
     if doc.get("version") != FORMAT_VERSION:
         problems.add(file, "version", f"this jaxdistill reads version {FORMAT_VERSION}, got {doc.get('version')!r}")
-    for key in ("mesh", "views"):
-        if key not in doc:
-            problems.add(file, key, "required field is missing")
+    if "views" not in doc:
+        problems.add(file, "views", "required field is missing")
+    if ("mesh" in doc) == ("meshes" in doc):
+        problems.add(file, "mesh", "give exactly one of \"mesh\" (one file) or \"meshes\" (objects with transforms)")
     problems.raise_if_any()
 
-    mesh_path = root / doc["mesh"]
-    objects = doc.get("objects")
-    mesh = load_mesh(mesh_path, list(objects) if objects is not None else None)
+    if "mesh" in doc:
+        mesh_path = root / doc["mesh"]
+        objects = doc.get("objects")
+        mesh = load_mesh(mesh_path, list(objects) if objects is not None else None)
+    else:
+        from jaxdistill.scene_config import load_objects
+
+        mesh_path = path
+        mesh = load_objects(doc["meshes"], root, file, "meshes")
 
     views, view_index = [], []
     if not isinstance(doc["views"], list):
@@ -331,22 +368,29 @@ def read_scene(path, *, check_pixels: bool = True) -> Scene:
             continue
         if K is None or c2w is None:
             continue
-        targets = entry.get("targets", {})
-        if not isinstance(targets, dict):
-            problems.add(file, f"{where}.targets", "expected an object {map name: image path}")
-            targets = {}
-        targets = {k: root / p for k, p in targets.items()}
+        images = {}
+        for key in ("targets", "ground_truth"):
+            value = entry.get(key, {})
+            if not isinstance(value, dict):
+                problems.add(file, f"{where}.{key}", "expected an object {map name: image path}")
+                value = {}
+            images[key] = {k: root / p for k, p in value.items()}
+        mask = root / entry["mask"] if entry.get("mask") is not None else None
+        exposure = entry.get("exposure", 0.0)
         camera_problems = [(f"{where}.K", m) for m in intrinsics_problems(K)]
         camera_problems += [(f"{where}.c2w", m) for m in pose_problems(c2w)]
         for field, message in camera_problems:
             problems.add(file, field, message)
         if camera_problems:  # no Camera to build: check the images without their size
-            view_problems(root / entry["photo"], targets, None, where, file, problems, check_pixels=check_pixels)
+            view_problems(root / entry["photo"], images["targets"], None, where, file, problems,
+                          check_pixels=check_pixels, mask=mask, ground_truth=images["ground_truth"],
+                          exposure=exposure)
             continue
         camera = Camera(K=K, c2w=c2w, width=width, height=height)
         view_index.append(i)
         views.append(View(name=str(entry.get("name", f"view_{i:03d}")), camera=camera,
-                          photo=root / entry["photo"], targets=targets))
+                          photo=root / entry["photo"], targets=images["targets"], exposure=exposure,
+                          mask=mask, ground_truth=images["ground_truth"]))
     scene = Scene(name=str(doc.get("name", root.name)), mesh=mesh, views=tuple(views),
                   texture_layout=doc.get("texture_layout", "pages"), root=root)
     if not doc["views"]:
@@ -361,9 +405,10 @@ def _relative(path: Path, root: Path) -> str:
 
 
 def write_scene(scene: Scene, folder, *, mesh_name: str = "mesh.glb") -> Path:
-    """Writes scene.json and the mesh into `folder`; images must already live under `folder`.
+    """Writes scene.json and the mesh (one node per object) into `folder`; returns scene.json's path.
 
-    Image paths are stored relative to `folder`. Returns the path of scene.json.
+    Image paths are stored relative to `folder` (images outside it as ../ paths: keep them where
+    they are, or move the whole tree together).
     """
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
@@ -374,8 +419,13 @@ def write_scene(scene: Scene, folder, *, mesh_name: str = "mesh.glb") -> Path:
         entry = {"name": view.name, "width": int(cam.width), "height": int(cam.height),
                  "K": np.asarray(cam.K, np.float64).tolist(), "c2w": np.asarray(cam.c2w, np.float64).tolist(),
                  "photo": _relative(view.photo, folder)}
-        if view.targets:
-            entry["targets"] = {k: _relative(p, folder) for k, p in view.targets.items()}
+        if view.exposure:
+            entry["exposure"] = float(view.exposure)
+        if view.mask is not None:
+            entry["mask"] = _relative(view.mask, folder)
+        for key in ("targets", "ground_truth"):
+            if getattr(view, key):
+                entry[key] = {k: _relative(p, folder) for k, p in getattr(view, key).items()}
         views.append(entry)
     doc = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "name": scene.name, "mesh": mesh_name,
            "objects": list(scene.mesh.object_names), "texture_layout": scene.texture_layout, "views": views}

@@ -221,7 +221,7 @@ def evaluation_context(config: DistillConfig, problem: Problem) -> EvalContext:
     else:
         plan = build_gather_plans(frags, problem.space, config.sampler)
     gt = evaluation.read_ground_truth(scene)
-    gt_maps = evaluation.gt_view_maps(gt, scene, frags) if gt else None
+    gt_maps = evaluation.gt_view_maps(gt, scene, frags) if gt else evaluation.image_ground_truth(scene, frags)
     return EvalContext(gt, frags, cameras, gt_maps, evaluation.evaluation_masks(gt, scene, frags), plan)
 
 
@@ -270,7 +270,8 @@ def write_outputs(config: DistillConfig, problem: Problem, texels: np.ndarray, h
                 result["improvement"] = _improvement(result["ours"], result["baseline_per_view_estimates"])
     else:
         result["ours"] = None
-        result["note"] = "the scene has no ground truth (gt.json in jaxdistill-gt format): no metrics against GT"
+        result["note"] = ("the scene has no ground truth (neither gt.json in jaxdistill-gt format nor views' "
+                          "ground_truth images): no metrics against GT")
 
     if history["step"]:
         extra = {"albedo PSNR (dB)": (history["eval_step"], history["albedo_psnr"])} if history["eval_step"] else None
@@ -278,7 +279,7 @@ def write_outputs(config: DistillConfig, problem: Problem, texels: np.ndarray, h
                                title=f"{scene.name}: {problem.choice.kind} prior, {len(channels.maps)} maps")
     picks = np.linspace(0, len(names) - 1, min(config.contact_views, len(names))).round().astype(int)
     if len(picks):
-        photos = [imageio.read_photo_srgb(scene.views[i].photo) for i in picks]
+        photos = [imageio.read_photo_srgb(scene.views[i].photo, scene.views[i].exposure) for i in picks]
         for m in channels.maps:
             rows = []
             for j, i in enumerate(picks):

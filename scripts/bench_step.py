@@ -128,7 +128,7 @@ def batch_photos(problem, view_ids):
     from jaxdistill import imageio
     from jaxdistill.problem import resize
 
-    return [resize(imageio.read_photo_srgb(problem.scene.views[i].photo), problem.height, problem.width)
+    return [resize(imageio.read_photo_srgb(problem.scene.views[i].photo, problem.scene.views[i].exposure), problem.height, problem.width)
             for i in view_ids]
 
 

@@ -458,7 +458,7 @@ def run_rgbx(spec: dict) -> dict:
     scene = read_scene(resolve_scene_path(spec["scene"]))
     view = scene.views[spec["view"]]
     height, width = render_shape(scene, spec["render_size"], 8)
-    photo = resize(imageio.read_photo_srgb(view.photo), height, width)
+    photo = resize(imageio.read_photo_srgb(view.photo, view.exposure), height, width)
     gt = evaluation.read_ground_truth(scene)
     if gt is not None and "albedo" in gt.pages:
         one = dataclasses.replace(scene, views=(view,))
@@ -467,7 +467,7 @@ def run_rgbx(spec: dict) -> dict:
     elif "albedo" in view.targets:
         albedo, source = read_target("albedo", view.targets["albedo"]), f"albedo target of {view.name}"
     else:
-        albedo, source = imageio.srgb_to_linear(imageio.read_photo_srgb(view.photo)), f"linear photo of {view.name}"
+        albedo, source = imageio.srgb_to_linear(imageio.read_photo_srgb(view.photo, view.exposure)), f"linear photo of {view.name}"
     image = file_to_model("albedo", resize(np.asarray(albedo, np.float32)[..., :3], height, width))[None]
 
     vocab_file = folder / "tokenizer" / "vocab.json"
