@@ -22,8 +22,9 @@
    sRGB decoding. Unsupported plugins raise one InputError listing every (shape, plugin).
 3. **Reconstruction UVs**: an object keeps its UVs when they lie in [0, 1], are not collapsed
    (faces with zero UV area over > 1 % of its surface) and do not overlap (rasterised at
-   256^2: < 2 % of covered texels covered twice); otherwise it is re-unwrapped with xatlas
-   (2-texel padding, aspect preserved). Layout "pages": one page per object.
+   256^2: < 2 % of covered texels covered twice); otherwise (and always for the tessellated
+   analytic shapes) it is re-unwrapped with xatlas, 2-texel padding, for about a 1024^2 page
+   (the rules are those of `jaxdistill.unwrap`). Layout "pages": one page per object.
 4. **Views**: seeded random eyes inside the bounding box of the unmasked geometry (shrunk by
    5 %), kept when 26 probe rays mostly hit, none is closer than a clearance (1 % of the scene
    diagonal) and they see >= 3 distinct objects (inside a closed object they see only it);
@@ -71,6 +72,7 @@ from jaxdistill.cameras import Camera, look_at, rgbx_camera_normals
 from jaxdistill.errors import InputError, ProblemList
 from jaxdistill.render import fragments as fr
 from jaxdistill.scene import Mesh, Scene, View, read_scene, write_scene
+from jaxdistill.unwrap import UVDecision, unwrap_object, uv_problem
 
 log = logging.getLogger(__name__)
 
@@ -96,11 +98,6 @@ SHAPE_PLUGINS = {"OBJMesh": "obj", "PLYMesh": "ply", "SerializedMesh": "serializ
                  "Cylinder": "cylinder"}
 ANALYTIC_SHAPES = ("disk", "sphere", "cylinder")
 TESSELLATION_SEGMENTS = 64
-
-UV_RASTER = 256
-UV_OVERLAP_LIMIT = 0.02
-UV_COLLAPSED_LIMIT = 0.01
-XATLAS_PADDING = 2
 
 FOV_RANGE = (60.0, 75.0)
 PRINCIPAL_OFFSET = 0.03
@@ -517,88 +514,19 @@ def load_source(xml_path, *, up=None) -> MitsubaSource:
 # ----------------------------------------------------------------------------- UV layout
 
 
-def _uv_areas(uv: np.ndarray) -> np.ndarray:
-    """Signed areas (F,) of UV triangles (F, 3, 2)."""
-    e1, e2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
-    return 0.5 * (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+def reconstruction_mesh(objects: Sequence[SourceObject], *, progress: bool = False, cache_dir=False,
+                        source_file: str = "mitsuba scene") -> tuple[Mesh, list[UVDecision]]:
+    """Our Mesh (same triangles, in order) with UVs in [0, 1] per object, and the UV decisions.
 
-
-def uv_overlap_fraction(uv: np.ndarray, resolution: int = UV_RASTER) -> float:
-    """Fraction of covered texel centres (of a resolution^2 raster of [0, 1]^2) covered twice or more."""
-    count = np.zeros((resolution, resolution), np.int32)
-    p = uv * resolution - 0.5                        # texel i has its centre at coordinate i
-    area = _uv_areas(p)
-    for tri, a in zip(p, area):
-        if abs(a) < 1e-12:
-            continue
-        lo = np.maximum(np.ceil(tri.min(0)), 0).astype(int)
-        hi = np.minimum(np.floor(tri.max(0)), resolution - 1).astype(int)
-        if (lo > hi).any():
-            continue
-        xs, ys = np.meshgrid(np.arange(lo[0], hi[0] + 1), np.arange(lo[1], hi[1] + 1))
-        inside = np.ones(xs.shape, bool)
-        for k in range(3):
-            (x0, y0), (x1, y1) = tri[k], tri[(k + 1) % 3]
-            edge = (x1 - x0) * (ys - y0) - (y1 - y0) * (xs - x0)
-            inside &= edge * np.sign(a) > 1e-9
-        count[ys[inside], xs[inside]] += 1
-    covered = (count > 0).sum()
-    return float((count > 1).sum() / covered) if covered else 0.0
-
-
-def uv_problem(uv: np.ndarray, triangles: np.ndarray) -> str | None:
-    """Why per-corner UVs (F, 3, 2) cannot be kept ('tiled', 'collapsed', 'overlapping'), or None."""
-    if not np.isfinite(uv).all():
-        return "non-finite"
-    if (uv < -1e-6).any() or (uv > 1 + 1e-6).any():
-        return "tiled (outside [0, 1])"
-    edges = triangles[:, 1:] - triangles[:, :1]
-    area3d = 0.5 * np.linalg.norm(np.cross(edges[:, 0], edges[:, 1]), axis=1)
-    degenerate = np.abs(_uv_areas(uv)) < 1e-12
-    if area3d[degenerate].sum() > UV_COLLAPSED_LIMIT * max(area3d.sum(), 1e-300):
-        return "collapsed (zero UV area)"
-    overlap = uv_overlap_fraction(uv)
-    if overlap > UV_OVERLAP_LIMIT:
-        return f"overlapping ({100 * overlap:.0f} % of texels)"
-    return None
-
-
-def xatlas_unwrap(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Per-corner UVs (F, 3, 2) in [0, 1] from xatlas, charts packed without overlap in one atlas."""
-    import xatlas
-
-    atlas = xatlas.Atlas()
-    atlas.add_mesh(np.ascontiguousarray(vertices, np.float32), np.ascontiguousarray(faces, np.uint32))
-    pack = xatlas.PackOptions()
-    pack.padding = XATLAS_PADDING
-    atlas.generate(pack_options=pack)
-    if atlas.atlas_count != 1:
-        raise RuntimeError(f"xatlas made {atlas.atlas_count} atlases, expected one")
-    vmapping, indices, uvs = atlas[0]
-    indices = np.asarray(indices, np.int64).reshape(-1, 3)
-    if indices.shape != faces.shape or not (np.asarray(vmapping)[indices] == faces).all():
-        raise RuntimeError("xatlas changed the faces (order or count); cannot map UVs back")
-    w, h = atlas.width, atlas.height
-    scale = np.array([w, h], np.float64) / max(w, h)   # keep texels square in a square page
-    return np.clip(np.asarray(uvs, np.float64)[indices] * scale, 0.0, 1.0)
-
-
-@dataclasses.dataclass(frozen=True)
-class UVDecision:
-    """What happened to one object's UVs: kept, or re-unwrapped because of `reason`."""
-
-    name: str
-    reunwrapped: bool
-    reason: str
-    seconds: float
-
-
-def reconstruction_mesh(objects: Sequence[SourceObject], *, progress: bool = False) -> tuple[Mesh, list[UVDecision]]:
-    """Our Mesh (same triangles, in order) with UVs in [0, 1] per object, and the UV decisions."""
+    Objects are checked with `unwrap.uv_problem` and re-unwrapped with `unwrap.unwrap_object`
+    (no cameras yet: about a DEFAULT_RESOLUTION page each; cache_dir as there, off by default);
+    an object too large to unwrap is an InputError naming `source_file`.
+    """
     vertices, faces, uvs, face_object, decisions = [], [], [], [], []
     offset = 0
     for object_id, obj in enumerate(tqdm(objects, desc="uv layout", unit="object", disable=not progress)):
         start = time.perf_counter()
+        result = None
         if obj.uv_function is not None:
             reason = f"analytic {obj.shape} (tessellated)"
         elif obj.texcoords is None:
@@ -610,8 +538,14 @@ def reconstruction_mesh(objects: Sequence[SourceObject], *, progress: bool = Fal
         if reason is None:
             uv = ours
         else:
-            uv = xatlas_unwrap(obj.vertices, obj.faces)
-        decisions.append(UVDecision(obj.name, reason is not None, reason or "kept", time.perf_counter() - start))
+            result = unwrap_object(obj.vertices, obj.faces, name=obj.name, cache_dir=cache_dir, progress=progress,
+                                   mesh_file=source_file)
+            uv = result.uv
+            reason += f"; {result.note}" if result.note else ""
+        decisions.append(UVDecision(obj.name, reason is not None, reason or "kept", time.perf_counter() - start,
+                                    page_size=result.page_size if result else None,
+                                    texels_per_unit=result.texels_per_unit if result else None,
+                                    cached=bool(result and result.cached), faces=len(obj.faces)))
         vertices.append(obj.vertices)
         faces.append(obj.faces + offset)
         uvs.append(uv)
@@ -889,7 +823,7 @@ def prepare_scene(xml_path, out_dir, *, num_views: int, width: int, height: int,
              sum(len(o.faces) for o in source.objects), source.dropped or "none", timings["load_s"])
 
     t = time.perf_counter()
-    mesh, decisions = reconstruction_mesh(source.objects, progress=progress)
+    mesh, decisions = reconstruction_mesh(source.objects, progress=progress, source_file=os.fspath(xml_path))
     timings["uv_layout_s"] = time.perf_counter() - t
     reunwrapped = [d for d in decisions if d.reunwrapped]
     log.info("UV layout in %.1f s: re-unwrapped %d of %d objects: %s", timings["uv_layout_s"], len(reunwrapped),

@@ -17,6 +17,7 @@ from jaxdistill.scene import read_scene
 mi = pytest.importorskip("mitsuba")
 pytest.importorskip("xatlas")
 from jaxdistill import mitsuba_import as imp  # noqa: E402
+from jaxdistill import unwrap  # noqa: E402
 
 STAIRCASE = Path(__file__).resolve().parents[2] / "shared" / "scenes" / "staircase2" / "scene.xml"
 ROOM = np.array([4.0, 2.5, 3.0])                    # x, y (up), z
@@ -245,16 +246,16 @@ def test_reconstruction_uvs(evaluator):
     assert mesh.uv.min() >= 0 and mesh.uv.max() <= 1
     np.testing.assert_array_equal(mesh.triangles(), np.concatenate([o.vertices[o.faces] for o in source.objects]))
     floor = mesh.uv[mesh.face_object == mesh.object_names.index("floor")]
-    assert imp.uv_overlap_fraction(floor) == 0.0
+    assert unwrap.uv_overlap_fraction(floor) == 0.0
 
 
 def test_uv_problems():
     tri = np.array([[[0, 0, 0], [1, 0, 0], [0, 1, 0]]] * 2, float)
     uv = np.array([[[0, 0], [1, 0], [0, 1]]] * 2, float)
-    assert imp.uv_problem(uv[:1], tri[:1]) is None
-    assert "overlapping" in imp.uv_problem(uv, tri)
-    assert "tiled" in imp.uv_problem(uv * 2, tri)
-    assert "collapsed" in imp.uv_problem(uv * 0, tri)
+    assert unwrap.uv_problem(uv[:1], tri[:1]) is None
+    assert "overlapping" in unwrap.uv_problem(uv, tri)
+    assert "tiled" in unwrap.uv_problem(uv * 2, tri)
+    assert "collapsed" in unwrap.uv_problem(uv * 0, tri)
 
 
 def test_unsupported_plugins_are_listed_together(tmp_path):
