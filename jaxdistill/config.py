@@ -80,7 +80,9 @@ _DEFAULTS = DistillConfig(scene="", out_dir="")
 def define_flags(fv: flags.FlagValues = flags.FLAGS) -> None:
     """Declares the run's flags on `fv` (defaults are DistillConfig's)."""
     d = _DEFAULTS
-    flags.DEFINE_string("scene", None, "scene.json or its folder ('bedroom' = the embedded bedroom)", flag_values=fv)
+    flags.DEFINE_string("scene", None, "scene.json or its folder ('bedroom' = the embedded bedroom), or a dataset "
+                        "read directly as FORMAT:PATH with FORMAT fipt, iris, scannetpp, nerfstudio or colmap "
+                        "(scripts/import_scene.py for its options)", flag_values=fv)
     flags.DEFINE_string("out_dir", None, "output folder (maps, scene.glb, renders, metrics.json, checkpoints)",
                         flag_values=fv)
     flags.DEFINE_list("maps", list(d.maps), f"maps to distil, any of {','.join(MAP_NAMES)}", flag_values=fv)

@@ -25,7 +25,7 @@ from jaxdistill.render import fragments as fr
 from jaxdistill.render.gather_plan import SAMPLERS, build_gather_plans, build_texel_space
 from jaxdistill.render.layout import make_layout
 from jaxdistill.render.visibility import pixel_weights, view_counts, write_visibility_pages
-from jaxdistill.scene import read_scene
+from jaxdistill.datasets import open_scene
 
 FLAGS = flags.FLAGS
 flags.DEFINE_string("scene", None, "scene.json or the folder holding it")
@@ -66,7 +66,7 @@ def run(config: PrecomputeConfig) -> dict:
     out = Path(config.out_dir)
     timings = {}
     start = time.perf_counter()
-    scene = read_scene(config.scene)
+    scene = open_scene(config.scene)
     timings["read_scene_s"] = time.perf_counter() - start
     logging.info("scene %s: %d faces, %d objects, %d views", scene.name, scene.mesh.num_faces,
                  scene.num_objects, len(scene.views))

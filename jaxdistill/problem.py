@@ -296,9 +296,11 @@ def build_problem(config: DistillConfig, *, cache_dir=None) -> Problem:
         weights = np.asarray(pixel_weights(plan, counts), np.float32)
     else:
         weights = np.asarray(plan.hit, np.float32).reshape(len(frags), height, width)
-    for v, view in enumerate(scene.views):
-        if view.mask is not None:                    # emitters, anonymised faces, unfilled pixels
-            weights[v] *= read_mask(view.mask, height, width)
+    if any(view.mask is not None for view in scene.views):   # emitters, anonymised faces, unfilled pixels
+        weights = np.array(weights)                            # writable (a device array's view is not)
+        for v, view in enumerate(scene.views):
+            if view.mask is not None:
+                weights[v] *= read_mask(view.mask, height, width)
     timings["plans_s"] = time.perf_counter() - t0
     logging.info("texels: %d parameters x %d channels (%s pages, %.1fx fewer than full pages), %d observed",
                  space.num_texels, channels.num_channels, list(layout.page_sizes),

@@ -139,7 +139,8 @@ def mesh_problems(mesh: Mesh, file: str, problems: ProblemList) -> None:
         return
     bad = ~np.isfinite(uv).all(axis=(1, 2))
     if bad.any():
-        problems.add(file, "uv", f"{bad.sum()} faces have NaN/inf UVs (first: face {np.argmax(bad)})")
+        problems.add(file, "uv", f"{bad.sum()} faces have NaN/inf UVs (first: face {np.argmax(bad)}; NaN = no "
+                     "texture coordinates): unwrap them with scripts/import_scene.py (or jaxdistill.unwrap.ensure_uvs)")
     outside = ((uv < -UV_TOLERANCE) | (uv > 1 + UV_TOLERANCE)).any(axis=(1, 2)) & ~bad
     if outside.any():
         problems.add(file, "uv", f"{outside.sum()} faces have UVs outside [0, 1] (first: face "

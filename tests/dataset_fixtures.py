@@ -158,7 +158,8 @@ def write_scannetpp(root: Path, cams, *, seed: int = 2, bad_frame: int | None = 
             mask[-3:, -3:] = 0.0
             imageio.write_image(dslr / "undistorted_anon_masks" / f"DSC{i:05d}.png", mask, encode_srgb=False)
         m = _opengl_matrix(cam)
-        m[:3, :3] *= 1.0 + 2e-4 * rng.normal(size=(3, 3))           # not quite orthonormal
+        noise = 2e-4 * rng.normal(size=(3, 3))
+        m[:3, :3] = m[:3, :3] @ (np.eye(3) + noise + noise.T)       # not orthonormal; its polar part is R
         meta["frames"].append({"file_path": name, "transform_matrix": m.tolist(), "is_bad": i == bad_frame})
     (dslr / "nerfstudio").mkdir(parents=True, exist_ok=True)
     (dslr / "nerfstudio" / "transforms_undistorted.json").write_text(json.dumps(meta))
@@ -190,7 +191,7 @@ def write_colmap(root: Path, cams, *, model: str = "PINHOLE", k: float = 0.0, se
     params = {"PINHOLE": [K[0, 0], K[1, 1], K[0, 2], K[1, 2]],
               "SIMPLE_RADIAL": [K[0, 0], K[0, 2], K[1, 2], k]}[model]
     root.mkdir(parents=True, exist_ok=True)
-    (root / "cameras.txt").write_text("# Camera list\n" f"1 {model} {WIDTH} {HEIGHT} " + " ".join(map(repr, params)) + "\n")
+    (root / "cameras.txt").write_text("# Camera list\n" f"1 {model} {WIDTH} {HEIGHT} " + " ".join(f"{float(x)!r}" for x in params) + "\n")
     lines = ["# Image list with two lines of data per image:"]
     for i, cam in enumerate(cams):
         R = cam["c2w"][:3, :3].T
@@ -198,7 +199,7 @@ def write_colmap(root: Path, cams, *, model: str = "PINHOLE", k: float = 0.0, se
         q = rotation_to_quaternion(R)
         name = f"img_{i}.png"
         imageio.write_image(root / "images" / name, _photo(rng, False))
-        lines.append(f"{i + 1} " + " ".join(map(repr, [*q, *t])) + f" 1 {name}")
+        lines.append(f"{i + 1} " + " ".join(f"{float(x)!r}" for x in [*q, *t]) + f" 1 {name}")
         lines.append("")                                            # no 2D points
     (root / "images.txt").write_text("\n".join(lines) + "\n")
     return root
