@@ -10,7 +10,7 @@ metallic}/<view>.exr (ground truth evaluated at the original UVs), masks/<view>.
 hit, not emitter, not glass), gt.json (conventions, materials, UV decisions, statistics,
 timings) and README.md. How each step works: `jaxdistill/mitsuba_import.py`.
 
-Needs the `scenes` extra (Mitsuba 3, xatlas). Bad input (missing XML or texture files, not a
+Needs the `scenes` extra (Mitsuba 3). Bad input (missing XML or texture files, not a
 scene, unsupported plugins, bad flags) is reported as a list of problems, exit status 2.
 
 The real scene this was written for, `../shared/scenes/staircase2`, is "Modern Hall" by
