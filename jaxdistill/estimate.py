@@ -125,7 +125,7 @@ def run(cfg: EstimateConfig) -> dict:
     summary = {"config": dataclasses.asdict(cfg), "load_seconds": loaded.seconds,
                "seconds_per_map": {"first (with compile)": seconds[0],
                                    "median": float(np.median(seconds[1:] or seconds))},
-               "views": [n for n, _ in photos], "backend": jax.default_backend()}
+               "views": [p[0] for p in photos], "backend": jax.default_backend()}
     out.mkdir(parents=True, exist_ok=True)
     (out / "estimate.json").write_text(json.dumps(summary, indent=2))
     logging.info("wrote %d maps to %s", len(seconds), out)

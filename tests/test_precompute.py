@@ -34,4 +34,4 @@ def test_precompute_cli_reports_bad_flags(tmp_path):
     assert result.returncode != 0 and "--texture_size: must be 'auto' or a power of two" in result.stderr
     result = subprocess.run([sys.executable, "-m", "jaxdistill.precompute", f"--scene={tmp_path}/nope",
                              f"--out_dir={tmp_path}/out"], capture_output=True, text=True)
-    assert result.returncode != 0 and "scene file not found" in result.stderr
+    assert result.returncode != 0 and "nope not found (give scene.json, its folder" in result.stderr
