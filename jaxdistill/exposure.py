@@ -22,6 +22,7 @@ BRIGHTNESS_WEIGHTS = np.array([0.3, 0.59, 0.11], np.float32)
 HYPERSIM_PERCENTILE = 90.0
 HYPERSIM_TARGET = 0.8 ** 2.2          # linear value of 0.8 after the 1/2.2 gamma
 MAX_PIXELS_PER_VIEW = 1 << 16         # subsample views to this many pixels for the percentile
+MAX_STOPS = 64.0                      # |exposure| accepted in scene.json and --exposure
 
 
 def brightness(linear: np.ndarray) -> np.ndarray:

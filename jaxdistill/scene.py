@@ -55,6 +55,7 @@ from jaxdistill import MAP_NAMES
 from jaxdistill import imageio
 from jaxdistill.cameras import Camera, intrinsics_problems, pose_problems
 from jaxdistill.errors import InputError, ProblemList, read_json
+from jaxdistill.exposure import MAX_STOPS
 
 FORMAT_NAME = "jaxdistill-scene"
 FORMAT_VERSION = 1
@@ -159,8 +160,9 @@ def view_problems(photo: Path, targets: Mapping[str, Path], cam: Camera | None, 
     unreadable or non-finite images, and (given the view's camera) a size that differs from it.
     The camera itself is valid by construction (`Camera` validates K and c2w)."""
     image_problems(photo, f"{where}.photo", cam, file, problems, check_pixels=check_pixels)
-    if not (isinstance(exposure, (int, float)) and not isinstance(exposure, bool) and abs(exposure) <= 64):
-        problems.add(file, f"{where}.exposure", f"expected a number of stops in [-64, 64], got {exposure!r}")
+    if not (isinstance(exposure, (int, float)) and not isinstance(exposure, bool) and abs(exposure) <= MAX_STOPS):
+        problems.add(file, f"{where}.exposure", f"expected a number of stops in [-{MAX_STOPS:g}, {MAX_STOPS:g}], "
+                     f"got {exposure!r}")
     if mask is not None:
         image_problems(mask, f"{where}.mask", cam, file, problems, check_pixels=check_pixels)
     for field, images in (("targets", targets), ("ground_truth", ground_truth or {})):

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 from pathlib import Path
 
 import numpy as np
@@ -349,8 +350,9 @@ def load_colmap(path, options=None, *, images: str | None = None, report: dict |
     folder = find_model_folder(root)
     records = read_colmap_model(folder)
     image_dir = Path(images) if images else next((d for d in (root / "images", folder / "images") if d.is_dir()), folder)
-    views = [ViewSource(name=Path(r.name).stem if len({Path(x.name).stem for x in records}) == len(records)
-                        else r.name.replace("/", "_"), camera=r.camera, photo=image_dir / r.name,
-                        distortion=None if r.distortion.is_identity() else r.distortion) for r in records]
+    stems_unique = len({Path(r.name).stem for r in records}) == len(records)
+    views = [ViewSource(name=Path(r.name).stem if stems_unique else r.name.replace("/", "_"), camera=r.camera,
+                        photo=image_dir / r.name, distortion=None if r.distortion.is_identity() else r.distortion)
+             for r in records]
     return build_scene(root.name, root, None, views, options, source_file=os.fspath(folder / "images.txt"),
                        report=report)

@@ -67,8 +67,9 @@ class ImportOptions:
                 stops = float(self.exposure)
             except (TypeError, ValueError):
                 stops = float("nan")
-            if not abs(stops) <= 64:
-                raise InputError.single("options", "exposure", f"expected 'auto' or stops in [-64, 64], got {self.exposure!r}")
+            if not abs(stops) <= exposure_rule.MAX_STOPS:
+                raise InputError.single("options", "exposure", f"expected 'auto' or stops in [-{exposure_rule.MAX_STOPS:g}, "
+                                        f"{exposure_rule.MAX_STOPS:g}], got {self.exposure!r}")
             object.__setattr__(self, "exposure", stops)
         if self.max_views < 0:
             raise InputError.single("options", "max_views", f"must be >= 0 (0 = all), got {self.max_views}")
