@@ -442,18 +442,29 @@ def place_views(mesh: Mesh, rng, count: int, width: int, height: int) -> list[ca
         forward = (target - eye) / np.linalg.norm(target - eye)
         if abs(forward[1]) > 0.9:
             continue
-        roll = math.radians(rng.normal(0, 3.0))
-        side = np.cross(forward, [0.0, 1.0, 0.0])
-        side /= np.linalg.norm(side)
-        up = math.cos(roll) * np.cross(side, forward) + math.sin(roll) * side
-        cam = cameras.look_at(eye, target, up, K, width, height)
-        small = cameras.Camera(np.diag([0.125, 0.125, 1.0]) @ K, cam.c2w, width // 8, height // 8)
-        tri, _, depth = fr.cast_view(caster, small)[:3]
-        hit = tri >= 0
-        if hit.mean() < 0.9 or np.median(depth[hit]) < 0.4:
+        cam = rolled_camera(eye, target, K, width, height, math.radians(rng.normal(0, 3.0)))
+        coverage, depth = preview(caster, cam, 8)
+        if coverage < 0.9 or depth < 0.4:
             continue
         out.append(cam)
     return out
+
+
+def rolled_camera(eye, target, K, width, height, roll: float) -> cameras.Camera:
+    """A camera at eye looking at target, rolled by `roll` radians from level."""
+    forward = (target - eye) / np.linalg.norm(target - eye)
+    side = np.cross(forward, [0.0, 1.0, 0.0])
+    side /= np.linalg.norm(side)
+    up = math.cos(roll) * np.cross(side, forward) + math.sin(roll) * side
+    return cameras.look_at(eye, target, up, K, width, height)
+
+
+def preview(caster, cam: cameras.Camera, factor: int) -> tuple[float, float]:
+    """(fraction of pixels that hit geometry, median hit depth) of `cam` at 1/factor resolution."""
+    small = cameras.Camera(np.diag([1 / factor, 1 / factor, 1.0]) @ cam.K, cam.c2w, cam.width // factor, cam.height // factor)
+    tri, _, depth = fr.cast_view(caster, small)[:3]
+    hit = tri >= 0
+    return float(hit.mean()), float(np.median(depth[hit])) if hit.any() else 0.0
 
 
 # ----------------------------------------------------------------------------- estimates
