@@ -31,7 +31,7 @@ import numpy as np
 
 from jaxdistill.cameras import quaternion_to_rotation
 from jaxdistill.errors import InputError, ProblemList, read_json
-from jaxdistill.scene import Mesh, load_mesh
+from jaxdistill.mesh import Mesh, load_mesh
 
 CONFIG_FORMAT = "jaxdistill-scene-config"
 CONFIG_VERSION = 1

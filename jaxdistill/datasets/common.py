@@ -38,6 +38,7 @@ from jaxdistill import imageio
 from jaxdistill.cameras import Camera
 from jaxdistill.errors import InputError, ProblemList
 from jaxdistill.scene import Mesh, Scene, View, load_mesh, validate_scene, view_problems
+from jaxdistill.view_images import read_mask
 
 log = logging.getLogger(__name__)
 
@@ -158,8 +159,6 @@ def view_exposures(views: Sequence[ViewSource], setting, progress: bool) -> tupl
     hdr = [v for v in views if imageio.is_linear_format(v.photo)]
     if not hdr:
         return [0.0] * len(views), "LDR photos: 0 stops (exposed by their camera)"
-    from jaxdistill.problem import read_mask
-
     def photos():
         for v in tqdm(hdr, desc="exposure", unit="photo", disable=not progress):
             yield imageio.read_image(v.photo)
