@@ -232,9 +232,9 @@ def build_problem(config: DistillConfig, *, cache_dir=None) -> Problem:
     timings = {}
     t0 = time.perf_counter()
     choice = choose_prior(config)
-    from jaxdistill.datasets import open_scene
+    from jaxdistill.datasets import ImportOptions, open_scene
 
-    scene = open_scene(config.scene)
+    scene = open_scene(config.scene, ImportOptions(allow_outside_paths=config.allow_outside_paths))
     channels = MapChannels(tuple(config.maps))
     height, width = render_shape(scene, config.render_size, 8 if choice.kind == "rgbx" else 1)
     timings["read_scene_s"] = time.perf_counter() - t0

@@ -58,6 +58,7 @@ from jaxdistill.errors import InputError, ProblemList, read_json
 from jaxdistill.exposure import MAX_STOPS
 from jaxdistill.mesh import Mesh, load_mesh, save_mesh  # noqa: F401  (re-exported: the scene's mesh type and I/O)
 from jaxdistill.scene_config import load_objects
+from jaxdistill.scene_paths import scene_json_path_problems
 
 FORMAT_NAME = "jaxdistill-scene"
 FORMAT_VERSION = 1
@@ -217,8 +218,11 @@ def _matrix(value, shape, file, field, problems) -> np.ndarray | None:
     return array
 
 
-def read_scene(path, *, check_pixels: bool = True) -> Scene:
-    """Reads and fully validates `scene.json` (or a folder holding it); raises InputError."""
+def read_scene(path, *, check_pixels: bool = True, allow_outside_paths: bool = False) -> Scene:
+    """Reads and fully validates `scene.json` (or a folder holding it); raises InputError.
+
+    Every path it names (and its gt.json's) must stay inside its folder unless
+    `allow_outside_paths` (`scene_paths.py`); that is checked before any of them is touched."""
     path = Path(path)
     if path.is_dir():
         path = path / "scene.json"
@@ -235,6 +239,8 @@ def read_scene(path, *, check_pixels: bool = True) -> Scene:
     if ("mesh" in doc) == ("meshes" in doc):
         problems.add(file, "mesh", "give exactly one of \"mesh\" (one file) or \"meshes\" (objects with transforms)")
     problems.raise_if_any()
+    scene_json_path_problems(doc, root, file, problems, allow_outside=allow_outside_paths)
+    problems.raise_if_any()
 
     if "mesh" in doc:
         mesh_path = root / doc["mesh"]
@@ -242,7 +248,7 @@ def read_scene(path, *, check_pixels: bool = True) -> Scene:
         mesh = load_mesh(mesh_path, list(objects) if objects is not None else None)
     else:
         mesh_path = path
-        mesh = load_objects(doc["meshes"], root, file, "meshes")
+        mesh = load_objects(doc["meshes"], root, file, "meshes", allow_outside_paths=allow_outside_paths)
 
     views, view_index = [], []
     if not isinstance(doc["views"], list):

@@ -14,7 +14,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from jaxdistill.errors import InputError, ProblemList
+from jaxdistill.errors import InputError, ProblemList, read_json
 
 ALLOW_FLAG = "--allow_outside_paths"
 
@@ -48,8 +48,46 @@ def scene_file_path(root, value, file, field: str, problems: ProblemList, *,
         return None
     path = Path(root) / value
     if not allow_outside and not is_inside(path, root):
-        problems.add(file, field, f"{value!r} points outside the scene folder {root}; a scene file may only name "
-                     f"files inside its folder, so nothing was read. If you trust this file (files shared "
-                     f"between scenes), pass {ALLOW_FLAG}")
+        problems.add(file, field, f"{value!r} resolves outside the scene folder {root}, so it was not read "
+                     f"(scene files may name only files inside their folder); if you trust this file and share "
+                     f"files between scenes, pass {ALLOW_FLAG}")
         return None
     return path
+
+
+def scene_json_path_problems(doc: dict, root: Path, file, problems: ProblemList, *, allow_outside: bool) -> None:
+    """Adds a problem for each path field of a parsed scene.json (mesh, meshes[].file, views'
+    photo, mask, targets, ground_truth) and of the scene's gt.json textures that is not a path or
+    leaves `root`."""
+    def check(value, field):
+        scene_file_path(root, value, file, field, problems, allow_outside=allow_outside)
+
+    if "mesh" in doc:
+        check(doc["mesh"], "mesh")
+    for i, entry in enumerate(doc["meshes"] if isinstance(doc.get("meshes"), list) else []):
+        if isinstance(entry, dict) and "file" in entry:
+            check(entry["file"], f"meshes[{i}].file")
+    for i, entry in enumerate(doc["views"] if isinstance(doc.get("views"), list) else []):
+        if not isinstance(entry, dict):
+            continue
+        if "photo" in entry:
+            check(entry["photo"], f"views[{i}].photo")
+        if entry.get("mask") is not None:
+            check(entry["mask"], f"views[{i}].mask")
+        for key in ("targets", "ground_truth"):
+            for name, value in (entry[key].items() if isinstance(entry.get(key), dict) else ()):
+                check(value, f"views[{i}].{key}.{name}")
+    gt_json_path_problems(root, problems, allow_outside=allow_outside)
+
+
+def gt_json_path_problems(root: Path, problems: ProblemList, *, allow_outside: bool) -> None:
+    """Adds a problem for each texture path of `root`/gt.json ({"textures": {map: {object: path}}})
+    that is not a path or leaves `root`; nothing when there is no gt.json."""
+    path = Path(root) / "gt.json"
+    if not path.is_file():
+        return
+    doc = read_json(path, "missing")
+    textures = doc.get("textures") if isinstance(doc, dict) else None
+    for name, per_object in (textures.items() if isinstance(textures, dict) else ()):
+        for obj, value in (per_object.items() if isinstance(per_object, dict) else ()):
+            scene_file_path(root, value, path, f"textures.{name}.{obj}", problems, allow_outside=allow_outside)

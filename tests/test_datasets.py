@@ -180,11 +180,42 @@ def test_import_script_writes_a_scene_that_reads_back(tmp_path, cams):
                            f"--path={root}", f"--out={out}", "--quiet"], capture_output=True, text=True,
                           env={**__import__("os").environ})
     assert proc.returncode == 0, proc.stderr
-    scene = read_scene(out)
+    # the photos stay in the dataset, outside `out`: refused by default, read with the opt-in
+    with pytest.raises(InputError, match=r"views\[0\]\.photo: '\.\./spp/dslr/undistorted_images/DSC00000\.JPG' "
+                       r"resolves outside the scene folder"):
+        read_scene(out)
+    assert f"--scene={out} --out_dir=runs/spp --allow_outside_paths" in proc.stdout
+    scene = read_scene(out, allow_outside_paths=True)
     assert len(scene.views) == 3 and np.isfinite(scene.mesh.uv).all()
     report = json.loads((out / "import.json").read_text())
     assert report["views"] == 3 and report["uv_decisions"] and "uv_s" in report["timings"]
     assert "unwrap" in proc.stdout.lower() and "exposure" in proc.stdout
+
+
+def test_main_job_reads_a_scene_naming_outside_files_only_with_its_flag(tmp_path, cams):
+    """An imported scene names the dataset's photos (../): the main job's --allow_outside_paths
+    reaches the scene reader; without it the run stops before anything is read."""
+    from absl import flags
+
+    from jaxdistill import config as config_lib
+    from jaxdistill.problem import build_problem
+    from jaxdistill.scene import write_scene
+
+    out = tmp_path / "imported"
+    write_scene(datasets.load("scannetpp", fx.write_scannetpp(tmp_path / "spp", cams), options(tmp_path)), out)
+    fv = flags.FlagValues()
+    config_lib.define_flags(fv)
+    fv(["main", f"--scene={out}", f"--out_dir={tmp_path / 'run'}", "--prior=views", "--maps=albedo"])
+    config = config_lib.config_from_flags(fv)
+    assert config.allow_outside_paths is False
+    with pytest.raises(InputError, match=r"scene\.json: views\[0\]\.photo: .*resolves outside the scene folder"
+                       r".*pass --allow_outside_paths"):
+        build_problem(config)
+    fv(["main", "--allow_outside_paths"])
+    config = config_lib.config_from_flags(fv)
+    assert config.allow_outside_paths is True
+    with pytest.raises(InputError, match=r"views\[0\]\.targets\.albedo: view DSC00000 has no albedo target"):
+        build_problem(config)        # the scene was read: the views prior then asks for its targets
 
 
 # ----------------------------------------------------------------------------- bad input
