@@ -79,8 +79,8 @@ def _read_json(path: Path, required: bool):
     """The parsed JSON file, or None when an optional file is absent; InputError if unreadable."""
     if not path.is_file() and not required:
         return None
-    return read_json(path, f"missing: a CLIP tokenizer folder needs {path.name} "
-                     f"(vocab.json with merges.txt, or {TOKENIZER_JSON}; copy the model's tokenizer/ folder completely)")
+    return read_json(path, f"missing: a CLIP tokenizer folder needs vocab.json and merges.txt, or {TOKENIZER_JSON} "
+                     "(copy the model's tokenizer/ folder completely)")
 
 
 def _read_vocab(path: Path) -> dict[str, int]:
