@@ -18,6 +18,9 @@ _REORTH_TOL = 1e-2  # max |R^T R - I| that from_scannetpp still calls "slightly"
 _GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])  # OpenGL camera (y up, -z fwd) <-> OpenCV; own inverse
 _FLIP_XZ = np.diag([-1.0, 1.0, -1.0, 1.0])  # OpenGL camera -> PyTorch3D camera (thesis B.2)
 _P3D_TO_CV = np.diag([-1.0, -1.0, 1.0, 1.0])  # PyTorch3D/Mitsuba camera (x left, y up) -> OpenCV
+# ScanNet++'s nerfstudio world -> its mesh/COLMAP world: their writer swaps world rows x and y and
+# negates z (common/utils/nerfstudio.py::convert_frames); a proper rotation and its own inverse
+SCANNETPP_WORLD = np.array([[0.0, 1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
 _FOV_AXES = ("x", "y", "diagonal", "smaller", "larger")
 _NERF_KEYS = ("camera_angle_x", "camera_angle_y", "fl_x", "fl_y", "cx", "cy", "w", "h")
 
@@ -389,11 +392,15 @@ def from_pytorch3d(R, T, focal_ndc, principal_ndc, width, height) -> Camera:
 
 
 def from_scannetpp(transform_matrix, fl_x, fl_y, cx, cy, width, height) -> Camera:
-    """Returns a Camera for a ScanNet++ DSLR / nerfstudio pose (OpenGL-style c2w, (4, 4)).
+    """Returns a Camera, in the mesh's world, for a ScanNet++ DSLR nerfstudio pose ((4, 4)).
 
-    As in thesis B.2: re-orthogonalise the rotation (nearest rotation, det +1), invert the
-    camera's X and Z axes (giving a PyTorch3D camera: x left, y up, z forward), then Algorithm 1.
-    Net effect: c2w_cv = reorth(M) @ diag(1, -1, -1, 1). Intrinsics are pixels (undistorted).
+    ScanNet++ writes `transform_matrix` from the COLMAP pose (OpenCV c2w in the mesh's world) by
+    negating the camera's y and z columns (OpenGL camera) and then permuting the WORLD: rows x
+    and y swapped, row z negated. We undo both: re-orthogonalise the rotation (nearest rotation,
+    det +1), bring the pose back into the mesh's world (`SCANNETPP_WORLD @ M`), invert the
+    camera's X and Z axes as thesis B.2 does (a PyTorch3D camera: x left, y up, z forward), then
+    Algorithm 1. Net effect: c2w_cv = SCANNETPP_WORLD @ reorth(M) @ diag(1, -1, -1, 1).
+    Intrinsics are pixels (undistorted).
     """
     m = _as_float(transform_matrix, (4, 4), "transform_matrix")
     _raise_if(_last_row_problems(m), "transform_matrix")
@@ -405,7 +412,7 @@ def from_scannetpp(transform_matrix, fl_x, fl_y, cx, cy, width, height) -> Camer
     m[:3, :3] = nearest_rotation(m[:3, :3])
     K = _as_float([[fl_x, 0.0, cx], [0.0, fl_y, cy], [0.0, 0.0, 1.0]], (3, 3), "fl_x/fl_y/cx/cy")
     _raise_if(intrinsics_problems(K), "fl_x/fl_y/cx/cy")
-    return Camera(K, _algorithm1(m @ _FLIP_XZ, "transform_matrix"), width, height)
+    return Camera(K, _algorithm1(SCANNETPP_WORLD @ m @ _FLIP_XZ, "transform_matrix"), width, height)
 
 
 def rgbx_camera_rotation(c2w) -> np.ndarray:

@@ -28,7 +28,7 @@ RGBX_DIR_ENV = "JAXDISTILL_RGBX_DIR"
 
 # Flags that may change when a run is resumed; every other flag must match the checkpoint.
 RESUMABLE_FLAGS = ("steps", "resume", "ckpt_every", "out_dir", "log_every", "eval_every", "renders",
-                   "contact_views", "rgbx_dir", "convert_cache")
+                   "contact_views", "rgbx_dir", "convert_cache", "allow_outside_paths")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -68,6 +68,7 @@ class DistillConfig:
     eval_every: int = 0
     renders: bool = True
     contact_views: int = 4
+    allow_outside_paths: bool = False
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-able {flag: value}, as recorded in checkpoints and metrics.json."""
@@ -127,6 +128,9 @@ def define_flags(fv: flags.FlagValues = flags.FLAGS) -> None:
                          flag_values=fv)
     flags.DEFINE_bool("renders", d.renders, "write renders of every view for every map", flag_values=fv)
     flags.DEFINE_integer("contact_views", d.contact_views, "views in the contact sheet", flag_values=fv)
+    flags.DEFINE_bool("allow_outside_paths", d.allow_outside_paths, "let scene files (scene.json, gt.json, "
+                      "scene configs) name files outside their folder (../, absolute paths); off: refused, for "
+                      "scenes from elsewhere", flag_values=fv)
 
 
 def config_from_flags(fv: flags.FlagValues = flags.FLAGS) -> DistillConfig:

@@ -46,6 +46,7 @@ def define_flags() -> None:
     flags.DEFINE_list("views", ["all"], "view names, or 'all'")
     flags.DEFINE_enum("dtype", "float32", ["float32", "bfloat16"], "activation dtype of the networks")
     flags.DEFINE_string("convert_cache", None, "cache folder for converted weights (faster second load)")
+    flags.DEFINE_bool("allow_outside_paths", False, "let the scene file name files outside its folder")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -60,6 +61,7 @@ class EstimateConfig:
     views: tuple[str, ...] = ("all",)
     dtype: str = "float32"
     convert_cache: str | None = None
+    allow_outside_paths: bool = False
 
 
 def config_from_flags() -> EstimateConfig:
@@ -76,7 +78,8 @@ def config_from_flags() -> EstimateConfig:
         raise InputError.single("flags", "--steps", f"must be ≥ 1, got {FLAGS.steps}")
     return EstimateConfig(prior_dir=FLAGS.prior_dir, out_dir=FLAGS.out_dir, scene=FLAGS.scene, photo=FLAGS.photo,
                           maps=tuple(FLAGS.maps), steps=FLAGS.steps, seed=FLAGS.seed, views=tuple(FLAGS.views),
-                          dtype=FLAGS.dtype, convert_cache=FLAGS.convert_cache)
+                          dtype=FLAGS.dtype, convert_cache=FLAGS.convert_cache,
+                          allow_outside_paths=FLAGS.allow_outside_paths)
 
 
 def photos_to_estimate(cfg: EstimateConfig) -> list[tuple[str, Path, float]]:
@@ -86,9 +89,9 @@ def photos_to_estimate(cfg: EstimateConfig) -> list[tuple[str, Path, float]]:
         if not path.is_file():
             raise InputError.single("flags", "--photo", f"{path} not found")
         return [(path.stem, path, 0.0)]
-    from jaxdistill.datasets import open_scene
+    from jaxdistill.datasets import ImportOptions, open_scene
 
-    scene = open_scene(cfg.scene)
+    scene = open_scene(cfg.scene, ImportOptions(allow_outside_paths=cfg.allow_outside_paths))
     views = [(v.name, v.photo, v.exposure) for v in scene.views]
     if cfg.views != ("all",):
         names = {n for n, _, _ in views}

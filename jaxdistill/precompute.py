@@ -25,7 +25,7 @@ from jaxdistill.render import fragments as fr
 from jaxdistill.render.gather_plan import SAMPLERS, build_gather_plans, build_texel_space
 from jaxdistill.render.layout import make_layout
 from jaxdistill.render.visibility import pixel_weights, view_counts, write_visibility_pages
-from jaxdistill.datasets import open_scene
+from jaxdistill.datasets import ImportOptions, open_scene
 
 FLAGS = flags.FLAGS
 flags.DEFINE_string("scene", None, "scene.json or the folder holding it")
@@ -35,6 +35,7 @@ flags.DEFINE_integer("max_texture_size", 4096, "cap for --texture_size=auto")
 flags.DEFINE_enum("sampler", "bilinear", list(SAMPLERS), "texture sampler")
 flags.DEFINE_integer("tile_size", 0, "parameter tile side (power of two); 0 picks 1 (bilinear) or 16 (trilinear)")
 flags.DEFINE_string("cache_dir", None, "fragment cache (default $JAXDISTILL_CACHE or ~/.cache/jaxdistill)")
+flags.DEFINE_bool("allow_outside_paths", False, "let the scene file name files outside its folder")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -46,6 +47,7 @@ class PrecomputeConfig:
     sampler: str = "bilinear"
     tile_size: int = 0
     cache_dir: str | None = None
+    allow_outside_paths: bool = False
 
 
 def config_from_flags() -> PrecomputeConfig:
@@ -58,7 +60,8 @@ def config_from_flags() -> PrecomputeConfig:
         raise InputError.single("flags", "--texture_size", f"must be 'auto' or a power of two, got {size!r}")
     return PrecomputeConfig(scene=FLAGS.scene, out_dir=FLAGS.out_dir, texture_size=size,
                             max_texture_size=FLAGS.max_texture_size, sampler=FLAGS.sampler,
-                            tile_size=FLAGS.tile_size, cache_dir=FLAGS.cache_dir)
+                            tile_size=FLAGS.tile_size, cache_dir=FLAGS.cache_dir,
+                            allow_outside_paths=FLAGS.allow_outside_paths)
 
 
 def run(config: PrecomputeConfig) -> dict:
@@ -66,7 +69,7 @@ def run(config: PrecomputeConfig) -> dict:
     out = Path(config.out_dir)
     timings = {}
     start = time.perf_counter()
-    scene = open_scene(config.scene)
+    scene = open_scene(config.scene, ImportOptions(allow_outside_paths=config.allow_outside_paths))
     timings["read_scene_s"] = time.perf_counter() - start
     logging.info("scene %s: %d faces, %d objects, %d views", scene.name, scene.mesh.num_faces,
                  scene.num_objects, len(scene.views))

@@ -30,6 +30,8 @@ from jaxdistill.render.gather_plan import TexelSpace, build_gather_plans, build_
 from jaxdistill.render.layout import make_layout
 from jaxdistill.render.visibility import pixel_weights, view_counts
 from jaxdistill.scene import Scene
+from jaxdistill.scene_paths import resolve_scene_path  # noqa: F401  (--scene as a path; scripts use it from here)
+from jaxdistill.view_images import read_mask, read_target, resize
 
 def rgbx_hint() -> str:
     """How to obtain the RGB<->X weights, and their licence."""
@@ -66,19 +68,6 @@ def choose_prior(config: DistillConfig) -> PriorChoice:
                                 "distilling the scene's per-view target images instead")
 
 
-def resolve_scene_path(scene: str) -> Path:
-    """--scene as a path; a bare embedded-scene name (e.g. 'bedroom') resolves to the package's copy."""
-    path = Path(scene).expanduser()
-    if path.exists():
-        return path
-    from jaxdistill.scenes import SCENES_DIR
-
-    if (SCENES_DIR / scene / "scene.json").is_file():
-        return SCENES_DIR / scene
-    raise InputError.single("flags", "--scene", f"{scene} not found (give scene.json, its folder, or an embedded "
-                            "scene name such as 'bedroom')")
-
-
 # ----------------------------------------------------------------------------- view resampling
 
 def render_shape(scene: Scene, render_size: int, multiple: int = 1) -> tuple[int, int]:
@@ -109,28 +98,6 @@ def scaled_camera(camera: Camera, height: int, width: int) -> Camera:
         return camera
     scale = np.diag([width / camera.width, height / camera.height, 1.0])
     return Camera(scale @ camera.K, camera.c2w, width, height)
-
-
-def resize(image: np.ndarray, height: int, width: int) -> np.ndarray:
-    """(H, W, C) float32 resized with an antialiased linear filter (area-like when shrinking)."""
-    if image.shape[:2] == (height, width):
-        return image
-    return np.asarray(jax.image.resize(image, (height, width, image.shape[2]), "linear", antialias=True))
-
-
-def read_target(name: str, path: Path) -> np.ndarray:
-    """A per-view target image in file space: albedo/irradiance linear (sRGB files decoded),
-    roughness/metallic grey values, normals as vectors (files hold (n + 1) / 2)."""
-    if name in ("albedo", "irradiance"):
-        return imageio.read_image(path)
-    values = imageio.read_image(path, linear=False)
-    return 2.0 * values[..., :3] - 1.0 if name == "normal" else values
-
-
-def read_mask(path: Path, height: int, width: int) -> np.ndarray:
-    """(height, width) bool: True where the view's mask image (first channel, resampled) is >= 0.5."""
-    values = imageio.read_image(path, linear=False)[..., :1]
-    return resize(values, height, width)[..., 0] >= 0.5
 
 
 # ----------------------------------------------------------------------------- the problem
@@ -265,9 +232,9 @@ def build_problem(config: DistillConfig, *, cache_dir=None) -> Problem:
     timings = {}
     t0 = time.perf_counter()
     choice = choose_prior(config)
-    from jaxdistill.datasets import open_scene
+    from jaxdistill.datasets import ImportOptions, open_scene
 
-    scene = open_scene(config.scene)
+    scene = open_scene(config.scene, ImportOptions(allow_outside_paths=config.allow_outside_paths))
     channels = MapChannels(tuple(config.maps))
     height, width = render_shape(scene, config.render_size, 8 if choice.kind == "rgbx" else 1)
     timings["read_scene_s"] = time.perf_counter() - t0

@@ -31,7 +31,8 @@ import numpy as np
 
 from jaxdistill.cameras import quaternion_to_rotation
 from jaxdistill.errors import InputError, ProblemList, read_json
-from jaxdistill.scene import Mesh, load_mesh
+from jaxdistill.mesh import Mesh, load_mesh
+from jaxdistill.scene_paths import scene_file_path
 
 CONFIG_FORMAT = "jaxdistill-scene-config"
 CONFIG_VERSION = 1
@@ -115,8 +116,9 @@ def parse_transform(spec, file, field: str, problems: ProblemList) -> np.ndarray
     return m
 
 
-def load_objects(entries, root: Path, file, field: str = "meshes") -> Mesh:
-    """One Mesh of all entries' objects, transformed to world space; InputError naming file and field."""
+def load_objects(entries, root: Path, file, field: str = "meshes", *, allow_outside_paths: bool = False) -> Mesh:
+    """One Mesh of all entries' objects, transformed to world space; InputError naming file and field.
+    Object files must lie inside `root` unless `allow_outside_paths` (checked before any is read)."""
     problems = ProblemList()
     if not isinstance(entries, list) or not entries:
         raise InputError.single(file, field, "expected a non-empty list of {name, file, transform} objects")
@@ -130,7 +132,10 @@ def load_objects(entries, root: Path, file, field: str = "meshes") -> Mesh:
         if name in names:
             problems.add(file, f"{where}.name", f"duplicate object name {name!r}")
         names.add(name)
-        path = Path(root) / entry["file"]
+        path = scene_file_path(root, entry["file"], file, f"{where}.file", problems,
+                               allow_outside=allow_outside_paths)
+        if path is None:
+            continue
         if not path.is_file():
             problems.add(file, f"{where}.file", f"file not found: {path}")
         transform = parse_transform(entry.get("transform"), file, f"{where}.transform", problems)
@@ -155,8 +160,9 @@ def load_objects(entries, root: Path, file, field: str = "meshes") -> Mesh:
                 face_object=np.concatenate(face_object).astype(np.int32), object_names=tuple(object_names))
 
 
-def read_scene_config(path) -> Mesh:
-    """The Mesh of a stand-alone scene config file (format "jaxdistill-scene-config")."""
+def read_scene_config(path, *, allow_outside_paths: bool = False) -> Mesh:
+    """The Mesh of a stand-alone scene config file (format "jaxdistill-scene-config"); its object
+    files must lie inside its folder unless `allow_outside_paths`."""
     path = Path(path)
     doc = read_json(path, "scene config not found")
     file = os.fspath(path)
@@ -165,4 +171,4 @@ def read_scene_config(path) -> Mesh:
                                 f"{doc.get('format') if isinstance(doc, dict) else type(doc).__name__!r}")
     if doc.get("version") != CONFIG_VERSION:
         raise InputError.single(file, "version", f"this jaxdistill reads version {CONFIG_VERSION}, got {doc.get('version')!r}")
-    return load_objects(doc.get("meshes"), path.parent, file, "meshes")
+    return load_objects(doc.get("meshes"), path.parent, file, "meshes", allow_outside_paths=allow_outside_paths)

@@ -9,7 +9,8 @@
 Formats: fipt (HDR .exr photos), iris (same layout, LDR .png), scannetpp, nerfstudio, colmap
 (see `jaxdistill/datasets/`). `--mesh` replaces the dataset's mesh: a mesh file or a scene
 config .json listing objects with transforms (`jaxdistill/scene_config.py`). The photos stay
-where they are (scene.json points at them); derived images (undistorted photos, masks) and
+where they are (scene.json points at them, outside --out: the main job then needs
+--allow_outside_paths, which the printed run command includes); derived images (undistorted photos, masks) and
 the unwrapped mesh are written into --out, with import.json (what was decided and how long
 each step took). Objects whose UVs are missing, tiled, collapsed or overlapping are unwrapped
 with xatlas at the density the cameras observe (cached by mesh hash).
@@ -48,6 +49,8 @@ def main(argv=None) -> int:
     parser.add_argument("--max_views", type=int, default=0, help="0 = all, else that many evenly spread")
     parser.add_argument("--max_unwrap_faces", type=int, default=4_000_000)
     parser.add_argument("--unwrap_time_limit", type=float, default=1800.0, help="seconds")
+    parser.add_argument("--allow_outside_paths", action="store_true",
+                        help="a --mesh scene config may name object files outside its folder")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO, format="%(message)s")
@@ -55,17 +58,19 @@ def main(argv=None) -> int:
     from jaxdistill import datasets
     from jaxdistill.datasets.common import ImportOptions
     from jaxdistill.scene import read_scene, write_scene
+    from jaxdistill.scene_paths import ALLOW_FLAG, is_inside
 
     out = Path(args.out)
     start = time.perf_counter()
     try:
         options = ImportOptions(mesh=args.mesh, exposure=args.exposure, uv=args.uv, max_page_size=args.max_page_size,
                                 max_views=args.max_views, work_dir=str(out), max_unwrap_faces=args.max_unwrap_faces,
-                                unwrap_time_limit=args.unwrap_time_limit, progress=not args.quiet)
+                                unwrap_time_limit=args.unwrap_time_limit, progress=not args.quiet,
+                                allow_outside_paths=args.allow_outside_paths)
         report: dict = {}
         scene = datasets.load(args.format, args.path, options, split=args.split, report=report)
         scene_json = write_scene(scene, out)
-        read_scene(scene_json, check_pixels=False)           # self-check: what we wrote reads back
+        read_scene(scene_json, check_pixels=False, allow_outside_paths=True)  # self-check: what we wrote reads back
     except InputError as err:
         print(err, file=sys.stderr)
         return 2
@@ -76,7 +81,14 @@ def main(argv=None) -> int:
     print(f"exposure: {report['exposure']}")
     print("timings: " + ", ".join(f"{k} {v:.1f} s" for k, v in report["timings"].items()) + f", total {report['total_s']:.1f} s")
     print(f"wrote {scene_json} ({report['views']} views, {report['faces']} faces, {len(report['objects'])} objects)")
-    print(f"run:  python -m jaxdistill.main --scene={out} --out_dir=runs/{scene.name}")
+    files = [p for v in scene.views for p in (v.photo, v.mask, *v.targets.values(), *v.ground_truth.values()) if p]
+    outside = sum(not is_inside(p, out) for p in files)
+    allow = ""
+    if outside:
+        allow = f" {ALLOW_FLAG}"
+        print(f"note: scene.json names {outside} files where the dataset keeps them, outside {out}; the main job "
+              f"reads them with {ALLOW_FLAG} (or copy them into {out} and edit the paths)")
+    print(f"run:  python -m jaxdistill.main --scene={out} --out_dir=runs/{scene.name}{allow}")
     return 0
 
 

@@ -143,8 +143,24 @@ def write_nerfstudio(root: Path, cams, *, distortion=None, model: str | None = N
     return root / "transforms.json"
 
 
-def write_scannetpp(root: Path, cams, *, seed: int = 2, bad_frame: int | None = None, masks: bool = True) -> Path:
-    """data/<id> layout; poses OpenGL with a slightly non-orthogonal rotation (as ScanNet++'s)."""
+def scannetpp_transform_matrix(c2w_cv) -> np.ndarray:
+    """ScanNet++'s nerfstudio `transform_matrix` of a COLMAP (OpenCV) pose in the mesh's world, as
+    their common/utils/nerfstudio.py::convert_frames writes it: c2w = inverse(world_to_camera),
+    negate camera columns y and z, swap world rows 0 and 1, negate world row 2."""
+    world_to_camera = np.linalg.inv(np.asarray(c2w_cv, np.float64))
+    c2w = np.linalg.inv(world_to_camera)
+    c2w[0:3, 1:3] *= -1
+    c2w = c2w[np.array([1, 0, 2, 3]), :]
+    c2w[2, :] *= -1
+    return c2w
+
+
+def write_scannetpp(root: Path, cams, *, seed: int = 2, bad_frame: int | None = None, masks: bool = True,
+                    test_frame: int | None = None, undistorted: bool = True) -> Path:
+    """data/<id> layout; poses by ScanNet++'s own formula (`scannetpp_transform_matrix`), with a slightly
+    non-orthogonal rotation (as theirs); `test_frame` goes to "test_frames"; undistorted=False
+    writes only the fisheye dslr/nerfstudio/transforms.json (what the release ships before
+    their undistortion script runs)."""
     rng = np.random.default_rng(seed)
     K = cams[0]["K"]
     meta = {"fl_x": K[0, 0], "fl_y": K[1, 1], "cx": K[0, 2], "cy": K[1, 2], "w": WIDTH, "h": HEIGHT,
@@ -157,12 +173,17 @@ def write_scannetpp(root: Path, cams, *, seed: int = 2, bad_frame: int | None = 
             mask = np.ones((HEIGHT, WIDTH, 1), np.float32)
             mask[-3:, -3:] = 0.0
             imageio.write_image(dslr / "undistorted_anon_masks" / f"DSC{i:05d}.png", mask, encode_srgb=False)
-        m = _opengl_matrix(cam)
+        m = scannetpp_transform_matrix(cam["c2w"])
         noise = 2e-4 * rng.normal(size=(3, 3))
         m[:3, :3] = m[:3, :3] @ (np.eye(3) + noise + noise.T)       # not orthonormal; its polar part is R
-        meta["frames"].append({"file_path": name, "transform_matrix": m.tolist(), "is_bad": i == bad_frame})
+        frame = {"file_path": name, "transform_matrix": m.tolist(), "is_bad": i == bad_frame}
+        meta["test_frames" if i == test_frame else "frames"].append(frame)
     (dslr / "nerfstudio").mkdir(parents=True, exist_ok=True)
-    (dslr / "nerfstudio" / "transforms_undistorted.json").write_text(json.dumps(meta))
+    if undistorted:
+        (dslr / "nerfstudio" / "transforms_undistorted.json").write_text(json.dumps(meta))
+    else:
+        fisheye = {**meta, "camera_model": "OPENCV_FISHEYE", "k1": 0.01, "k2": -0.002, "k3": 0.0, "k4": 0.0}
+        (dslr / "nerfstudio" / "transforms.json").write_text(json.dumps(fisheye))
     write_mesh(root / "scans" / "mesh_aligned_0.05.ply", uvs=False)
     return root
 

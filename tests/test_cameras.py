@@ -130,9 +130,23 @@ def _mitsuba():  # Mitsuba has square pixels: the same camera with fy = fx
     return cam, _project_mitsuba(to_world, fov, ox, oy, W, H, POINTS), _truth(FX, FX, CX, CY)
 
 
-def _scannetpp():
-    cam = cams.from_scannetpp(C2W_GL, FX, FY, CX, CY, W, H)
-    return cam, _project_gl(C2W_GL, FX, FY, CX, CY, POINTS), _truth(FX, FY, CX, CY)
+def _scannetpp_matrix(c2w_cv):
+    """ScanNet++'s transform_matrix of an OpenCV c2w (their convert_frames, written out here):
+    negate camera columns y and z, swap world rows 0 and 1, negate world row 2."""
+    m = np.array(c2w_cv, float)
+    m[0:3, 1:3] *= -1
+    m = m[[1, 0, 2, 3], :]
+    m[2, :] *= -1
+    return m
+
+
+C2W_SPP = _scannetpp_matrix(_columns(RIGHT, DOWN, FWD, POS))
+
+
+def _scannetpp():  # ScanNet++'s own world has x and y swapped and z negated: (y, x, -z) of ours
+    cam = cams.from_scannetpp(C2W_SPP, FX, FY, CX, CY, W, H)
+    in_their_world = POINTS[:, [1, 0, 2]] * [1.0, 1.0, -1.0]
+    return cam, _project_gl(C2W_SPP, FX, FY, CX, CY, in_their_world), _truth(FX, FY, CX, CY)
 
 
 CONVENTIONS = [_opencv, _opencv_rt, _opengl, _nerf_pixels, _nerf_angles, _look_at, _pytorch3d,
@@ -208,15 +222,15 @@ def test_nerf_frame_overrides_and_default_fy():
 
 def test_scannetpp_reorthogonalises_a_slightly_non_orthogonal_pose():
     stretch = np.array([[1.0, 0.4, -0.2], [0.4, 0.5, 0.3], [-0.2, 0.3, -0.7]])  # symmetric
-    noisy = C2W_GL.copy()
-    noisy[:3, :3] = C2W_GL[:3, :3] @ (np.eye(3) + 2e-3 * stretch)  # nearest rotation: unchanged
+    noisy = C2W_SPP.copy()
+    noisy[:3, :3] = C2W_SPP[:3, :3] @ (np.eye(3) + 2e-3 * stretch)  # nearest rotation: unchanged
     assert any("orthonormal" in p for p in cams.pose_problems(noisy))
     cam = cams.from_scannetpp(noisy, FX, FY, CX, CY, W, H)
     assert cams.pose_problems(cam.c2w) == []
     np.testing.assert_allclose(cam.project(POINTS)[0], _truth(FX, FY, CX, CY), atol=1e-4)
-    np.testing.assert_allclose(cam.c2w, C2W_GL @ np.diag([1.0, -1, -1, 1]), atol=1e-9)
+    np.testing.assert_allclose(cam.c2w, _columns(RIGHT, DOWN, FWD, POS), atol=1e-9)
     with pytest.raises(ValueError, match="transform_matrix.*re-orthogonalise"):
-        cams.from_scannetpp(C2W_GL @ np.diag([1.5, 1, 1, 1]), FX, FY, CX, CY, W, H)
+        cams.from_scannetpp(C2W_SPP @ np.diag([1.5, 1, 1, 1]), FX, FY, CX, CY, W, H)
 
 
 def test_mitsuba_algorithm1_ignores_scale_of_to_world():

@@ -122,6 +122,36 @@ def test_scannetpp_skips_bad_frames_reads_masks_and_reorthogonalises(tmp_path, c
     assert np.isfinite(uv).all() and uv.min() >= 0 and uv.max() <= 1
 
 
+def test_scannetpp_marker_vertex_lands_on_its_pixel_in_train_and_test_frames(tmp_path, cams):
+    """Poses written by ScanNet++'s own formula (world x<->y swapped, z negated) land in the mesh's
+    world: a vertex of the released mesh, found in the loaded mesh, projects where the true camera
+    puts it, in a train and in a test frame."""
+    root = fx.write_scannetpp(tmp_path / "spp", cams, test_frame=2)
+    train = datasets.load("scannetpp", root, options(tmp_path / "a"))
+    test = datasets.load("scannetpp", root, options(tmp_path / "b"), split="test")
+    assert [v.name for v in train.views] == ["DSC00000", "DSC00001"] and [v.name for v in test.views] == ["DSC00002"]
+    released = fx.room_mesh().vertices
+    for view, cam in zip(train.views + test.views, cams):
+        depth = (released - cam["c2w"][:3, 3]) @ cam["c2w"][:3, 2]
+        pixel = fx.reference_pixels(cam, released)
+        inside = (depth > 0) & (pixel >= 0).all(1) & (pixel < [fx.WIDTH, fx.HEIGHT]).all(1)
+        marker = released[np.argmax(np.where(inside, depth, -np.inf))]     # the farthest visible vertex
+        assert np.linalg.norm(train.mesh.vertices - marker, axis=1).min() < 1e-9      # the mesh is not moved
+        got, got_depth = view.camera.project(marker[None])
+        assert got_depth[0] > 0
+        assert np.abs(got[0] - fx.reference_pixels(cam, marker[None])[0]).max() < 1e-3
+
+
+def test_scannetpp_with_only_the_distorted_transforms_gives_the_undistortion_command(tmp_path, cams):
+    root = fx.write_scannetpp(tmp_path / "spp", cams, undistorted=False)
+    with pytest.raises(InputError) as err:
+        datasets.load("scannetpp", root, options(tmp_path))
+    text = str(err.value)
+    assert "transforms_undistorted.json: (file): not found; only the distorted (fisheye) " \
+           "dslr/nerfstudio/transforms.json is there" in text
+    assert "python -m dslr.undistort dslr/configs/undistort.yml" in text
+
+
 def test_distorted_nerfstudio_photos_are_undistorted_and_their_gaps_masked(tmp_path, cams):
     mesh = fx.write_mesh(tmp_path / "room.glb")
     path = fx.write_nerfstudio(tmp_path / "ns", cams, distortion={"k1": 0.25, "k2": 0.05, "p1": 0.001, "p2": -0.002})
@@ -150,11 +180,42 @@ def test_import_script_writes_a_scene_that_reads_back(tmp_path, cams):
                            f"--path={root}", f"--out={out}", "--quiet"], capture_output=True, text=True,
                           env={**__import__("os").environ})
     assert proc.returncode == 0, proc.stderr
-    scene = read_scene(out)
+    # the photos stay in the dataset, outside `out`: refused by default, read with the opt-in
+    with pytest.raises(InputError, match=r"views\[0\]\.photo: '\.\./spp/dslr/undistorted_images/DSC00000\.JPG' "
+                       r"resolves outside the scene folder"):
+        read_scene(out)
+    assert f"--scene={out} --out_dir=runs/spp --allow_outside_paths" in proc.stdout
+    scene = read_scene(out, allow_outside_paths=True)
     assert len(scene.views) == 3 and np.isfinite(scene.mesh.uv).all()
     report = json.loads((out / "import.json").read_text())
     assert report["views"] == 3 and report["uv_decisions"] and "uv_s" in report["timings"]
     assert "unwrap" in proc.stdout.lower() and "exposure" in proc.stdout
+
+
+def test_main_job_reads_a_scene_naming_outside_files_only_with_its_flag(tmp_path, cams):
+    """An imported scene names the dataset's photos (../): the main job's --allow_outside_paths
+    reaches the scene reader; without it the run stops before anything is read."""
+    from absl import flags
+
+    from jaxdistill import config as config_lib
+    from jaxdistill.problem import build_problem
+    from jaxdistill.scene import write_scene
+
+    out = tmp_path / "imported"
+    write_scene(datasets.load("scannetpp", fx.write_scannetpp(tmp_path / "spp", cams), options(tmp_path)), out)
+    fv = flags.FlagValues()
+    config_lib.define_flags(fv)
+    fv(["main", f"--scene={out}", f"--out_dir={tmp_path / 'run'}", "--prior=views", "--maps=albedo"])
+    config = config_lib.config_from_flags(fv)
+    assert config.allow_outside_paths is False
+    with pytest.raises(InputError, match=r"scene\.json: views\[0\]\.photo: .*resolves outside the scene folder"
+                       r".*pass --allow_outside_paths"):
+        build_problem(config)
+    fv(["main", "--allow_outside_paths"])
+    config = config_lib.config_from_flags(fv)
+    assert config.allow_outside_paths is True
+    with pytest.raises(InputError, match=r"views\[0\]\.targets\.albedo: view DSC00000 has no albedo target"):
+        build_problem(config)        # the scene was read: the views prior then asks for its targets
 
 
 # ----------------------------------------------------------------------------- bad input

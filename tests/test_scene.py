@@ -161,3 +161,51 @@ def test_unreadable_mesh_and_json(tmp_path):
         read_scene(path)
     with pytest.raises(InputError, match="scene file not found"):
         read_scene(tmp_path / "nowhere" / "scene.json")
+
+
+def test_paths_outside_the_scene_folder_are_refused_before_anything_is_read(tmp_path, monkeypatch):
+    """../, absolute paths and symlinks out of the folder: refused by default, naming file and field,
+    before any file is opened (so the messages cannot tell which files exist); read with the opt-in."""
+    from jaxdistill import scene as scene_lib
+
+    scene, path = make_scene_folder(tmp_path / "scene")
+    shared = tmp_path / "shared"
+    imageio.write_image(shared / "photo.png", np.full((24, 32, 3), 0.5))
+    (path.parent / "mesh.glb").rename(shared / "mesh.glb")
+    (path.parent / "photos" / "link.png").symlink_to(shared / "photo.png")
+    (path.parent / "gt.json").write_text(json.dumps({"format": "jaxdistill-gt", "textures": {
+        "albedo": {scene.mesh.object_names[0]: "../shared/albedo.exr"}}}))
+
+    def outside(doc):
+        doc["mesh"] = str(shared / "mesh.glb")                            # absolute, exists
+        doc["views"][0]["photo"] = "../shared/photo.png"                  # ../, exists
+        doc["views"][1]["photo"] = "/no/such/secret.png"                  # absolute, does not exist
+        doc["views"][1]["mask"] = "photos/link.png"                       # a symlink pointing out
+        doc["views"][0]["targets"]["albedo"] = "targets/../../../etc/passwd"
+
+    edit(path, outside)
+
+    def never(*args, **kwargs):
+        raise AssertionError("a file was read before the path check")
+
+    with monkeypatch.context() as m:
+        for name in ("read_image", "image_size"):
+            m.setattr(imageio, name, never)
+        m.setattr(scene_lib, "load_mesh", never)
+        problems, message = problems_of(path)
+    assert {field for _, field, _ in problems} == {
+        "mesh", "views[0].photo", "views[1].photo", "views[1].mask", "views[0].targets.albedo",
+        f"textures.albedo.{scene.mesh.object_names[0]}"}, message
+    assert all("resolves outside the scene folder" in m and "--allow_outside_paths" in m and "not found" not in m
+               for _, _, m in problems), message
+    assert {file for file, _, _ in problems} == {str(path), str(path.parent / "gt.json")}
+
+    # sharing files between scenes on purpose: the opt-in reads them
+    (path.parent / "gt.json").unlink()
+    edit(path, lambda d: (d["views"][1].__setitem__("photo", "../shared/photo.png"),
+                          d["views"][0]["targets"].__setitem__("albedo", "targets/albedo_a.png")))
+    with pytest.raises(InputError, match=r"scene\.json: mesh: '/.*/shared/mesh\.glb' resolves outside"):
+        read_scene(path)
+    back = read_scene(path, allow_outside_paths=True)
+    assert back.views[0].photo.resolve() == back.views[1].photo.resolve() == shared / "photo.png"
+    assert back.mesh.num_faces == scene.mesh.num_faces

@@ -104,3 +104,22 @@ def test_duplicate_names_and_wrong_format_are_refused(tmp_path):
     (tmp_path / "c.json").write_text(json.dumps({"meshes": []}))
     with pytest.raises(InputError, match=r"format: expected 'jaxdistill-scene-config'"):
         read_scene_config(tmp_path / "c.json")
+
+
+def test_object_files_outside_the_config_folder_are_refused_unless_allowed(tmp_path):
+    (tmp_path / "shared").mkdir()
+    (tmp_path / "cfg").mkdir()
+    write_object(tmp_path / "shared" / "a.obj")
+    doc = {"format": "jaxdistill-scene-config", "version": 1,
+           "meshes": [{"name": "x", "file": "../shared/a.obj"}, {"name": "y", "file": str(tmp_path / "nowhere.obj")}]}
+    (tmp_path / "cfg" / "c.json").write_text(json.dumps(doc))
+    with pytest.raises(InputError) as err:
+        read_scene_config(tmp_path / "cfg" / "c.json")
+    fields = [field for _, field, _ in err.value.problems]
+    assert fields == ["meshes[0].file", "meshes[1].file"]
+    # the same words whether the file exists or not: the message tells nothing about the machine
+    assert all("resolves outside the scene folder" in m and "--allow_outside_paths" in m and "not found" not in m
+               for _, _, m in err.value.problems)
+    doc["meshes"] = doc["meshes"][:1]
+    (tmp_path / "cfg" / "c.json").write_text(json.dumps(doc))
+    assert read_scene_config(tmp_path / "cfg" / "c.json", allow_outside_paths=True).object_names == ("x",)

@@ -77,6 +77,46 @@ def test_encode_rejects_a_bare_string(folder):
     assert load_tokenizer(folder).encode([]).shape == (0, 77)
 
 
+@pytest.mark.parametrize("pad", ["!", EOS])
+@pytest.mark.parametrize("kind", ["CLIPTokenizer", "CLIPTokenizerFast"])
+def test_folder_saved_by_the_installed_transformers(tmp_path, kind, pad):
+    """save_pretrained of transformers 5 writes tokenizer.json + tokenizer_config.json only; we read
+    tokenizer.json and give transformers' own ids for the saved folder."""
+    transformers = pytest.importorskip("transformers")
+    cls = getattr(transformers, kind)
+    cls.from_pretrained(str(write_tiny_clip_tokenizer(tmp_path / "src", pad))).save_pretrained(tmp_path / "saved")
+    saved = tmp_path / "saved"
+    for legacy in ("vocab.json", "merges.txt"):      # older transformers also write these: test tokenizer.json
+        (saved / legacy).unlink(missing_ok=True)
+    assert (saved / "tokenizer.json").is_file()
+    ref = cls.from_pretrained(str(saved))(PROMPTS, padding="max_length", max_length=77, truncation=True)["input_ids"]
+    tok = load_tokenizer(saved)
+    ids = tok.encode(PROMPTS)
+    assert ids.shape == (len(PROMPTS), 77) and tok.pad_token == pad
+    for prompt, want, got in zip(PROMPTS, ref, ids):
+        assert got.tolist() == list(want), prompt
+    np.testing.assert_array_equal(ids, load_tokenizer(tmp_path / "src").encode(PROMPTS))   # same as vocab.json
+
+
+def test_bad_tokenizer_json_is_named(tmp_path):
+    transformers = pytest.importorskip("transformers")
+    saved = tmp_path / "saved"
+    transformers.CLIPTokenizerFast.from_pretrained(str(write_tiny_clip_tokenizer(tmp_path / "src"))).save_pretrained(saved)
+    for legacy in ("vocab.json", "merges.txt"):
+        (saved / legacy).unlink(missing_ok=True)
+    doc = json.loads((saved / "tokenizer.json").read_text())
+    (saved / "tokenizer.json").write_text(json.dumps(doc)[:200])
+    with pytest.raises(InputError, match=r"tokenizer\.json: \(file\): the tokenizers library cannot read it"):
+        load_tokenizer(saved)
+    doc["model"] = {"type": "WordLevel", "vocab": {"a": 0, "!": 1}, "unk_token": "a"}
+    (saved / "tokenizer.json").write_text(json.dumps(doc))
+    with pytest.raises(InputError, match=r"tokenizer\.json: model\.type: expected a CLIP BPE tokenizer"):
+        load_tokenizer(saved)
+    (saved / "tokenizer.json").unlink()
+    with pytest.raises(InputError, match=r"vocab\.json: \(file\): missing: .*or tokenizer\.json"):
+        load_tokenizer(saved)
+
+
 # ----------------------------------------------------------------------------- errors
 
 

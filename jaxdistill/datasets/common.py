@@ -38,6 +38,7 @@ from jaxdistill import imageio
 from jaxdistill.cameras import Camera
 from jaxdistill.errors import InputError, ProblemList
 from jaxdistill.scene import Mesh, Scene, View, load_mesh, validate_scene, view_problems
+from jaxdistill.view_images import read_mask
 
 log = logging.getLogger(__name__)
 
@@ -58,6 +59,7 @@ class ImportOptions:
     max_unwrap_faces: int = 4_000_000
     unwrap_time_limit: float = 1800.0
     progress: bool = True
+    allow_outside_paths: bool = False  # scene files (scene.json, scene configs) may name files outside their folder
 
     def __post_init__(self):
         if self.uv not in UV_POLICIES:
@@ -119,13 +121,14 @@ def check_sources(views: Sequence[ViewSource], file: str) -> None:
     problems.raise_if_any()
 
 
-def load_scene_mesh(path) -> Mesh:
-    """A mesh file (objects = geometry nodes, UVs may be missing) or a scene config .json."""
+def load_scene_mesh(path, *, allow_outside_paths: bool = False) -> Mesh:
+    """A mesh file (objects = geometry nodes, UVs may be missing) or a scene config .json (whose
+    object files stay inside its folder unless `allow_outside_paths`)."""
     path = Path(path)
     if path.suffix.lower() == ".json":
         from jaxdistill.scene_config import read_scene_config
 
-        return read_scene_config(path)
+        return read_scene_config(path, allow_outside_paths=allow_outside_paths)
     return load_mesh(path, require_uv=False)
 
 
@@ -158,8 +161,6 @@ def view_exposures(views: Sequence[ViewSource], setting, progress: bool) -> tupl
     hdr = [v for v in views if imageio.is_linear_format(v.photo)]
     if not hdr:
         return [0.0] * len(views), "LDR photos: 0 stops (exposed by their camera)"
-    from jaxdistill.problem import read_mask
-
     def photos():
         for v in tqdm(hdr, desc="exposure", unit="photo", disable=not progress):
             yield imageio.read_image(v.photo)
@@ -190,7 +191,7 @@ def build_scene(name: str, root: Path, mesh_path, views: Sequence[ViewSource], o
     if mesh_path is None:
         raise InputError.single(source_file, "mesh", "this format has no mesh of its own: give one with --mesh "
                                 "(a mesh file or a scene config .json)")
-    mesh = load_scene_mesh(mesh_path)
+    mesh = load_scene_mesh(mesh_path, allow_outside_paths=options.allow_outside_paths)
     timings["read_s"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()

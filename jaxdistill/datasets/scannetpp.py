@@ -10,10 +10,14 @@ Layout of one scene of the release (`data/<scene_id>/`):
     dslr/undistorted_anon_masks/*.png               anonymisation masks, optional, read as 1 = use the
                                                     pixel, 0 = anonymised (a warning when most are 0)
 
-Poses are normalised as the thesis's appendix B.2 does: re-orthogonalise the rotation (the
-poses are slightly non-orthogonal), invert the camera's X and Z axes (a PyTorch3D camera, x
-left, y up, z forward), then Algorithm 1 (`cameras.from_scannetpp`). Algorithm 2 turns pixel
-intrinsics into PyTorch3D NDC; ours stay in pixels, the same camera. Bad frames (`is_bad`)
+Poses: ScanNet++ writes `transform_matrix` from its COLMAP poses (common/utils/nerfstudio.py::
+convert_frames) with the camera's y and z negated AND the world permuted (rows x and y swapped,
+z negated), so the json's poses are not in the mesh's world. `cameras.from_scannetpp`
+re-orthogonalises the rotation (the poses are slightly non-orthogonal), undoes the world
+permutation (`cameras.SCANNETPP_WORLD`), inverts the camera's X and Z axes as the thesis's
+appendix B.2 does (a PyTorch3D camera, x left, y up, z forward), then Algorithm 1. Algorithm 2
+turns pixel intrinsics into PyTorch3D NDC; ours stay in pixels, the same camera. The mesh is
+read as released. Bad frames (`is_bad`)
 are skipped; split "train" reads `frames`, "test" `test_frames`, "all" both.
 """
 
@@ -31,6 +35,11 @@ from jaxdistill.errors import InputError
 
 MESH = Path("scans") / "mesh_aligned_0.05.ply"
 TRANSFORMS = Path("dslr") / "nerfstudio" / "transforms_undistorted.json"
+DISTORTED = Path("dslr") / "nerfstudio" / "transforms.json"
+UNDISTORT_HINT = ("run ScanNet++'s undistortion first: in a checkout of github.com/scannetpp/scannetpp, set "
+                  "data_root (and scene_ids: [<scene_id>]) in dslr/configs/undistort.yml and run "
+                  "`python -m dslr.undistort dslr/configs/undistort.yml`; it writes "
+                  "dslr/undistorted_images/, dslr/undistorted_anon_masks/ and this file")
 IMAGE_FOLDERS = ("undistorted_images", "resized_undistorted_images")
 MASK_FOLDERS = {"undistorted_images": "undistorted_anon_masks", "resized_undistorted_images": "resized_undistorted_masks"}
 log = logging.getLogger(__name__)
@@ -44,6 +53,9 @@ def load_scannetpp(path, options: ImportOptions = ImportOptions(), *, split: str
     transforms = root / TRANSFORMS
     if split not in SPLITS:
         raise InputError.single("options", "split", f"unknown split {split!r}; use {', '.join(SPLITS)}")
+    if not transforms.is_file() and (root / DISTORTED).is_file():
+        raise InputError.single(os.fspath(transforms), "(file)", f"not found; only the distorted (fisheye) "
+                                f"{DISTORTED.as_posix()} is there, which jaxdistill does not read: {UNDISTORT_HINT}")
     if not transforms.is_file():
         raise InputError.single(os.fspath(transforms), "(file)", "not found: give the scene folder data/<scene_id> "
                                 "holding dslr/nerfstudio/transforms_undistorted.json")

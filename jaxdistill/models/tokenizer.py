@@ -1,7 +1,9 @@
 """CLIP byte-level BPE tokenizer on the `tokenizers` library (no transformers at run time).
 
 `load_tokenizer(folder)` reads a diffusers `tokenizer/` folder (vocab.json, merges.txt and the
-optional special_tokens_map.json / tokenizer_config.json) and returns a `ClipTokenizer` whose
+optional special_tokens_map.json / tokenizer_config.json; or, as transformers 5's
+`save_pretrained` writes it, tokenizer.json + tokenizer_config.json, where tokenizer.json is
+loaded as it is by the `tokenizers` library) and returns a `ClipTokenizer` whose
 `encode` gives the ids of transformers' `CLIPTokenizer(prompts, padding="max_length",
 max_length=77, truncation=True)`: NFC, whitespace runs -> one space, lowercase, CLIP's split
 regex, byte-level symbols, BPE with `</w>` word ends, `<|startoftext|> ... <|endoftext|>`, then
@@ -28,6 +30,7 @@ BOS = "<|startoftext|>"
 EOS = "<|endoftext|>"
 WORD_END = "</w>"
 DEFAULT_MAX_LENGTH = 77
+TOKENIZER_JSON = "tokenizer.json"   # the `tokenizers` library's own file (transformers 5 writes only it)
 
 # CLIP's word split: the two special tokens, English contractions, letter runs, single digits,
 # runs of other non-space characters (applied to lowercased text).
@@ -76,7 +79,7 @@ def _read_json(path: Path, required: bool):
     """The parsed JSON file, or None when an optional file is absent; InputError if unreadable."""
     if not path.is_file() and not required:
         return None
-    return read_json(path, f"missing: a CLIP tokenizer folder needs {path.name} "
+    return read_json(path, f"missing: a CLIP tokenizer folder needs vocab.json and merges.txt, or {TOKENIZER_JSON} "
                      "(copy the model's tokenizer/ folder completely)")
 
 
@@ -204,38 +207,63 @@ def _backend(vocab: dict[str, int], merges: list[tuple[str, str]], unk: str) -> 
 
 
 def load_tokenizer(folder, max_length: int | None = None) -> ClipTokenizer:
-    """Loads a diffusers `tokenizer/` folder; `max_length` overrides `model_max_length` (77)."""
+    """Loads a diffusers `tokenizer/` folder; `max_length` overrides `model_max_length` (77).
+
+    vocab.json + merges.txt when the folder has them, else tokenizer.json (transformers 5)."""
     folder = Path(folder)
     if not folder.is_dir():
         raise InputError.single(folder, "(folder)", "tokenizer folder not found (expected the "
-                                "model's tokenizer/ subfolder with vocab.json and merges.txt)")
-    vocab = _read_vocab(folder / "vocab.json")
-    merges = _read_merges(folder / "merges.txt", vocab)
+                                "model's tokenizer/ subfolder with vocab.json and merges.txt, or tokenizer.json)")
     config_file = folder / "tokenizer_config.json"
     config = _read_json(config_file, required=False) or {}
     special_map = _read_json(folder / "special_tokens_map.json", required=False)
     for file, data in ((config_file, config), (folder / "special_tokens_map.json", special_map)):
         if data is not None and not isinstance(data, dict):
             raise InputError.single(file, "(root)", "must be a JSON object")
-    specials = _special_tokens(folder, config, special_map)
-    for field, (token, file) in specials.items():
-        if token.content not in vocab:
-            raise InputError.single(file, field, f"{token.content!r} is not in vocab.json; use a "
-                                    f"token of the vocabulary (Stable Diffusion uses '!' or "
-                                    f"'<|endoftext|>')")
     length = _max_length(config_file, config) if max_length is None else int(max_length)
     if length < 3:
         raise ValueError(f"max_length must be >= 3, got {max_length}")
-    bos, eos, unk, pad = (specials[f][0].content
-                          for f in ("bos_token", "eos_token", "unk_token", "pad_token"))
-
-    tok = _backend(vocab, merges, unk)
-    decoder_tokens = _decoder_tokens(config_file, config, vocab)
-    named = [t for t, _ in specials.values() if t.content not in {d.content for d in decoder_tokens}]
-    tok.add_tokens(decoder_tokens + named)  # literal matches in text; a later duplicate's flags win
+    has_pair = (folder / "vocab.json").is_file() or (folder / "merges.txt").is_file()
+    if not has_pair and (folder / TOKENIZER_JSON).is_file():
+        tok, vocab, vocab_file = _backend_from_json(folder / TOKENIZER_JSON)
+        specials = _special_tokens(folder, config, special_map)
+        _check_specials(specials, vocab, vocab_file)
+    else:
+        vocab = _read_vocab(folder / "vocab.json")
+        merges = _read_merges(folder / "merges.txt", vocab)
+        specials = _special_tokens(folder, config, special_map)
+        _check_specials(specials, vocab, "vocab.json")
+        tok = _backend(vocab, merges, specials["unk_token"][0].content)
+        decoder_tokens = _decoder_tokens(config_file, config, vocab)
+        named = [t for t, _ in specials.values() if t.content not in {d.content for d in decoder_tokens}]
+        tok.add_tokens(decoder_tokens + named)  # literal matches in text; a later duplicate's flags win
+    bos, eos, pad = (specials[f][0].content for f in ("bos_token", "eos_token", "pad_token"))
     tok.post_processor = processors.TemplateProcessing(
         single=f"{bos}:0 $A:0 {eos}:0", special_tokens=[(bos, vocab[bos]), (eos, vocab[eos])])
     tok.enable_truncation(max_length=length, direction="right")
     tok.enable_padding(direction="right", pad_id=vocab[pad], pad_token=pad, length=length)
     return ClipTokenizer(backend=tok, max_length=length, bos_id=vocab[bos], eos_id=vocab[eos],
                          pad_id=vocab[pad], pad_token=pad, folder=str(folder))
+
+
+def _check_specials(specials: dict[str, tuple[AddedToken, Path]], vocab: dict[str, int], vocab_name: str) -> None:
+    """InputError naming the file and field of a special token that is not in the vocabulary."""
+    for field, (token, file) in specials.items():
+        if token.content not in vocab:
+            raise InputError.single(file, field, f"{token.content!r} is not in {vocab_name}; use a "
+                                    f"token of the vocabulary (Stable Diffusion uses '!' or "
+                                    f"'<|endoftext|>')")
+
+
+def _backend_from_json(path: Path) -> tuple[Tokenizer, dict[str, int], str]:
+    """(tokenizer as the `tokenizers` library loads tokenizer.json, its vocabulary with added
+    tokens, a name for messages); InputError unless it is a byte-level BPE tokenizer."""
+    try:
+        tok = Tokenizer.from_file(str(path))
+    except Exception as err:  # the Rust library raises plain Exception for any malformed file
+        raise InputError.single(path, "(file)", f"the tokenizers library cannot read it ({err}); copy the "
+                                "model's tokenizer/ folder again") from None
+    if not isinstance(tok.model, BPE):
+        raise InputError.single(path, "model.type", f"expected a CLIP BPE tokenizer, got "
+                                f"{type(tok.model).__name__}")
+    return tok, tok.get_vocab(with_added_tokens=True), path.name

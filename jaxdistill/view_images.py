@@ -1,0 +1,36 @@
+"""Per-view images beside the photo, read in file space and resampled: targets and masks.
+
+Shared by the dataset loaders (exposure over unmasked pixels), the problem setup (loss weights,
+per-view targets) and evaluation (ground truth, masks); it sits below all of them.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from jaxdistill import imageio
+
+
+def resize(image: np.ndarray, height: int, width: int) -> np.ndarray:
+    """(H, W, C) float32 resized with an antialiased linear filter (area-like when shrinking)."""
+    if image.shape[:2] == (height, width):
+        return image
+    return np.asarray(jax.image.resize(image, (height, width, image.shape[2]), "linear", antialias=True))
+
+
+def read_target(name: str, path: Path) -> np.ndarray:
+    """A per-view target image in file space: albedo/irradiance linear (sRGB files decoded),
+    roughness/metallic grey values, normals as vectors (files hold (n + 1) / 2)."""
+    if name in ("albedo", "irradiance"):
+        return imageio.read_image(path)
+    values = imageio.read_image(path, linear=False)
+    return 2.0 * values[..., :3] - 1.0 if name == "normal" else values
+
+
+def read_mask(path: Path, height: int, width: int) -> np.ndarray:
+    """(height, width) bool: True where the view's mask image (first channel, resampled) is >= 0.5."""
+    values = imageio.read_image(path, linear=False)[..., :1]
+    return resize(values, height, width)[..., 0] >= 0.5
