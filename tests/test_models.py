@@ -177,8 +177,16 @@ def test_not_an_rgbx_unet_and_bad_config(rgbx_dir, tmp_path):
     config_file = folder / "unet" / "config.json"
     config = json.loads(config_file.read_text())
     config_file.write_text(json.dumps(dict(config, in_channels=4)))
-    with pytest.raises(InputError, match=r"unet/config.json: in_channels: is 4.*not an RGB→X model"):
+    with pytest.raises(InputError, match=r"unet/config.json: in_channels: is 4.*not an RGB→X model; point "
+                       r"--rgbx_dir at"):
         convert.load_rgbx(folder)
+    # each program names its own flag: the estimate command's is --prior_dir
+    from jaxdistill import estimate
+
+    photo = tmp_path / "photo.png"
+    photo.write_bytes(b"not read: the folder is refused first")
+    with pytest.raises(InputError, match=r"in_channels: is 4.*point --prior_dir at"):
+        estimate.run(estimate.EstimateConfig(prior_dir=str(folder), out_dir=str(tmp_path / "o"), photo=str(photo)))
     config_file.write_text(json.dumps(dict(config, act_fn="gelu", up_block_types=["UpBlock2D", "Fancy"] * 2)))
     with pytest.raises(InputError) as err:
         convert.load_rgbx(folder)
@@ -186,3 +194,48 @@ def test_not_an_rgbx_unet_and_bad_config(rgbx_dir, tmp_path):
     config_file.write_text("{ not json")
     with pytest.raises(InputError, match=r"config.json: line 1: not valid JSON"):
         convert.load_rgbx(folder)
+
+
+def _damage(path, how: str) -> None:
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2] if how == "truncated" else b"<html>503 Service Unavailable</html>" * 40)
+
+
+def test_damaged_safetensors_name_the_file_and_the_part(rgbx_dir, tmp_path, monkeypatch):
+    """A truncated UNet file and a text encoder file that is not safetensors at all (an HTML error
+    page saved by a failed download): both named, with the part and the command that fetches the
+    file again, before any network is converted."""
+    folder = _copy(rgbx_dir, tmp_path)
+    unet = folder / "unet" / "diffusion_pytorch_model.safetensors"
+    text = folder / "text_encoder" / "model.safetensors"
+    _damage(unet, "truncated")
+    _damage(text, "garbage")
+    monkeypatch.setattr(convert, "convert_state_dict", lambda *a, **k: pytest.fail("converted a damaged folder"))
+    with pytest.raises(InputError) as err:
+        convert.load_rgbx(folder)
+    lines = str(err.value).splitlines()[1:]
+    assert len(lines) == 2, err.value
+    assert lines[0].strip().startswith(f"{unet}: unet weights: damaged or incomplete safetensors file")
+    assert lines[1].strip().startswith(f"{text}: text_encoder weights: damaged or incomplete safetensors file")
+    assert "incomplete metadata" in lines[0] and "header too large" in lines[1]      # safetensors' own words
+    assert (f"huggingface-cli download zheng95z/rgb-to-x unet/diffusion_pytorch_model.safetensors "
+            f"--local-dir {folder}") in lines[0]
+    assert f"zheng95z/rgb-to-x text_encoder/model.safetensors --local-dir {folder}" in lines[1]
+    # the same file read directly (a caller skipping the header check) is named the same way
+    with pytest.raises(InputError, match=r"diffusion_pytorch_model.safetensors: unet weights: damaged"):
+        convert.read_safetensors(folder / "unet", "diffusion_pytorch_model")
+
+
+def test_damaged_conversion_cache_is_converted_again(rgbx_dir, loaded, tmp_path, caplog):
+    cache = tmp_path / "cache"
+    convert.load_rgbx(rgbx_dir, cache_dir=cache)
+    files = sorted(cache.glob("*.safetensors"))
+    assert len(files) == 3
+    for f in files:
+        _damage(f, "truncated")
+    with caplog.at_level("WARNING", logger=convert.__name__):
+        again = convert.load_rgbx(rgbx_dir, cache_dir=cache)
+    assert sum("the cached conversion is damaged" in r.getMessage() for r in caplog.records) == 3
+    for part in ("unet", "vae", "text_encoder"):
+        jax.tree.map(np.testing.assert_array_equal, again.params[part], loaded.params[part])
+    assert all(convert.damaged_weights(f) is None for f in files)        # rewritten whole
