@@ -242,20 +242,22 @@ class CheckpointStore:
 
     def damage(self, step: int) -> str | None:
         """Why the complete checkpoint `step` cannot be read back (array or config files damaged
-        after the commit: a bad disk, a partial copy), or None when every array and the config
+        after the commit: a bad disk, a partial copy), or None when the config and every array
         read. Reads the whole state once, as saved (no target needed)."""
-        device = jax.local_devices()[0]
-        sharding = jax.sharding.SingleDeviceSharding(device)
+        step = int(step)
         try:
-            tree = self._mngr.metadata(int(step)).item_metadata["state"].tree
-            target = jax.tree.map(lambda m: jax.ShapeDtypeStruct(tuple(m.shape), m.dtype, sharding=sharding), tree)
-            restored = self._mngr.restore(
-                int(step),
-                args=ocp.args.Composite(state=ocp.args.StandardRestore(target), config=ocp.args.JsonRestore()))
-            jax.block_until_ready(restored.state)
-            if not isinstance(restored.config, dict):
-                return "the saved flags are not a JSON object"
+            config = self._mngr.restore(step, args=ocp.args.Composite(config=ocp.args.JsonRestore())).config
         except Exception as err:  # noqa: BLE001 - any failure to read means the step is unusable; reported
+            return f"its saved flags (config/) do not read: {_root_cause(err)}"
+        if not isinstance(config, dict):
+            return "its saved flags (config/) are not a JSON object"
+        sharding = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
+        try:
+            tree = self._mngr.metadata(step).item_metadata["state"].tree
+            target = jax.tree.map(lambda m: jax.ShapeDtypeStruct(tuple(m.shape), m.dtype, sharding=sharding), tree)
+            restored = self._mngr.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(target)))
+            jax.block_until_ready(restored.state)
+        except Exception as err:  # noqa: BLE001 - as above
             return _root_cause(err)
         return None
 
