@@ -59,8 +59,9 @@ def _save(store, state, recorded: dict, history: dict, out: Path) -> None:
 
 
 def _check_before_compute(config: DistillConfig, out: Path, choice) -> int | None:
-    """Flag problems found without any compute: device split, --resume, an existing run.
-    Returns the checkpoint step to resume from (None for a fresh run)."""
+    """Flag problems found without any compute: the RGB<->X folder (layout, in_channels, every
+    weights file's header), device split, --resume (the checkpoint must read back), an existing
+    run. Returns the checkpoint step to resume from (None for a fresh run)."""
     if choice.kind == "rgbx":
         from jaxdistill.models import convert
 
@@ -81,7 +82,7 @@ def _check_before_compute(config: DistillConfig, out: Path, choice) -> int | Non
                                         "; pass --resume to continue it, or choose another --out_dir")
         return None
     with checkpoint.CheckpointStore(directory) as store:
-        latest = _readable_checkpoint(store, out)
+        latest = _readable_checkpoint(store)
         if latest is None:
             raise InputError.single("flags", "--resume", f"no complete checkpoint in {directory}; "
                                     "run without --resume to start")
@@ -93,7 +94,7 @@ def _check_before_compute(config: DistillConfig, out: Path, choice) -> int | Non
     return latest
 
 
-def _readable_checkpoint(store: "checkpoint.CheckpointStore", out: Path) -> int | None:
+def _readable_checkpoint(store: checkpoint.CheckpointStore) -> int | None:
     """The newest complete checkpoint whose files read back, or None when there is none. Newer
     ones that do not read (damaged after their commit) are moved aside with a warning; when
     none reads, InputError naming each step folder and how to start fresh."""
