@@ -49,6 +49,16 @@ def _committed(path) -> bool:
         return False
 
 
+def _root_cause(err: BaseException) -> str:
+    """The first line of the innermost exception (tensorstore's own words, e.g. `OUT_OF_RANGE:
+    Error reading "texels/0.0" ...`), without the wrapping spec dumps."""
+    while err.__cause__ is not None or (err.__context__ is not None and not err.__suppress_context__):
+        err = err.__cause__ or err.__context__
+    lines = str(err).strip().splitlines()
+    text = lines[0] if lines else type(err).__name__
+    return text if len(text) <= 300 else text[:300] + "..."
+
+
 class _CommittedNameFormat:
     """Orbax's standard `<step>` naming, hiding step directories without the commit marker."""
 
@@ -230,6 +240,41 @@ class CheckpointStore:
                 f"no complete checkpoint for step {int(step)} in {self.directory}; complete steps: {steps}")
         return int(step)
 
+    def damage(self, step: int) -> str | None:
+        """Why the complete checkpoint `step` cannot be read back (array or config files damaged
+        after the commit: a bad disk, a partial copy), or None when the config and every array
+        read. Reads the whole state once, as saved (no target needed)."""
+        step = int(step)
+        try:
+            config = self._mngr.restore(step, args=ocp.args.Composite(config=ocp.args.JsonRestore())).config
+        except Exception as err:  # noqa: BLE001 - any failure to read means the step is unusable; reported
+            return f"its saved flags (config/) do not read: {_root_cause(err)}"
+        if not isinstance(config, dict):
+            return "its saved flags (config/) are not a JSON object"
+        sharding = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
+        try:
+            tree = self._mngr.metadata(step).item_metadata["state"].tree
+            target = jax.tree.map(lambda m: jax.ShapeDtypeStruct(tuple(m.shape), m.dtype, sharding=sharding), tree)
+            restored = self._mngr.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(target)))
+            jax.block_until_ready(restored.state)
+        except Exception as err:  # noqa: BLE001 - as above
+            return _root_cause(err)
+        return None
+
+    def set_aside(self, step: int) -> Path:
+        """Moves the step's folder out of the store (to `<directory>.damaged/<step>`, kept for
+        inspection) so it is never listed again and a new save of that step can be written."""
+        source = self._step_dir(step)
+        target = self.directory.with_name(self.directory.name + ".damaged") / source.name
+        n = 1
+        while target.exists():
+            target = target.with_name(f"{source.name}.{n}")
+            n += 1
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.move(str(source), str(target))
+        self._mngr.reload()
+        return target
+
     def saved_shapes(self, step: int | None = None) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
         """{leaf path (e.g. "texels", "opt_state/0/mu"): (shape, dtype)} of a complete checkpoint's state."""
         step = self._complete_step(step)
@@ -326,6 +371,12 @@ class StopSignals:
     @property
     def signal_name(self) -> str | None:
         return None if self._signum is None else signal.Signals(self._signum).name
+
+    @property
+    def exit_status(self) -> int | None:
+        """The shell's status for a process ended by the signal (128 + its number: 130 for SIGINT,
+        143 for SIGTERM), so a scheduler can tell a stopped run from a finished one."""
+        return None if self._signum is None else 128 + int(self._signum)
 
     def _handle(self, signum, frame) -> None:
         if self._signum is None:

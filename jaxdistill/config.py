@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+from pathlib import Path
 from typing import Any
 
 from absl import flags
@@ -151,6 +152,9 @@ def validate(config: DistillConfig) -> DistillConfig:
     for name in ("scene", "out_dir"):
         if not getattr(c, name):
             bad(name, "is required")
+    out_problem = out_dir_problem(c.out_dir) if c.out_dir else None
+    if out_problem:
+        bad("out_dir", out_problem)
     unknown = [m for m in c.maps if m not in MAP_NAMES]
     if unknown or not c.maps:
         bad("maps", f"unknown {unknown}; choose from {','.join(MAP_NAMES)}" if unknown else "names no map")
@@ -188,6 +192,35 @@ def validate(config: DistillConfig) -> DistillConfig:
         bad("w_t/--w_i", f"guidance weights must be >= 0, got {c.w_t} and {c.w_i}")
     p.raise_if_any()
     return config
+
+
+def out_dir_problem(out_dir: str) -> str | None:
+    """Why the run could not write `out_dir` (an existing file, under a file, not writable), or
+    None. Checks the folder, or the nearest existing parent it would be created in; creates nothing."""
+    path = Path(out_dir).expanduser().absolute()
+    existing = path
+    try:
+        while not existing.exists():
+            existing = existing.parent
+    except OSError as err:                     # a parent that cannot be searched
+        return f"{path} cannot be checked ({err.strerror}: {err.filename}); choose a folder you can write"
+    if not existing.is_dir():
+        if existing == path:
+            return f"{path} is an existing file, not a folder; choose a folder (existing or new)"
+        return f"{existing} is a file, so {path} cannot be created in it; choose another folder"
+    if not os.access(existing, os.W_OK | os.X_OK):
+        where = "is" if existing == path else f"would be created in {existing}, which is"
+        return f"{path} {where} not writable (read-only folder or file system); choose a writable folder"
+    return None
+
+
+def check_views_per_step(config: DistillConfig, num_views: int, scene: str) -> None:
+    """InputError when a step would draw more views than the scene has (it would repeat views):
+    called as soon as the scene is read, before any ray casting."""
+    if config.views_per_step > num_views:
+        raise InputError.single("flags", "--views_per_step", (
+            f"{config.views_per_step} is more than the {num_views} views of {scene}; a step never repeats a "
+            f"view, so use --views_per_step <= {num_views}"))
 
 
 def resumable_flags(config: DistillConfig) -> tuple[str, ...]:

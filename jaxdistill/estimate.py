@@ -106,7 +106,7 @@ def run(cfg: EstimateConfig) -> dict:
     """Estimates every selected map of every selected photo; returns the summary it writes."""
     photos = photos_to_estimate(cfg)
     dtype = {"float32": np.float32, "bfloat16": jax.numpy.bfloat16}[cfg.dtype]
-    loaded = convert.load_rgbx(cfg.prior_dir, dtype=dtype, cache_dir=cfg.convert_cache)
+    loaded = convert.load_rgbx(cfg.prior_dir, dtype=dtype, cache_dir=cfg.convert_cache, flag="--prior_dir")
     rgbx = prior.load_prior(loaded)
     out = Path(cfg.out_dir)
     key = jax.random.key(cfg.seed)

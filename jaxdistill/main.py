@@ -2,7 +2,8 @@
 
 Flags (see jaxdistill/config.py or --helpfull) are parsed once into a frozen DistillConfig;
 train.run does the rest. Bad input stops with a message naming the file and field before any
-compute; a NaN loss stops with the last good checkpoint kept.
+compute; a NaN loss stops with the last good checkpoint kept (status 3); SIGINT/SIGTERM save a
+checkpoint and exit with 130/143, so a scheduler can tell a stopped run from a finished one.
 """
 
 from __future__ import annotations
@@ -33,12 +34,14 @@ def main(argv) -> None:
 
     try:
         config = config_lib.config_from_flags(FLAGS)
-        train.run(config)
+        summary = train.run(config)
     except InputError as err:
         raise app.UsageError(str(err)) from None
     except train.NonFiniteLoss as err:
         logging.error("%s", err)
         sys.exit(3)
+    if summary.get("stopped_by"):          # SIGINT/SIGTERM: checkpoint saved, but not finished
+        sys.exit(summary["exit_status"])
 
 
 if __name__ == "__main__":

@@ -227,14 +227,17 @@ def check_state_fits(num_texels: int, channels: int, config: DistillConfig, full
                             f"{limit / 2**30:.1f} GiB of {what}: {hint}")
 
 
-def build_problem(config: DistillConfig, *, cache_dir=None) -> Problem:
-    """Reads and precomputes everything for `config`; InputError before any compute if input is bad."""
+def build_problem(config: DistillConfig, *, cache_dir=None, check_scene=None) -> Problem:
+    """Reads and precomputes everything for `config`; InputError before any compute if input is bad.
+    `check_scene(scene)`, if given, runs as soon as the scene is read, before any ray casting."""
     timings = {}
     t0 = time.perf_counter()
     choice = choose_prior(config)
     from jaxdistill.datasets import ImportOptions, open_scene
 
     scene = open_scene(config.scene, ImportOptions(allow_outside_paths=config.allow_outside_paths))
+    if check_scene is not None:
+        check_scene(scene)
     channels = MapChannels(tuple(config.maps))
     height, width = render_shape(scene, config.render_size, 8 if choice.kind == "rgbx" else 1)
     timings["read_scene_s"] = time.perf_counter() - t0

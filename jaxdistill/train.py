@@ -20,7 +20,7 @@ from absl import logging
 from tqdm.auto import tqdm
 
 from jaxdistill import MAP_NAMES, checkpoint, evaluation, export, imageio
-from jaxdistill.config import DistillConfig, resumable_flags
+from jaxdistill.config import DistillConfig, check_views_per_step, resumable_flags
 from jaxdistill.distill import (StepSettings, data_mesh, init_state, jit_step, make_optimizer,
                                 make_step)
 from jaxdistill.errors import InputError
@@ -59,8 +59,13 @@ def _save(store, state, recorded: dict, history: dict, out: Path) -> None:
 
 
 def _check_before_compute(config: DistillConfig, out: Path, choice) -> int | None:
-    """Flag problems found without any compute: device split, --resume, an existing run.
-    Returns the checkpoint step to resume from (None for a fresh run)."""
+    """Flag problems found without any compute: the RGB<->X folder (layout, in_channels, every
+    weights file's header), device split, --resume (the checkpoint must read back), an existing
+    run. Returns the checkpoint step to resume from (None for a fresh run)."""
+    if choice.kind == "rgbx":
+        from jaxdistill.models import convert
+
+        convert.check_rgbx_folder(choice.folder, "--rgbx_dir")
     devices = jax.devices()
     if config.views_per_step % len(devices):
         raise InputError.single("flags", "--views_per_step", f"{config.views_per_step} does not split over "
@@ -77,7 +82,7 @@ def _check_before_compute(config: DistillConfig, out: Path, choice) -> int | Non
                                         "; pass --resume to continue it, or choose another --out_dir")
         return None
     with checkpoint.CheckpointStore(directory) as store:
-        latest = store.latest_step()
+        latest = _readable_checkpoint(store)
         if latest is None:
             raise InputError.single("flags", "--resume", f"no complete checkpoint in {directory}; "
                                     "run without --resume to start")
@@ -89,12 +94,36 @@ def _check_before_compute(config: DistillConfig, out: Path, choice) -> int | Non
     return latest
 
 
+def _readable_checkpoint(store: checkpoint.CheckpointStore) -> int | None:
+    """The newest complete checkpoint whose files read back, or None when there is none. Newer
+    ones that do not read (damaged after their commit) are moved aside with a warning; when
+    none reads, InputError naming each step folder and how to start fresh."""
+    steps = store.all_steps()
+    damaged = []
+    for step in reversed(steps):
+        reason = store.damage(step)
+        if reason is None:
+            for bad, why in damaged:
+                moved = store.set_aside(bad)
+                logging.warning("%s: checkpoint of step %d is damaged (%s); moved it to %s and resuming from the "
+                                "previous committed step %d", store.directory / str(bad), bad, why, moved, step)
+            return step
+        damaged.append((step, reason))
+    if damaged:
+        raise InputError([(str(store.directory / str(step)), f"step {step}", f"checkpoint is damaged ({why})")
+                          for step, why in damaged] + [
+            (str(store.directory), "--resume", "no committed checkpoint reads back, so there is nothing to resume; to "
+             f"start fresh, move {store.directory} away (or choose another --out_dir) and run without --resume")])
+    return None
+
+
 def run(config: DistillConfig, *, progress: bool = True) -> dict:
     """Runs the distillation described by `config`; returns the metrics written to metrics.json."""
     wall_start = time.perf_counter()
     out = Path(config.out_dir)
     latest = _check_before_compute(config, out, choose_prior(config))
-    problem = build_problem(config)
+    problem = build_problem(config, check_scene=lambda scene: check_views_per_step(config, len(scene.views),
+                                                                                  config.scene))
     recorded = _recorded_config(config, problem.choice.kind)
     banner = f"PRIOR: {problem.choice.kind.upper()} -- {problem.choice.reason}"
     logging.warning("%s\n%s\n%s", "=" * len(banner), banner, "=" * len(banner))
@@ -156,9 +185,10 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
     _save(store, state, recorded, history, out)
     store.close()
     if stopped_by:
-        logging.warning("stopped by %s at step %d; checkpoint saved. Continue with the same flags and --resume.",
-                        stopped_by, int(jax.device_get(state.step)))
-        return {"stopped_by": stopped_by, "step": int(jax.device_get(state.step))}
+        logging.warning("stopped by %s at step %d; checkpoint saved. Continue with the same flags and --resume. "
+                        "Exiting with status %d (128 + signal number): the run did not finish.",
+                        stopped_by, int(jax.device_get(state.step)), stop.exit_status)
+        return {"stopped_by": stopped_by, "step": int(jax.device_get(state.step)), "exit_status": stop.exit_status}
 
     texels = np.asarray(jax.device_get(state.texels))
     summary = write_outputs(config, problem, texels, history, eval_context)

@@ -243,10 +243,10 @@ def _wait_for(predicate, timeout=2.0):
 def test_stop_signals_sets_flag_and_restores_handlers():
     before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
     with StopSignals() as stop:
-        assert not stop.requested and stop.signal_name is None
+        assert not stop.requested and stop.signal_name is None and stop.exit_status is None
         os.kill(os.getpid(), signal.SIGTERM)
         assert _wait_for(lambda: stop.requested)
-        assert stop.signal_name == "SIGTERM"
+        assert stop.signal_name == "SIGTERM" and stop.exit_status == 143      # what a shell reports: 128 + 15
     # still alive, handlers back
     assert {s: signal.getsignal(s) for s in before} == before
 
@@ -257,7 +257,7 @@ def test_stop_signals_second_signal_goes_to_previous_handler():
     try:
         with StopSignals() as stop:
             os.kill(os.getpid(), signal.SIGINT)
-            assert _wait_for(lambda: stop.requested) and stop.signal_name == "SIGINT"
+            assert _wait_for(lambda: stop.requested) and stop.signal_name == "SIGINT" and stop.exit_status == 130
             assert calls == []
             os.kill(os.getpid(), signal.SIGINT)
             assert _wait_for(lambda: calls == [signal.SIGINT])
@@ -276,3 +276,23 @@ def test_commit_timestamp_alone_counts_as_complete(tmp_path):
     with CheckpointStore(tmp_path) as store:
         assert store.latest_step() == 4
         _assert_bit_identical(store.restore(4, state)[0], state)
+
+
+def test_damage_finds_unreadable_arrays_and_config_and_set_aside_frees_the_step(tmp_path):
+    state = _state()
+    with CheckpointStore(tmp_path / "checkpoints") as store:
+        for step in (1, 2, 3):
+            store.save(step, _run(state, step), CONFIG)
+        assert [store.damage(s) for s in (1, 2, 3)] == [None, None, None]
+        (tmp_path / "checkpoints" / "2" / "config" / "metadata").write_text("{ not json")
+        for f in (tmp_path / "checkpoints" / "3" / "state").glob("ocdbt.process_*/d/*"):
+            f.write_bytes(f.read_bytes()[:10])
+        assert store.damage(1) is None and store.damage(2) and store.damage(3)
+        assert store.damage(2).startswith("its saved flags (config/) do not read: Expecting property name")
+        assert "Error reading" in store.damage(3)                   # tensorstore's words, naming the array
+        moved = store.set_aside(3)
+        assert moved == tmp_path / "checkpoints.damaged" / "3" and moved.is_dir()
+        assert store.all_steps() == [1, 2] and store.latest_step() == 2
+        assert store.save(3, _run(state, 3), CONFIG)                 # the step can be written again
+        restored, _ = store.restore(3, _abstract(state))
+    _assert_bit_identical(restored, _run(state, 3))

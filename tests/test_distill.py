@@ -13,6 +13,7 @@ from jaxdistill.distill import (StepSettings, TraceCounter, data_mesh, init_stat
 from jaxdistill.maps import MapChannels
 from jaxdistill.problem import build_problem
 from tiny_scene import write_tiny_scene
+from tolerance import assert_close
 
 MAPS = ("albedo", "normal", "roughness")
 
@@ -73,7 +74,7 @@ def test_one_step_matches_numpy_render_loss_gradient_and_adamw(problem):
     assert np.isclose(metrics["grad_norm"], np.linalg.norm(grad), rtol=1e-5)
     # AdamW's first step: bias-corrected m = g, v = g^2, so the update is -lr (g / (|g| + eps) + wd theta).
     expected = texels - lr * (grad / (np.abs(grad) + 1e-8) + wd * texels)
-    np.testing.assert_allclose(np.asarray(state.texels), expected, atol=2e-6)
+    assert_close(np.asarray(state.texels), expected, rtol=2e-6, floor=1e-6)
     assert int(state.step) == 1
 
 
@@ -98,7 +99,7 @@ def test_per_map_losses_sum_to_the_loss_and_initial_values_follow_the_thesis(pro
     row = channels.initial_texels(1)[0]
     assert row.tolist() == [0, 0, 0, 0, 0, 0, 1, -1, 0, 0, 0]
     _, (m,) = run_steps(problem, settings_for(problem), make_optimizer(0.01, 0.0), [np.array([1, 3])])
-    assert np.isclose(sum(m[f"loss_{k}"] for k in MAPS), m["loss"], rtol=1e-6)
+    assert np.isclose(sum(m[f"loss_{k}"] for k in MAPS), m["loss"], rtol=1e-5, atol=0)   # float32 sums, two orders
 
 
 def test_a_run_is_a_function_of_its_seed(problem):

@@ -8,6 +8,8 @@ import os
 import signal
 import subprocess
 import sys
+import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -159,7 +161,7 @@ def test_sigterm_saves_a_checkpoint_and_the_run_resumes_to_the_same_result(tiny_
     out = tmp_path / "interrupted"
     result = train.run(tiny_config(tiny_scene, out, steps=6, renders=False), progress=False)
     monkeypatch.setattr(Problem, "batch", original)
-    assert result == {"stopped_by": "SIGTERM", "step": 3}
+    assert result == {"stopped_by": "SIGTERM", "step": 3, "exit_status": 128 + signal.SIGTERM}
     assert not (out / "metrics.json").exists()
     train.run(tiny_config(tiny_scene, out, steps=6, renders=False, resume=True), progress=False)
     a, _ = restored(reference, 6)
@@ -292,3 +294,142 @@ def test_state_that_cannot_fit_in_memory_is_refused_before_any_allocation(tiny_s
     assert "--texture_size=auto" in message and "--sampler=bilinear" in message
     monkeypatch.setattr(problem_lib, "memory_budget", lambda: (need, "test RAM"))
     assert problem_lib.build_problem(config).space.num_texels == fits.space.num_texels   # exactly fits: runs
+
+
+def test_sigterm_exits_143_after_the_checkpoint_and_says_so(tiny_scene, tmp_path):
+    """The command, not just train.run: a scheduler's SIGTERM leaves a checkpoint and status 143
+    (128 + 15, what a shell reports for a process the signal ended), never 0."""
+    out = tmp_path / "run"
+    log = tmp_path / "stderr.txt"
+    with open(log, "w") as stderr:
+        proc = subprocess.Popen([sys.executable, "-m", "jaxdistill.main", f"--scene={tiny_scene}", f"--out_dir={out}",
+                                 "--prior=views", "--steps=1000000", "--views_per_step=2", "--log_every=1",
+                                 "--renders=false"], stderr=stderr, stdout=subprocess.DEVNULL, cwd=REPO,
+                                env={**os.environ, "JAX_PLATFORMS": "cpu"})
+        try:
+            deadline = time.monotonic() + 300
+            while "distil:" not in log.read_text() and proc.poll() is None and time.monotonic() < deadline:
+                time.sleep(0.2)          # the progress bar is up: the loop (and its signal handler) runs
+            assert proc.poll() is None, log.read_text()[-3000:]
+            proc.send_signal(signal.SIGTERM)
+            status = proc.wait(timeout=300)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+    text = log.read_text()
+    assert status == 143, text[-3000:]
+    assert "stopped by SIGTERM at step" in text and "Exiting with status 143" in text
+    assert "Traceback" not in text
+    with checkpoint.CheckpointStore(out / "checkpoints") as store:
+        assert store.latest_step() is not None and store.latest_step() >= 1
+
+
+def test_damaged_newest_checkpoint_falls_back_to_the_previous_one(tiny_scene, tmp_path, caplog):
+    """The newest checkpoint's array files are damaged after its commit (truncated): --resume warns,
+    names the step folder, sets it aside and resumes from the previous committed step, bit-identical
+    to resuming from that step directly."""
+    import shutil
+
+    damaged, direct = tmp_path / "damaged", tmp_path / "direct"
+    train.run(tiny_config(tiny_scene, damaged, steps=4, ckpt_every=2, renders=False, eval_every=0), progress=False)
+    shutil.copytree(damaged, direct)
+    shutil.rmtree(direct / "checkpoints" / "4")                        # the reference: step 2 is the newest
+    arrays = sorted((damaged / "checkpoints" / "4" / "state").glob("ocdbt.process_*/d/*"))
+    assert arrays
+    for f in arrays:
+        f.write_bytes(f.read_bytes()[: f.stat().st_size // 2])
+    with caplog.at_level("WARNING"):
+        train.run(tiny_config(tiny_scene, damaged, steps=6, resume=True, renders=False, eval_every=0), progress=False)
+    train.run(tiny_config(tiny_scene, direct, steps=6, resume=True, renders=False, eval_every=0), progress=False)
+    warning = [r.getMessage() for r in caplog.records if "is damaged" in r.getMessage()]
+    assert len(warning) == 1, warning
+    assert warning[0].startswith(f"{damaged / 'checkpoints' / '4'}: checkpoint of step 4 is damaged (")
+    assert "resuming from the previous committed step 2" in warning[0]
+    assert (damaged / "checkpoints.damaged" / "4").is_dir()           # kept for inspection, out of the store
+    a, _ = restored(damaged, 6)
+    b, _ = restored(direct, 6)
+    for leaf_a, leaf_b in zip(jax_leaves(a), jax_leaves(b)):
+        np.testing.assert_array_equal(leaf_a, leaf_b)
+    doc_a, doc_b = (json.loads((o / "metrics.json").read_text()) for o in (damaged, direct))
+    assert doc_a["resumed_from"] == doc_b["resumed_from"] == 2
+    assert doc_a["history"] == doc_b["history"]
+
+
+def test_no_readable_checkpoint_says_how_to_start_fresh(tiny_scene, tmp_path, monkeypatch):
+    out = tmp_path / "run"
+    train.run(tiny_config(tiny_scene, out, steps=2, renders=False, eval_every=0), progress=False)
+    for f in (out / "checkpoints" / "2" / "state").glob("ocdbt.process_*/d/*"):
+        f.write_bytes(b"\0" * 64)
+    monkeypatch.setattr(train, "build_problem", lambda *a, **k: pytest.fail("computed before refusing"))
+    with pytest.raises(InputError) as err:
+        train.run(tiny_config(tiny_scene, out, steps=4, resume=True), progress=False)
+    message = str(err.value)
+    assert f"{out / 'checkpoints' / '2'}: step 2: checkpoint is damaged (" in message
+    assert (f"{out / 'checkpoints'}: --resume: no committed checkpoint reads back, so there is nothing to resume; "
+            f"to start fresh, move {out / 'checkpoints'} away (or choose another --out_dir) and run without "
+            "--resume") in message
+    assert (out / "checkpoints" / "2").is_dir()                      # nothing moved when nothing can resume
+
+
+def test_out_dir_that_cannot_be_written_is_refused_with_the_flags(tmp_path):
+    a_file = tmp_path / "a_file"
+    a_file.write_text("x")
+    for out, expected in ((a_file, f"--out_dir: {a_file} is an existing file, not a folder"),
+                          (a_file / "run", f"--out_dir: {a_file} is a file, so {a_file / 'run'} cannot be created")):
+        with pytest.raises(InputError) as err:
+            tiny_config("scene", out)
+        assert f"flags: {expected}" in str(err.value)
+    assert config_lib.out_dir_problem(str(tmp_path / "new" / "deeper")) is None       # created by the run
+    # a read-only folder, checked as an ordinary user (root may write into it, and then the run could)
+    with tempfile.TemporaryDirectory(dir="/tmp") as shared:          # searchable by that user
+        locked = Path(shared) / "locked"
+        locked.mkdir()
+        locked.chmod(0o555)
+        Path(shared).chmod(0o755)
+        below, itself = _as_ordinary_user(lambda: [config_lib.out_dir_problem(str(p)) for p in (locked / "run", locked)])
+    assert below == (f"{locked / 'run'} would be created in {locked}, which is not writable (read-only folder or "
+                     "file system); choose a writable folder")
+    assert itself == f"{locked} is not writable (read-only folder or file system); choose a writable folder"
+
+
+def _as_ordinary_user(fn):
+    """fn() run in a forked child as user nobody when the tests run as root (else here); its
+    JSON-able result."""
+    if os.geteuid() != 0:
+        return fn()
+    read, write = os.pipe()
+    pid = os.fork()
+    if pid == 0:                                  # the child: plain os calls only, then _exit
+        try:
+            os.setgid(65534)
+            os.setuid(65534)
+            os.write(write, json.dumps(fn()).encode())
+        finally:
+            os._exit(0)
+    os.close(write)
+    with os.fdopen(read) as f:
+        text = f.read()
+    os.waitpid(pid, 0)
+    return json.loads(text)
+
+
+def test_views_per_step_above_the_view_count_is_refused_before_ray_casting(tiny_scene, tmp_path, monkeypatch):
+    from jaxdistill.render import fragments
+
+    monkeypatch.setattr(fragments, "compute_fragments", lambda *a, **k: pytest.fail("ray cast before refusing"))
+    with pytest.raises(InputError, match=rf"flags: --views_per_step: 5 is more than the 4 views of {tiny_scene}; "
+                       r".*use --views_per_step <= 4"):
+        train.run(tiny_config(tiny_scene, tmp_path / "o", views_per_step=5), progress=False)
+
+
+def test_damaged_rgbx_weights_stop_the_main_job_before_any_compute(tiny_scene, rgbx_dir, tmp_path, monkeypatch):
+    import shutil
+
+    folder = shutil.copytree(rgbx_dir, tmp_path / "rgbx")
+    vae = folder / "vae" / "diffusion_pytorch_model.safetensors"
+    vae.write_bytes(vae.read_bytes()[:1000])
+    monkeypatch.setattr(train, "build_problem", lambda *a, **k: pytest.fail("computed before refusing"))
+    with pytest.raises(InputError, match=rf"{vae}: vae weights: damaged or incomplete safetensors file "
+                       r"\(1,000 bytes; safetensors: .*\); re-download it: `huggingface-cli download zheng95z/rgb-to-x "
+                       rf"vae/diffusion_pytorch_model.safetensors --local-dir {folder}`"):
+        train.run(tiny_config(tiny_scene, tmp_path / "o", prior="rgbx", rgbx_dir=str(folder)), progress=False)

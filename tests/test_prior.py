@@ -19,6 +19,7 @@ from jaxdistill.errors import InputError  # noqa: E402
 from jaxdistill.models import convert, prior  # noqa: E402
 from jaxdistill.models import scheduler as sched  # noqa: E402
 from tiny_rgbx import nchw, nhwc, rel_err  # noqa: E402
+from tolerance import assert_close  # noqa: E402
 
 TOL = 1e-5
 
@@ -144,7 +145,9 @@ def test_estimate_matches_reference_pipeline(rgbx_dir, rgbx_prior, torch_models)
         assert ours.shape == (48, 64, 3) and ours.min() >= 0 and ours.max() <= 1
         assert rel_err(ours, out) < TOL, map_name
     display = prior.estimate(rgbx_prior, photo, "albedo", key, num_steps=4)
-    np.testing.assert_allclose(display, out_albedo ** (1 / 2.2), rtol=1e-4, atol=1e-4)
+    # undone before comparing: near 0 the gamma's slope would turn rounding noise into 1e-4 differences
+    assert display.min() >= 0 and rel_err(display ** 2.2, out_albedo) < TOL
+    assert rel_err(display, out_albedo ** (1 / 2.2)) < 1e-2               # and it was applied
 
 
 def test_estimate_errors(rgbx_prior):
@@ -171,7 +174,8 @@ def test_prompt_embeddings_are_computed_once_per_map(rgbx_prior, loaded):
     assert set(rgbx_prior.text) == {"albedo", "normal", "roughness", "metallic", "irradiance"}
     ids = rgbx_prior.tokenizer.encode(["Roughness"])
     direct = loaded.networks.text_encoder.apply(loaded.params["text_encoder"], jnp.asarray(ids))
-    np.testing.assert_allclose(rgbx_prior.text["roughness"].prompt, direct, rtol=1e-6, atol=1e-6)
+    # batched (5 prompts) vs one prompt: XLA CPU rounds differently with the batch and thread count
+    assert_close(rgbx_prior.text["roughness"].prompt, direct, rtol=1e-5, floor=1e-6)
     assert rgbx_prior.scheduler.timestep_spacing == "trailing" and rgbx_prior.scheduler.rescale_betas_zero_snr
     assert isinstance(rgbx_prior.loaded, convert.LoadedRgbx)
 

@@ -121,25 +121,24 @@ def convert_state_dict(state: dict[str, np.ndarray], abstract: dict, source: str
     return traverse_util.unflatten_dict(out)
 
 
-def read_safetensors(folder: Path, stem: str) -> dict[str, np.ndarray]:
-    """All tensors of `<stem>.safetensors` (or its sharded index) as NumPy arrays (memory-mapped)."""
-    from safetensors.numpy import load_file
-
+def weight_files(folder: Path, stem: str) -> list[Path]:
+    """The `.safetensors` files holding `<stem>` (one file, or the shards its index lists);
+    InputError naming what is missing, and how to get or convert it."""
     single = folder / f"{stem}.safetensors"
     index = folder / f"{stem}.safetensors.index.json"
     if single.exists():
-        return load_file(str(single))
+        return [single]
     if index.exists():
         try:
             shards = sorted(set(json.loads(index.read_text())["weight_map"].values()))
-        except (json.JSONDecodeError, KeyError) as err:
-            raise InputError.single(index, "weight_map", f"unreadable shard index: {err}") from None
-        state: dict[str, np.ndarray] = {}
-        for shard in shards:
-            if not (folder / shard).exists():
-                raise InputError.single(index, "weight_map", f"lists shard {shard} which is missing")
-            state.update(load_file(str(folder / shard)))
-        return state
+        except (json.JSONDecodeError, KeyError, AttributeError, TypeError) as err:
+            raise InputError.single(index, "weight_map", f"unreadable shard index: {err!r}; "
+                                    f"{_redownload(folder, index.name)}") from None
+        missing = [s for s in shards if not (folder / s).exists()]
+        if missing:
+            raise InputError.single(index, "weight_map", f"lists shards {missing} which are missing; "
+                                    f"{_redownload(folder, missing[0])}")
+        return [folder / s for s in shards]
     bins = sorted(p.name for p in folder.glob("*.bin"))
     others = sorted(p.name for p in folder.glob("*.safetensors"))
     if bins:
@@ -151,6 +150,64 @@ def read_safetensors(folder: Path, stem: str) -> dict[str, np.ndarray]:
             f"M.from_pretrained('{folder}').save_pretrained('{folder}', safe_serialization=True)\"`"))
     hint = f" (found {others}; a variant such as fp16 is not read — save the fp32 weights)" if others else ""
     raise InputError.single(folder, f"{stem}.safetensors", f"missing{hint}; {_DOWNLOAD_HINT}")
+
+
+def _redownload(folder: Path, name: str) -> str:
+    """How to fetch one file of a part again (`folder` is the part's folder, e.g. DIR/unet)."""
+    return (f"re-download it: `huggingface-cli download zheng95z/rgb-to-x {folder.name}/{name} "
+            f"--local-dir {folder.parent}` (Adobe Research License: never commit the weights)")
+
+
+def damaged_weights(path: Path) -> str | None:
+    """Why the safetensors file `path` cannot be read (truncated, not safetensors), or None when
+    its header parses and covers the whole file. Reads the header only (the data is mapped)."""
+    from safetensors import SafetensorError, safe_open
+
+    try:
+        with safe_open(str(path), framework="np") as f:
+            f.keys()
+    except (SafetensorError, OSError) as err:
+        return f"{err}".strip() or type(err).__name__
+    return None
+
+
+def _weights_problem(path: Path, part: str, reason: str) -> tuple[str, str, str]:
+    size = path.stat().st_size if path.exists() else 0
+    return (str(path), f"{part} weights", f"damaged or incomplete safetensors file ({size:,} bytes; "
+            f"safetensors: {reason}); {_redownload(path.parent, path.name)}")
+
+
+def read_safetensors(folder: Path, stem: str) -> dict[str, np.ndarray]:
+    """All tensors of `<stem>.safetensors` (or its sharded index) as NumPy arrays; InputError
+    naming the file and the part (the folder's name) when one is damaged."""
+    from safetensors import SafetensorError
+    from safetensors.numpy import load_file
+
+    state: dict[str, np.ndarray] = {}
+    for path in weight_files(folder, stem):
+        try:
+            state.update(load_file(str(path)))
+        except SafetensorError as err:
+            raise InputError([_weights_problem(path, folder.name, str(err))]) from None
+    return state
+
+
+def check_weights(folder: Path) -> None:
+    """InputError naming every weights file of unet/vae/text_encoder that is missing, damaged
+    or truncated (headers only: cheap, run before any compute)."""
+    problems: list[tuple[str, str, str]] = []
+    for part, stem in _WEIGHT_STEMS.items():
+        try:
+            paths = weight_files(folder / part, stem)
+        except InputError as err:
+            problems += err.problems
+            continue
+        for path in paths:
+            reason = damaged_weights(path)
+            if reason is not None:
+                problems.append(_weights_problem(path, part, reason))
+    if problems:
+        raise InputError(problems)
 
 
 def _digest(folder: Path, stem: str, extra: str) -> str:
@@ -169,7 +226,10 @@ def _load_part(folder: Path, stem: str, abstract: dict, cache_dir: Path | None, 
     cache_file = None
     if cache_dir is not None:
         cache_file = Path(cache_dir) / f"{folder.name}-{_digest(folder, stem, tag)}.safetensors"
-        if cache_file.exists():
+        damage = damaged_weights(cache_file) if cache_file.exists() else None
+        if damage is not None:
+            log.warning("%s: converting %s again: the cached conversion is damaged (%s)", cache_file, tag, damage)
+        elif cache_file.exists():
             flat = load_file(str(cache_file))
             params = traverse_util.unflatten_dict({tuple(k.split("/")): v for k, v in flat.items()})
             # a cache written by another layout must not slip through: re-check every leaf
@@ -223,15 +283,32 @@ def check_folder(folder: str | Path) -> Path:
     return folder
 
 
-def build_networks(folder: str | Path, dtype: Any = jnp.float32, precision: str = "default",
-                   chunk_size: int | None = None, require_rgbx: bool = True) -> RgbxNetworks:
-    """Flax modules configured from the folder's config.json files (no weights read)."""
-    folder = check_folder(folder)
+def _unet_config(folder: Path, require_rgbx: bool, flag: str) -> UNetConfig:
+    """The UNet's config; InputError when an RGB→X UNet is required and this is not one."""
     unet_cfg = UNetConfig.from_json(folder / "unet" / "config.json")
     if require_rgbx and unet_cfg.in_channels != RGBX_IN_CHANNELS:
         raise InputError.single(folder / "unet" / "config.json", "in_channels", (
             f"is {unet_cfg.in_channels}, but an RGB→X UNet takes {RGBX_IN_CHANNELS} (noisy latent + photo "
-            "latent). This is not an RGB→X model; point --prior_dir at zheng95z/rgb-to-x."))
+            f"latent). This is not an RGB→X model; point {flag} at zheng95z/rgb-to-x."))
+    return unet_cfg
+
+
+def check_rgbx_folder(folder: str | Path, flag: str = "--rgbx_dir", require_rgbx: bool = True) -> Path:
+    """Everything about an RGB↔X folder that can be checked without converting it, for callers
+    to run before any compute: the layout, the UNet's in_channels and every weights file's
+    header. `flag` is the option that named the folder, for the messages."""
+    folder = check_folder(folder)
+    _unet_config(folder, require_rgbx, flag)
+    check_weights(folder)
+    return folder
+
+
+def build_networks(folder: str | Path, dtype: Any = jnp.float32, precision: str = "default",
+                   chunk_size: int | None = None, require_rgbx: bool = True,
+                   flag: str = "--rgbx_dir") -> RgbxNetworks:
+    """Flax modules configured from the folder's config.json files (no weights read)."""
+    folder = check_folder(folder)
+    unet_cfg = _unet_config(folder, require_rgbx, flag)
     opts = dict(dtype=dtype, precision=precision)
     if chunk_size is not None:
         opts["chunk_size"] = chunk_size
@@ -258,10 +335,13 @@ def abstract_params(networks: RgbxNetworks) -> dict[str, dict]:
 
 def load_rgbx(folder: str | Path, dtype: Any = jnp.float32, precision: str = "default",
               cache_dir: str | Path | None = None, chunk_size: int | None = None,
-              require_rgbx: bool = True) -> LoadedRgbx:
-    """Read and convert all three networks of an RGB↔X folder; params stay float32 on the host."""
+              require_rgbx: bool = True, flag: str = "--rgbx_dir") -> LoadedRgbx:
+    """Read and convert all three networks of an RGB↔X folder; params stay float32 on the host.
+    Every file is checked (`check_rgbx_folder`) before the first network is converted; `flag`
+    is the option that named the folder, for the messages."""
     start = time.perf_counter()
-    networks = build_networks(folder, dtype, precision, chunk_size, require_rgbx)
+    check_rgbx_folder(folder, flag, require_rgbx)
+    networks = build_networks(folder, dtype, precision, chunk_size, require_rgbx, flag)
     folder = Path(folder).expanduser()
     shapes = abstract_params(networks)
     params, seconds = {}, {}
