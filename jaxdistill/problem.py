@@ -28,7 +28,7 @@ from jaxdistill.maps import INITIAL_VALUE, MapChannels, file_to_model
 from jaxdistill.render import fragments as fr
 from jaxdistill.render.gather_plan import TexelSpace, build_gather_plans, build_texel_space
 from jaxdistill.render.layout import make_layout
-from jaxdistill.render.visibility import pixel_weights, view_counts
+from jaxdistill.render.visibility import check_coverage, hit_fractions, pixel_weights, view_counts
 from jaxdistill.scene import Scene
 
 def rgbx_hint() -> str:
@@ -119,12 +119,15 @@ def resize(image: np.ndarray, height: int, width: int) -> np.ndarray:
 
 
 def read_target(name: str, path: Path) -> np.ndarray:
-    """A per-view target image in file space: albedo/irradiance linear (sRGB files decoded),
-    roughness/metallic grey values, normals as vectors (files hold (n + 1) / 2)."""
+    """A per-view target image in file space, with the map's channels (`maps.CHANNELS`):
+    albedo/irradiance linear RGB (sRGB files decoded; a grey file, accepted by validation, is
+    used as R = G = B), roughness/metallic channel 0, normals as vectors (files hold (n + 1) / 2).
+    Validation (`scene.channel_problem`) has refused the channel counts these cannot use."""
     if name in ("albedo", "irradiance"):
-        return imageio.read_image(path)
+        values = imageio.read_image(path)
+        return np.repeat(values, 3, axis=-1) if values.shape[-1] == 1 else values[..., :3]
     values = imageio.read_image(path, linear=False)
-    return 2.0 * values[..., :3] - 1.0 if name == "normal" else values
+    return 2.0 * values[..., :3] - 1.0 if name == "normal" else values[..., :1]
 
 
 def read_mask(path: Path, height: int, width: int) -> np.ndarray:
@@ -261,7 +264,13 @@ def check_state_fits(num_texels: int, channels: int, config: DistillConfig, full
 
 
 def build_problem(config: DistillConfig, *, cache_dir=None) -> Problem:
-    """Reads and precomputes everything for `config`; InputError before any compute if input is bad."""
+    """Reads and precomputes everything for `config`; InputError before any compute if input is bad.
+    Images are decoded once: validation's reads are reused by the pipeline (`imageio.cached_reads`)."""
+    with imageio.cached_reads():
+        return _build_problem(config, cache_dir=cache_dir)
+
+
+def _build_problem(config: DistillConfig, *, cache_dir=None) -> Problem:
     timings = {}
     t0 = time.perf_counter()
     choice = choose_prior(config)
@@ -281,6 +290,9 @@ def build_problem(config: DistillConfig, *, cache_dir=None) -> Problem:
     native_frags = frags if native else fr.compute_fragments(scene.mesh, [v.camera for v in scene.views],
                                                              cache_dir=cache_dir)
     timings["fragments_s"] = time.perf_counter() - t0
+    scene_file = os.fspath(scene.root / "scene.json") if scene.root and (scene.root / "scene.json").is_file() \
+        else config.scene
+    check_coverage([v.name for v in scene.views], hit_fractions(frags), cameras, scene.mesh, scene_file)
 
     t0 = time.perf_counter()
     trilinear = config.sampler == "trilinear"
