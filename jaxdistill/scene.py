@@ -49,7 +49,7 @@ import logging
 import os
 import re
 from pathlib import Path
-from typing import Mapping
+from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -66,7 +66,20 @@ FORMAT_VERSION = 1
 TEXTURE_LAYOUTS = ("pages", "atlas")
 UV_TOLERANCE = 1e-4
 RGB_MAPS = ("albedo", "irradiance")     # a grey image is accepted for these: used as R = G = B
-MAX_NOTES = 10                          # notes logged one by one; the rest are counted
+MAX_NOTES = 10                          # note lines logged; the rest are counted
+NOTE_DETAILS = 5                        # images named per note line
+NEGATIVE_NOISE = 1e-3                   # photo negatives above -this x its 99th percentile: noise (info only)
+
+
+@dataclasses.dataclass(frozen=True)
+class Note:
+    """What is done with an accepted oddity of one image (logged by `log_notes`, grouped by message)."""
+
+    file: str
+    field: str
+    message: str
+    detail: str
+    level: int = logging.INFO
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -173,7 +186,7 @@ def view_problems(photo: Path, targets: Mapping[str, Path], cam: Camera | None, 
     unreadable, truncated or non-finite images, channels the image's role cannot use, and (given
     the view's camera) a size that differs from it. The camera itself is valid by construction
     (`Camera` validates K and c2w). What is done with acceptable oddities (a grey albedo, negative
-    values in a linear photo) is appended to `notes` as (file, field, message)."""
+    values in a linear photo) is appended to `notes` (`Note`)."""
     image_problems(photo, f"{where}.photo", cam, file, problems, check_pixels=check_pixels, role="photo",
                    notes=notes)
     if not (isinstance(exposure, (int, float)) and not isinstance(exposure, bool) and abs(exposure) <= MAX_STOPS):
@@ -227,7 +240,7 @@ def image_problems(path: Path, field: str, cam: Camera | None, file: str, proble
         problems.add(file, field, f"{path} {wrong}")
         return
     if notes is not None and role in RGB_MAPS and channels == 1:
-        notes.append((file, field, f"grey image: used as R = G = B ({Path(path).name})"))
+        notes.append(Note(file, field, "grey image used as R = G = B", Path(path).name))
     if not check_pixels:
         return
     try:
@@ -243,25 +256,33 @@ def image_problems(path: Path, field: str, cam: Camera | None, file: str, proble
         problems.add(file, field, f"{path} has {bad.any(axis=-1).sum()} NaN/inf pixels "
                      f"(first at row {row}, column {col}); fix or re-render the image")
     elif role == "photo" and notes is not None:
-        negative = pixels[..., :3] < 0
+        rgb = pixels[..., :3]
+        negative = rgb < 0
         if negative.any():
-            notes.append((file, field, f"{Path(path).name} has {int(negative.sum())} negative values (min "
-                          f"{float(pixels[..., :3].min()):.3g}): clamped to 0 (RGB↔X sees the photo x "
-                          "2**exposure clipped to [0, 1])"))
+            low, scale = float(rgb.min()), max(float(np.percentile(rgb, 99)), 0.0)
+            noise = scale > 0 and low >= -NEGATIVE_NOISE * scale
+            message = (f"negative values at noise level (above -{NEGATIVE_NOISE:g} x the photo's 99th percentile) "
+                       "clamped to 0" if noise else "negative values clamped to 0, as RGB↔X sees the photo x "
+                       "2**exposure clipped to [0, 1]")
+            notes.append(Note(file, field, message, f"{Path(path).name}: {int(negative.sum())}, min {low:.3g}",
+                              logging.INFO if noise else logging.WARNING))
 
 
-def log_notes(notes: list) -> None:
-    """Logs what is done with accepted oddities: one warning per kind of note (a field pattern
-    and message shared by many views is one line), at most MAX_NOTES lines."""
-    groups: dict[tuple[str, str, str], list[str]] = {}
-    for file, field, message in notes:
-        groups.setdefault((file, re.sub(r"\[\d+\]", "[*]", field), message), []).append(field)
-    for n, ((file, pattern, message), fields) in enumerate(groups.items()):
+def log_notes(notes: Sequence[Note]) -> None:
+    """Logs what is done with accepted oddities: notes of the same message and field pattern
+    (views[*]) are one line naming up to NOTE_DETAILS images; at most MAX_NOTES lines."""
+    groups: dict[tuple, list[Note]] = {}
+    for note in notes:
+        groups.setdefault((note.file, re.sub(r"\[\d+\]", "[*]", note.field), note.message, note.level),
+                          []).append(note)
+    for n, ((file, pattern, message, level), group) in enumerate(groups.items()):
         if n == MAX_NOTES:
             log.warning("... and %d more notes like these", len(groups) - MAX_NOTES)
             break
-        where = fields[0] if len(fields) == 1 else f"{pattern} ({len(fields)} views)"
-        log.warning("%s: %s: %s", file, where, message)
+        where = group[0].field if len(group) == 1 else f"{pattern} ({len(group)} views)"
+        details = "; ".join(note.detail for note in group[:NOTE_DETAILS])
+        more = f"; and {len(group) - NOTE_DETAILS} more" if len(group) > NOTE_DETAILS else ""
+        log.log(level, "%s: %s: %s (%s%s)", file, where, message, details, more)
 
 
 def validate_scene(scene: Scene, *, scene_file: str = "scene.json", mesh_file: str = "mesh",
