@@ -142,4 +142,5 @@ def test_import_prints_the_hit_fractions_and_stops_when_no_view_sees_the_mesh(tm
     assert report["hit_fractions"] == {"frame_00001": 1.0, "frame_00002": 0.0, "frame_00003": 1.0}
     proc = import_scene(tmp_path / "all", [{"K": c["K"], "c2w": np.array(AWAY)} for c in cams])
     assert proc.returncode == 2 and "transforms.json: views: no view sees the mesh" in proc.stderr
+    assert "check that the cameras follow the format's convention (README: Real datasets)" in proc.stderr
     assert "Traceback" not in proc.stderr

@@ -209,7 +209,9 @@ def _build_scene(name: str, root: Path, mesh_path, views: Sequence[ViewSource], 
     t0 = time.perf_counter()          # lens distortion moves pixels, not the fraction that hits: cast pinholes
     names, cameras = [v.name for v in views], [v.camera for v in views]
     fractions = cast_hit_fractions(mesh, cameras)
-    blind = check_coverage(names, fractions, cameras, mesh, source_file)
+    blind = check_coverage(names, fractions, cameras, mesh, source_file, what_to_check=(
+        "check that the cameras follow the format's convention (README: Real datasets) and that the mesh is in "
+        "the cameras' world and units (--mesh replaces the dataset's)"))
     timings["coverage_s"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()

@@ -116,18 +116,21 @@ def coverage_summary(names: Sequence[str], fractions: np.ndarray) -> str:
             f"{100 * np.median(f):.1f} %, max {100 * f.max():.1f} %; fewest: {worst}")
 
 
+SCENE_CONVENTION = ("check the camera convention (OpenCV camera-to-world c2w: x right, y down, z forward; not "
+                    "world-to-camera, not OpenGL) and units (cameras and mesh in the same world and units)")
+
+
 def check_coverage(names: Sequence[str], fractions: np.ndarray, cameras: Sequence[Camera], mesh: Mesh,
-                   scene_file: str, *, min_fraction: float = MIN_HIT_FRACTION) -> list[str]:
+                   scene_file: str, *, min_fraction: float = MIN_HIT_FRACTION,
+                   what_to_check: str = SCENE_CONVENTION) -> list[str]:
     """Logs the coverage summary and a warning naming the views under `min_fraction`; returns
-    their names. InputError (naming `scene_file`) when no ray of any view hits the mesh: then no
-    texel is observed and there is nothing to distil."""
+    their names. InputError (naming `scene_file`, ending with `what_to_check`) when no ray of any
+    view hits the mesh: then no texel is observed and there is nothing to distil."""
     f = np.asarray(fractions, np.float64)
     log.info("%s", coverage_summary(names, f))
     if len(f) and not f.max() > 0:
         raise InputError.single(scene_file, "views", f"no view sees the mesh (every ray of the {len(f)} views misses "
-                                f"it, so no texel is observed); {_placement(cameras, mesh)}; check the camera "
-                                "convention (OpenCV camera-to-world c2w: x right, y down, z forward; not "
-                                "world-to-camera, not OpenGL) and units (cameras and mesh in the same world and units)")
+                                f"it, so no texel is observed); {_placement(cameras, mesh)}; {what_to_check}")
     low = np.nonzero(f < min_fraction)[0]
     blind = [names[i] for i in low]
     if blind:
