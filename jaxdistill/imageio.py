@@ -2,11 +2,18 @@
 
 Files: EXR/HDR/TIFF-float hold linear values; PNG/JPG (8/16-bit) hold sRGB-encoded values.
 `read_image` returns linear light for both, `write_image` encodes sRGB for LDR formats.
+
+Inside `with cached_reads():` each file's pixels are decoded once: validation reads every image
+(a truncated file is caught before any compute) and the pipeline's later reads of the same
+file reuse them, up to CACHE_BYTES (least recently used first out; larger sets are re-read).
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
+import threading
+from collections import OrderedDict
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +22,10 @@ import OpenImageIO as oiio
 from jaxdistill.errors import InputError
 
 LINEAR_EXTENSIONS = (".exr", ".hdr", ".pfm")
+CACHE_BYTES = 1 << 30
+
+_cache: OrderedDict | None = None     # (path, inode, size, mtime) -> file values, inside cached_reads()
+_cache_lock = threading.Lock()
 
 
 def is_linear_format(path) -> bool:
@@ -44,18 +55,67 @@ def image_size(path) -> tuple[int, int, int]:
     return spec.width, spec.height, spec.nchannels
 
 
-def read_image(path, *, linear: bool = True) -> np.ndarray:
-    """(H, W, C) float32 pixels; LDR files are sRGB-decoded to linear unless `linear=False`."""
+@contextlib.contextmanager
+def cached_reads():
+    """Within the block, `read_image` decodes each file once (LRU, up to CACHE_BYTES of pixels);
+    the cache is dropped on exit. Nested blocks share the outer cache."""
+    global _cache
+    if _cache is not None:
+        yield
+        return
+    _cache = OrderedDict()
+    try:
+        yield
+    finally:
+        _cache = None
+
+
+def _cache_key(path) -> tuple:
+    st = os.stat(path)
+    return os.path.realpath(path), st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns
+
+
+def _decode(path) -> np.ndarray:
+    """(H, W, C) float32 values as stored in the file; OSError naming what the decoder said."""
     inp = oiio.ImageInput.open(os.fspath(path))
     if inp is None:
         raise OSError(f"{path}: cannot open image: {oiio.geterror()}")
     pixels = inp.read_image(format="float")
+    failed, message = pixels is None or inp.has_error, inp.geterror()
     inp.close()
-    if pixels is None:
-        raise OSError(f"{path}: cannot read pixels: {oiio.geterror()}")
+    if failed:   # truncated or damaged: some decoders return partial pixels and only flag the error
+        detail = " ".join(message.split()) or oiio.geterror() or "the decoder gave no reason"
+        raise OSError(f"{path}: cannot read pixels (truncated or damaged file?): {detail}")
     pixels = np.asarray(pixels, np.float32)
-    if pixels.ndim == 2:
-        pixels = pixels[:, :, None]
+    return pixels[:, :, None] if pixels.ndim == 2 else pixels
+
+
+def _file_values(path) -> np.ndarray:
+    """`_decode(path)`, through the cache of `cached_reads` when one is open (a private copy)."""
+    cache = _cache
+    if cache is None:
+        return _decode(path)
+    key = _cache_key(path)
+    with _cache_lock:
+        hit = cache.get(key)
+        if hit is not None:
+            cache.move_to_end(key)
+            return hit.copy()
+    pixels = _decode(path)
+    if pixels.nbytes <= CACHE_BYTES:
+        with _cache_lock:
+            cache[key] = pixels
+            total = sum(a.nbytes for a in cache.values())
+            while total > CACHE_BYTES:
+                total -= cache.popitem(last=False)[1].nbytes
+        return pixels.copy()
+    return pixels
+
+
+def read_image(path, *, linear: bool = True) -> np.ndarray:
+    """(H, W, C) float32 pixels; LDR files are sRGB-decoded to linear unless `linear=False`.
+    OSError (naming the file and the decoder's reason) when the file cannot be read in full."""
+    pixels = _file_values(path)
     if linear and not is_linear_format(path):
         pixels = srgb_to_linear(pixels)
     return pixels

@@ -28,7 +28,7 @@ from jaxdistill.maps import INITIAL_VALUE, MapChannels, file_to_model
 from jaxdistill.render import fragments as fr
 from jaxdistill.render.gather_plan import TexelSpace, build_gather_plans, build_texel_space
 from jaxdistill.render.layout import make_layout
-from jaxdistill.render.visibility import pixel_weights, view_counts
+from jaxdistill.render.visibility import check_coverage, hit_fractions, pixel_weights, view_counts
 from jaxdistill.scene import Scene
 from jaxdistill.scene_paths import resolve_scene_path  # noqa: F401  (--scene as a path; scripts use it from here)
 from jaxdistill.view_images import read_mask, read_target, resize
@@ -229,7 +229,13 @@ def check_state_fits(num_texels: int, channels: int, config: DistillConfig, full
 
 def build_problem(config: DistillConfig, *, cache_dir=None, check_scene=None) -> Problem:
     """Reads and precomputes everything for `config`; InputError before any compute if input is bad.
-    `check_scene(scene)`, if given, runs as soon as the scene is read, before any ray casting."""
+    `check_scene(scene)`, if given, runs as soon as the scene is read, before any ray casting.
+    Images are decoded once: validation's reads are reused by the pipeline (`imageio.cached_reads`)."""
+    with imageio.cached_reads():
+        return _build_problem(config, cache_dir=cache_dir, check_scene=check_scene)
+
+
+def _build_problem(config: DistillConfig, *, cache_dir=None, check_scene=None) -> Problem:
     timings = {}
     t0 = time.perf_counter()
     choice = choose_prior(config)
@@ -251,6 +257,9 @@ def build_problem(config: DistillConfig, *, cache_dir=None, check_scene=None) ->
     native_frags = frags if native else fr.compute_fragments(scene.mesh, [v.camera for v in scene.views],
                                                              cache_dir=cache_dir)
     timings["fragments_s"] = time.perf_counter() - t0
+    scene_file = os.fspath(scene.root / "scene.json") if scene.root and (scene.root / "scene.json").is_file() \
+        else config.scene
+    check_coverage([v.name for v in scene.views], hit_fractions(frags), cameras, scene.mesh, scene_file)
 
     t0 = time.perf_counter()
     trilinear = config.sampler == "trilinear"

@@ -45,9 +45,11 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import os
+import re
 from pathlib import Path
-from typing import Mapping
+from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -60,10 +62,27 @@ from jaxdistill.mesh import Mesh, load_mesh, save_mesh  # noqa: F401  (re-export
 from jaxdistill.scene_config import load_objects
 from jaxdistill.scene_paths import scene_json_path_problems
 
+log = logging.getLogger(__name__)
+
 FORMAT_NAME = "jaxdistill-scene"
 FORMAT_VERSION = 1
 TEXTURE_LAYOUTS = ("pages", "atlas")
 UV_TOLERANCE = 1e-4
+RGB_MAPS = ("albedo", "irradiance")     # a grey image is accepted for these: used as R = G = B
+MAX_NOTES = 10                          # note lines logged; the rest are counted
+NOTE_DETAILS = 5                        # images named per note line
+NEGATIVE_NOISE = 1e-3                   # photo negatives above -this x its 99th percentile: noise (info only)
+
+
+@dataclasses.dataclass(frozen=True)
+class Note:
+    """What is done with an accepted oddity of one image (logged by `log_notes`, grouped by message)."""
+
+    file: str
+    field: str
+    message: str
+    detail: str
+    level: int = logging.INFO
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -115,6 +134,12 @@ def mesh_problems(mesh: Mesh, file: str, problems: ProblemList) -> None:
         face = int(np.argmax(out.any(axis=1)))
         problems.add(file, "faces", f"{out.any(axis=1).sum()} faces index vertices outside [0, {len(v) - 1}] "
                      f"(first: face {face} = {f[face].tolist()})")
+    elif np.isfinite(v).all():
+        corners = v[f]
+        area2 = np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+        if not (area2 > 1e-12 * float(np.ptp(v, axis=0).max()) ** 2).any():
+            problems.add(file, "faces", f"all {len(f)} faces have zero area (repeated or collinear corners), so no "
+                         "ray can hit the mesh; check the face indices (0- or 1-based?) and the vertex data")
     if uv.shape != (len(f), 3, 2):
         problems.add(file, "uv", f"expected per-corner UVs of shape ({len(f)}, 3, 2), got {uv.shape}")
         return
@@ -135,57 +160,122 @@ def mesh_problems(mesh: Mesh, file: str, problems: ProblemList) -> None:
 
 def view_problems(photo: Path, targets: Mapping[str, Path], cam: Camera | None, where: str, file: str,
                   problems: ProblemList, *, check_pixels: bool = True, mask: Path | None = None,
-                  ground_truth: Mapping[str, Path] | None = None, exposure: float = 0.0) -> None:
+                  ground_truth: Mapping[str, Path] | None = None, exposure: float = 0.0,
+                  notes: list | None = None) -> None:
     """Adds to `problems` what is wrong with a view's images: unknown map names, missing,
-    unreadable or non-finite images, and (given the view's camera) a size that differs from it.
-    The camera itself is valid by construction (`Camera` validates K and c2w)."""
-    image_problems(photo, f"{where}.photo", cam, file, problems, check_pixels=check_pixels)
+    unreadable, truncated or non-finite images, channels the image's role cannot use, and (given
+    the view's camera) a size that differs from it. The camera itself is valid by construction
+    (`Camera` validates K and c2w). What is done with acceptable oddities (a grey albedo, negative
+    values in a linear photo) is appended to `notes` (`Note`)."""
+    image_problems(photo, f"{where}.photo", cam, file, problems, check_pixels=check_pixels, role="photo",
+                   notes=notes)
     if not (isinstance(exposure, (int, float)) and not isinstance(exposure, bool) and abs(exposure) <= MAX_STOPS):
         problems.add(file, f"{where}.exposure", f"expected a number of stops in [-{MAX_STOPS:g}, {MAX_STOPS:g}], "
                      f"got {exposure!r}")
     if mask is not None:
-        image_problems(mask, f"{where}.mask", cam, file, problems, check_pixels=check_pixels)
+        image_problems(mask, f"{where}.mask", cam, file, problems, check_pixels=check_pixels, role="mask")
     for field, images in (("targets", targets), ("ground_truth", ground_truth or {})):
         for map_name, path in images.items():
             if map_name not in MAP_NAMES:
                 problems.add(file, f"{where}.{field}.{map_name}",
                              f"unknown map name {map_name!r}; known maps: {', '.join(MAP_NAMES)}")
                 continue
-            image_problems(path, f"{where}.{field}.{map_name}", cam, file, problems, check_pixels=check_pixels)
+            image_problems(path, f"{where}.{field}.{map_name}", cam, file, problems, check_pixels=check_pixels,
+                           role=map_name, notes=notes)
+
+
+def channel_problem(role: str, channels: int) -> str | None:
+    """What is wrong with an image of `channels` channels in `role` ("photo", "mask" or a map
+    name), or None. Photos need RGB; RGB maps take RGB or grey; grey maps use channel 0."""
+    if role == "mask" or channels >= 3:
+        return None
+    if channels == 2:
+        return ("has 2 channels (grey + alpha): its use is ambiguous; save it without alpha, as "
+                + ("grey" if role in ("roughness", "metallic") else "RGB") + (" or grey" if role in RGB_MAPS else ""))
+    if role == "photo":
+        return f"has {channels} channel (grey); RGB↔X needs a colour photo: save it as RGB"
+    if role == "normal":
+        return "is grey (1 channel); a normal map needs 3 channels, (n + 1) / 2 as RGB: save it as RGB"
+    return None
 
 
 def image_problems(path: Path, field: str, cam: Camera | None, file: str, problems: ProblemList, *,
-                   check_pixels: bool) -> None:
-    """Adds a problem when the image is missing, unreadable, non-finite or (with `cam`) of the wrong size."""
+                   check_pixels: bool, role: str = "mask", notes: list | None = None) -> None:
+    """Adds a problem when the image is missing, unreadable, truncated, non-finite, has channels
+    its `role` cannot use (`channel_problem`) or (with `cam`) the wrong size. With `check_pixels`
+    every pixel is decoded (once: `imageio.cached_reads` lets the pipeline reuse it)."""
     if not Path(path).is_file():
         problems.add(file, field, f"file not found: {path}")
         return
     try:
-        width, height, _ = imageio.image_size(path)
+        width, height, channels = imageio.image_size(path)
     except OSError as err:
-        problems.add(file, field, f"cannot read image: {err}")
+        problems.add(file, field, f"cannot read image: {err}; re-export or re-download it")
         return
     if cam is not None and (width, height) != (cam.width, cam.height):
         problems.add(file, field, f"{path} is {width}x{height} but the view is {cam.width}x{cam.height}")
         return
-    if check_pixels and imageio.is_linear_format(path):
-        pixels = imageio.read_image(path)
-        bad = ~np.isfinite(pixels)
-        if bad.any():
-            row, col = np.argwhere(bad)[0][:2]
-            problems.add(file, field, f"{path} has {bad.any(axis=-1).sum()} NaN/inf pixels "
-                         f"(first at row {row}, column {col})")
+    wrong = channel_problem(role, channels)
+    if wrong:
+        problems.add(file, field, f"{path} {wrong}")
+        return
+    if notes is not None and role in RGB_MAPS and channels == 1:
+        notes.append(Note(file, field, "grey image used as R = G = B", Path(path).name))
+    if not check_pixels:
+        return
+    try:
+        pixels = imageio.read_image(path, linear=False)
+    except OSError as err:
+        problems.add(file, field, f"{err}; re-export or re-download it")
+        return
+    if not imageio.is_linear_format(path):
+        return
+    bad = ~np.isfinite(pixels)
+    if bad.any():
+        row, col = np.argwhere(bad)[0][:2]
+        problems.add(file, field, f"{path} has {bad.any(axis=-1).sum()} NaN/inf pixels "
+                     f"(first at row {row}, column {col}); fix or re-render the image")
+    elif role == "photo" and notes is not None:
+        rgb = pixels[..., :3]
+        negative = rgb < 0
+        if negative.any():
+            low, scale = float(rgb.min()), max(float(np.percentile(rgb, 99)), 0.0)
+            noise = scale > 0 and low >= -NEGATIVE_NOISE * scale
+            message = (f"negative values at noise level (above -{NEGATIVE_NOISE:g} x the photo's 99th percentile) "
+                       "clamped to 0" if noise else "negative values clamped to 0, as RGB↔X sees the photo x "
+                       "2**exposure clipped to [0, 1]")
+            notes.append(Note(file, field, message, f"{Path(path).name}: {int(negative.sum())}, min {low:.3g}",
+                              logging.INFO if noise else logging.WARNING))
+
+
+def log_notes(notes: Sequence[Note]) -> None:
+    """Logs what is done with accepted oddities: notes of the same message and field pattern
+    (views[*]) are one line naming up to NOTE_DETAILS images; at most MAX_NOTES lines."""
+    groups: dict[tuple, list[Note]] = {}
+    for note in notes:
+        groups.setdefault((note.file, re.sub(r"\[\d+\]", "[*]", note.field), note.message, note.level),
+                          []).append(note)
+    for n, ((file, pattern, message, level), group) in enumerate(groups.items()):
+        if n == MAX_NOTES:
+            log.warning("... and %d more notes like these", len(groups) - MAX_NOTES)
+            break
+        where = group[0].field if len(group) == 1 else f"{pattern} ({len(group)} views)"
+        details = "; ".join(note.detail for note in group[:NOTE_DETAILS])
+        more = f"; and {len(group) - NOTE_DETAILS} more" if len(group) > NOTE_DETAILS else ""
+        log.log(level, "%s: %s: %s (%s%s)", file, where, message, details, more)
 
 
 def validate_scene(scene: Scene, *, scene_file: str = "scene.json", mesh_file: str = "mesh",
                    check_pixels: bool = True, problems: ProblemList | None = None,
-                   view_index: list[int] | None = None) -> None:
+                   view_index: list[int] | None = None, notes: list | None = None) -> None:
     """Raises InputError listing every problem of `scene` (each naming file and field).
 
     `problems` may carry problems found earlier (e.g. while parsing) to report them together;
     `view_index[i]` is the position of `scene.views[i]` in the file (when some were skipped).
+    Notes on accepted oddities are logged (`log_notes`), or appended to `notes` when given.
     """
     problems = problems if problems is not None else ProblemList()
+    collected = notes if notes is not None else []
     if scene.texture_layout not in TEXTURE_LAYOUTS:
         problems.add(scene_file, "texture_layout",
                      f"unknown layout {scene.texture_layout!r}; use one of {', '.join(TEXTURE_LAYOUTS)}")
@@ -199,8 +289,10 @@ def validate_scene(scene: Scene, *, scene_file: str = "scene.json", mesh_file: s
             problems.add(scene_file, f"views[{index}].name", f"duplicate view name {view.name!r}")
         view_problems(view.photo, view.targets, view.camera, f"views[{index}]", scene_file, problems,
                       check_pixels=check_pixels, mask=view.mask, ground_truth=view.ground_truth,
-                      exposure=view.exposure)
+                      exposure=view.exposure, notes=collected)
     problems.raise_if_any()
+    if notes is None:
+        log_notes(collected)
 
 
 # ----------------------------------------------------------------------------- scene I/O
@@ -218,6 +310,14 @@ def _matrix(value, shape, file, field, problems) -> np.ndarray | None:
     return array
 
 
+def _json_kind(value) -> str:
+    """How JSON names the type of a parsed value: 'a list (of 3 items)', 'a string', ..."""
+    if isinstance(value, list):
+        return f"a list (of {len(value)} items)"
+    kinds = {str: "a string", bool: "a boolean", int: "a number", float: "a number", type(None): "null"}
+    return kinds.get(type(value), type(value).__name__)
+
+
 def read_scene(path, *, check_pixels: bool = True, allow_outside_paths: bool = False) -> Scene:
     """Reads and fully validates `scene.json` (or a folder holding it); raises InputError.
 
@@ -228,6 +328,10 @@ def read_scene(path, *, check_pixels: bool = True, allow_outside_paths: bool = F
         path = path / "scene.json"
     file = os.fspath(path)
     doc = read_json(path, "scene file not found")
+    if not isinstance(doc, dict):
+        raise InputError.single(file, "(top level)", f"expected a JSON object {{\"format\": \"{FORMAT_NAME}\", "
+                                f"\"version\": {FORMAT_VERSION}, \"mesh\": ..., \"views\": [...]}}, got "
+                                f"{_json_kind(doc)}; see the scene format in README.md (Inputs)")
     root = path.parent
     problems = ProblemList()
     if doc.get("format") != FORMAT_NAME:

@@ -22,12 +22,15 @@ def resize(image: np.ndarray, height: int, width: int) -> np.ndarray:
 
 
 def read_target(name: str, path: Path) -> np.ndarray:
-    """A per-view target image in file space: albedo/irradiance linear (sRGB files decoded),
-    roughness/metallic grey values, normals as vectors (files hold (n + 1) / 2)."""
+    """A per-view target image in file space, with the map's channels (`maps.CHANNELS`):
+    albedo/irradiance linear RGB (sRGB files decoded; a grey file, accepted by validation, is
+    used as R = G = B), roughness/metallic channel 0, normals as vectors (files hold (n + 1) / 2).
+    Validation (`scene.channel_problem`) has refused the channel counts these cannot use."""
     if name in ("albedo", "irradiance"):
-        return imageio.read_image(path)
+        values = imageio.read_image(path)
+        return np.repeat(values, 3, axis=-1) if values.shape[-1] == 1 else values[..., :3]
     values = imageio.read_image(path, linear=False)
-    return 2.0 * values[..., :3] - 1.0 if name == "normal" else values
+    return 2.0 * values[..., :3] - 1.0 if name == "normal" else values[..., :1]
 
 
 def read_mask(path: Path, height: int, width: int) -> np.ndarray:

@@ -12,7 +12,9 @@ config .json listing objects with transforms (`jaxdistill/scene_config.py`). The
 where they are (scene.json points at them, outside --out: the main job then needs
 --allow_outside_paths, which the printed run command includes); derived images (undistorted photos, masks) and
 the unwrapped mesh are written into --out, with import.json (what was decided and how long
-each step took). Objects whose UVs are missing, tiled, collapsed or overlapping are unwrapped
+each step took, and per view the fraction of its rays that hit the mesh). The hit fractions are
+printed (min / median / max and the views that see least): a wrong camera convention or units
+show at once, and a mesh that no view sees stops the import. Objects whose UVs are missing, tiled, collapsed or overlapping are unwrapped
 with xatlas at the density the cameras observe (cached by mesh hash).
 
 The same loaders run when the main job is given `--scene=FORMAT:PATH` directly. Bad input is
@@ -57,6 +59,7 @@ def main(argv=None) -> int:
 
     from jaxdistill import datasets
     from jaxdistill.datasets.common import ImportOptions
+    from jaxdistill.render.visibility import MIN_HIT_FRACTION
     from jaxdistill.scene import read_scene, write_scene
     from jaxdistill.scene_paths import ALLOW_FLAG, is_inside
 
@@ -77,6 +80,9 @@ def main(argv=None) -> int:
     report.update({"format": args.format, "path": str(Path(args.path).resolve()), "total_s": time.perf_counter() - start,
                    "command": " ".join(sys.argv)})
     (out / "import.json").write_text(json.dumps(report, indent=1))
+    print(report["coverage"])
+    if report["blind_views"]:
+        print(f"views that see (almost) nothing (< {100 * MIN_HIT_FRACTION:g} % of rays hit the mesh): {', '.join(report['blind_views'])}")
     print(report["uv_table"])
     print(f"exposure: {report['exposure']}")
     print("timings: " + ", ".join(f"{k} {v:.1f} s" for k, v in report["timings"].items()) + f", total {report['total_s']:.1f} s")

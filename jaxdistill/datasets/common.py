@@ -5,10 +5,14 @@ cameras, photo paths, optional distortion, mask and ground truth) and calls `bui
 which in this order:
 
 1. keeps every k-th view when `max_views` asks for fewer;
-2. checks that every photo, mask and ground-truth image exists and has the camera's size,
-   reporting all problems at once (file and field named);
+2. checks that every photo, mask and ground-truth image exists, has the camera's size and
+   usable channels, and decodes in full (truncated files), reporting all problems at once
+   (file and field named); each image is decoded once (`imageio.cached_reads`);
 3. loads the mesh (`ImportOptions.mesh` overrides the dataset's: a mesh file, or a scene
-   config .json listing objects with transforms, see `scene_config.py`);
+   config .json listing objects with transforms, see `scene_config.py`) and casts a coarse
+   grid of rays per view: the fraction of each view's rays that hit the mesh is logged and
+   reported (min / median / max, the views that see least), views under 1 % are named in a
+   warning, and a mesh no view sees stops the import (a camera convention or units mix-up);
 4. undistorts photos whose camera has lens distortion into `<work_dir>/undistorted/` (same K,
    pinhole) and masks the pixels the source image could not fill (`<work_dir>/masks/`);
 5. sets each view's exposure: "auto" gives HDR photos one scene-wide exposure by Hypersim's
@@ -37,7 +41,7 @@ from jaxdistill import exposure as exposure_rule
 from jaxdistill import imageio
 from jaxdistill.cameras import Camera
 from jaxdistill.errors import InputError, ProblemList
-from jaxdistill.scene import Mesh, Scene, View, load_mesh, validate_scene, view_problems
+from jaxdistill.scene import Mesh, Scene, View, load_mesh, log_notes, validate_scene, view_problems
 from jaxdistill.view_images import read_mask
 
 log = logging.getLogger(__name__)
@@ -108,8 +112,9 @@ def select_views(views: Sequence[ViewSource], max_views: int) -> list[ViewSource
 
 
 def check_sources(views: Sequence[ViewSource], file: str) -> None:
-    """InputError listing every missing, unreadable or wrongly sized image of `views` at once."""
-    problems = ProblemList()
+    """InputError listing every missing, unreadable, truncated or wrongly sized image of `views`
+    at once (every pixel decoded); notes on accepted oddities (grey albedo...) are logged."""
+    problems, notes = ProblemList(), []
     if not views:
         problems.add(file, "frames", "no views to import")
     names = [v.name for v in views]
@@ -117,8 +122,9 @@ def check_sources(views: Sequence[ViewSource], file: str) -> None:
         if names.index(view.name) != i:
             problems.add(file, f"view {view.name}", "two frames have the same image name")
         view_problems(view.photo, view.targets, view.camera, f"view {view.name}", file, problems,
-                      check_pixels=False, mask=view.mask, ground_truth=view.ground_truth)
+                      mask=view.mask, ground_truth=view.ground_truth, notes=notes)
     problems.raise_if_any()
+    log_notes(notes)
 
 
 def load_scene_mesh(path, *, allow_outside_paths: bool = False) -> Mesh:
@@ -181,7 +187,14 @@ def view_exposures(views: Sequence[ViewSource], setting, progress: bool) -> tupl
 def build_scene(name: str, root: Path, mesh_path, views: Sequence[ViewSource], options: ImportOptions, *,
                 source_file: str, report: dict | None = None) -> Scene:
     """The Scene of a dataset's views and mesh (see the module docstring for the steps)."""
+    with imageio.cached_reads():
+        return _build_scene(name, root, mesh_path, views, options, source_file=source_file, report=report)
+
+
+def _build_scene(name: str, root: Path, mesh_path, views: Sequence[ViewSource], options: ImportOptions, *,
+                 source_file: str, report: dict | None) -> Scene:
     from jaxdistill import unwrap
+    from jaxdistill.render.visibility import cast_hit_fractions, check_coverage, coverage_summary
 
     timings = {}
     t0 = time.perf_counter()
@@ -193,6 +206,14 @@ def build_scene(name: str, root: Path, mesh_path, views: Sequence[ViewSource], o
                                 "(a mesh file or a scene config .json)")
     mesh = load_scene_mesh(mesh_path, allow_outside_paths=options.allow_outside_paths)
     timings["read_s"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()          # lens distortion moves pixels, not the fraction that hits: cast pinholes
+    names, cameras = [v.name for v in views], [v.camera for v in views]
+    fractions = cast_hit_fractions(mesh, cameras)
+    blind = check_coverage(names, fractions, cameras, mesh, source_file, what_to_check=(
+        "check that the cameras follow the format's convention (README: Real datasets) and that the mesh is in "
+        "the cameras' world and units (--mesh replaces the dataset's)"))
+    timings["coverage_s"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     work_dir = Path(options.work_dir) if options.work_dir else default_work_dir(root)
@@ -211,7 +232,8 @@ def build_scene(name: str, root: Path, mesh_path, views: Sequence[ViewSource], o
                              exposure=s, mask=v.mask, ground_truth=dict(v.ground_truth))
                         for v, s in zip(views, stops))
     scene = Scene(name=name, mesh=mesh, views=scene_views, texture_layout="pages", root=Path(root))
-    validate_scene(scene, scene_file=source_file, mesh_file=os.fspath(mesh_path), check_pixels=False)
+    validate_scene(scene, scene_file=source_file, mesh_file=os.fspath(mesh_path), check_pixels=False,
+                   notes=[])          # check_sources logged the notes on these images already
     log.info("%s: %d views, %d faces in %d objects; exposure %s; UVs: %d kept, %d unwrapped (%.1f s)", name,
              len(scene_views), mesh.num_faces, len(mesh.object_names), exposure_note,
              sum(not d.reunwrapped for d in decisions), sum(d.reunwrapped for d in decisions), timings["uv_s"])
@@ -220,5 +242,7 @@ def build_scene(name: str, root: Path, mesh_path, views: Sequence[ViewSource], o
                        "faces": mesh.num_faces, "objects": list(mesh.object_names), "exposure": exposure_note,
                        "uv_decisions": [dataclasses.asdict(d) for d in decisions],
                        "uv_table": unwrap.format_decisions(decisions), "work_dir": os.fspath(work_dir),
+                       "hit_fractions": dict(zip(names, fractions.round(4).tolist())),
+                       "coverage": coverage_summary(names, fractions), "blind_views": blind,
                        "timings": timings})
     return scene

@@ -4,19 +4,34 @@ V(p) counts the views whose gather plan reads texel p with a non-zero weight (di
 through a coarser mip level), i.e. where the transpose of `render` is positive. Per pixel,
 V is sampled through the view's own plan and turned into W = clip(1 / (2 clip(V, 1, 6)), 0.1, 10);
 missed pixels get W = 0.
+
+Coverage: the fraction of each view's pixels whose ray hits the mesh, computed right after the
+ray cast. Views under MIN_HIT_FRACTION are named in a warning; a scene no view sees stops with
+an InputError (a camera convention or units mix-up), before anything is jitted.
 """
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
+from typing import Sequence
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from jaxdistill import imageio
+from jaxdistill.cameras import Camera
+from jaxdistill.errors import InputError
 from jaxdistill.render.gather_plan import GatherPlan, TexelSpace
 from jaxdistill.render.sampler import expand, render
+from jaxdistill.scene import Mesh
+
+log = logging.getLogger(__name__)
+
+MIN_HIT_FRACTION = 0.01   # views whose rays hit the mesh less often than this are named in a warning
+COVERAGE_WIDTH = 128      # cast_hit_fractions: rays across per view (a grid of cell centres)
+WORST_VIEWS = 3           # views named in the coverage summary
 
 
 def visibility_weights(counts):
@@ -62,3 +77,76 @@ def write_visibility_pages(counts: np.ndarray, space: TexelSpace, folder, object
         imageio.write_image(stem.with_suffix(".png"), image / peak, encode_srgb=False)
         written += [stem.with_suffix(".exr"), stem.with_suffix(".png")]
     return written
+
+
+# ----------------------------------------------------------------------------- coverage
+
+
+def hit_fractions(fragments: Sequence) -> np.ndarray:
+    """(V,) float64: per view, the fraction of its pixels whose ray hits the mesh."""
+    return np.array([float(np.mean(f.hit)) if f.hit.size else 0.0 for f in fragments], np.float64)
+
+
+def cast_hit_fractions(mesh: Mesh, cameras: Sequence[Camera], *, max_width: int = COVERAGE_WIDTH) -> np.ndarray:
+    """(V,) float64 hit fractions from a cheap cast: per camera a grid of at most `max_width`
+    cell centres across (same aspect; every pixel when the photo is narrower). Needs no UVs."""
+    from jaxdistill.render.fragments import RayCaster
+
+    caster = RayCaster(mesh)
+    out = np.zeros(len(cameras), np.float64)
+    for i, cam in enumerate(cameras):
+        gw = max(1, min(cam.width, int(max_width)))
+        gh = max(1, min(cam.height, int(round(cam.height * gw / cam.width))))
+        xs = (np.arange(gw) + 0.5) * (cam.width / gw)
+        ys = (np.arange(gh) + 0.5) * (cam.height / gh)
+        px, py = np.meshgrid(xs, ys)
+        triangle, _, _ = caster.intersect(*cam.pixel_rays(np.stack([px.ravel(), py.ravel()], axis=1)))
+        out[i] = float(np.mean(triangle >= 0))
+    return out
+
+
+def coverage_summary(names: Sequence[str], fractions: np.ndarray) -> str:
+    """One line: min / median / max of the views' hit fractions and the views that see least."""
+    f = np.asarray(fractions, np.float64)
+    if not len(f):
+        return "pixels that hit the mesh: no views"
+    order = np.argsort(f, kind="stable")[:WORST_VIEWS]
+    worst = ", ".join(f"{names[i]} {100 * f[i]:.1f} %" for i in order)
+    return (f"pixels that hit the mesh per view ({len(f)} views): min {100 * f.min():.1f} %, median "
+            f"{100 * np.median(f):.1f} %, max {100 * f.max():.1f} %; fewest: {worst}")
+
+
+SCENE_CONVENTION = ("check the camera convention (OpenCV camera-to-world c2w: x right, y down, z forward; not "
+                    "world-to-camera, not OpenGL) and units (cameras and mesh in the same world and units)")
+
+
+def check_coverage(names: Sequence[str], fractions: np.ndarray, cameras: Sequence[Camera], mesh: Mesh,
+                   scene_file: str, *, min_fraction: float = MIN_HIT_FRACTION,
+                   what_to_check: str = SCENE_CONVENTION) -> list[str]:
+    """Logs the coverage summary and a warning naming the views under `min_fraction`; returns
+    their names. InputError (naming `scene_file`, ending with `what_to_check`) when no ray of any
+    view hits the mesh: then no texel is observed and there is nothing to distil."""
+    f = np.asarray(fractions, np.float64)
+    log.info("%s", coverage_summary(names, f))
+    if len(f) and not f.max() > 0:
+        raise InputError.single(scene_file, "views", f"no view sees the mesh (every ray of the {len(f)} views misses "
+                                f"it, so no texel is observed); {_placement(cameras, mesh)}; {what_to_check}")
+    low = np.nonzero(f < min_fraction)[0]
+    blind = [names[i] for i in low]
+    if blind:
+        shown = ", ".join(f"{names[i]} {100 * f[i]:.1f} %" for i in low[:10])
+        more = f" and {len(blind) - 10} more" if len(blind) > 10 else ""
+        log.warning("%d of %d views see (almost) nothing, under %.0f %% of their pixels hit the mesh: %s%s; check "
+                    "their c2w / K (camera convention, units) or drop them", len(blind), len(f), 100 * min_fraction,
+                    shown, more)
+    return blind
+
+
+def _placement(cameras: Sequence[Camera], mesh: Mesh) -> str:
+    """Where the cameras are relative to the mesh's bounding box (a units mix-up shows here)."""
+    lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
+    centres = np.array([c.c2w[:3, 3] for c in cameras])
+    inside = int(np.all((centres >= lo) & (centres <= hi), axis=1).sum())
+    fmt = lambda v: "(" + ", ".join(f"{x:.4g}" for x in v) + ")"  # noqa: E731
+    return (f"{inside} of {len(cameras)} camera centres lie inside the mesh's bounding box {fmt(lo)}..{fmt(hi)}; "
+            f"camera centres span {fmt(centres.min(axis=0))}..{fmt(centres.max(axis=0))}")
