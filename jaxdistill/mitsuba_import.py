@@ -454,26 +454,28 @@ def _check_files(xml_path: Path, problems: ProblemList) -> None:
 
 
 def _load_upgraded(xml_path: Path, upgraded_dir):
-    """The Mitsuba 3 XML text of a Mitsuba 0.5/0.6 file (None for a Mitsuba 2/3 one), its
-    changes logged and, when upgraded_dir is given, written there as <stem>.mitsuba3.xml."""
+    """(text, changes, written path) of a Mitsuba 0.5/0.6 file upgraded to Mitsuba 3 (text None
+    for a Mitsuba 2/3 file); changes logged and, when upgraded_dir is given, the text written
+    there as <stem>.mitsuba3.xml."""
     try:
         root = ET.parse(xml_path).getroot()
     except ET.ParseError:
-        return None, ()      # Mitsuba reports the syntax error with its position
+        return None, (), None      # Mitsuba reports the syntax error with its position
     if not needs_upgrade(root):
-        return None, ()
+        return None, (), None
     result = upgrade(root, source=os.fspath(xml_path), base_dir=xml_path.parent.resolve())
     text = result.to_string()
     log.info("%s is Mitsuba %s XML: upgraded to Mitsuba 3 with %d changes", xml_path, result.source_version,
              len(result.changes))
     for change in result.changes:
         (log.warning if change.warning else log.info)("upgrade: %s", change)
+    target = None
     if upgraded_dir is not None:
         target = Path(upgraded_dir) / f"{xml_path.stem}.mitsuba3.xml"
         target.parent.mkdir(parents=True, exist_ok=True)
         target.write_text(text)
         log.info("upgraded XML written to %s", target)
-    return text, result.changes
+    return text, result.changes, target
 
 
 def load_source(xml_path, *, up=None, upgraded_dir=None) -> MitsubaSource:
@@ -490,7 +492,7 @@ def load_source(xml_path, *, up=None, upgraded_dir=None) -> MitsubaSource:
     problems = ProblemList()
     _check_files(xml_path, problems)
     problems.raise_if_any()
-    upgraded, changes = _load_upgraded(xml_path, upgraded_dir)
+    upgraded, changes, upgraded_path = _load_upgraded(xml_path, upgraded_dir)
     try:
         if upgraded is None:
             scene = mi.load_file(os.fspath(xml_path), optimize=False)
@@ -498,8 +500,11 @@ def load_source(xml_path, *, up=None, upgraded_dir=None) -> MitsubaSource:
             scene = mi.load_string(upgraded, optimize=False)
     except Exception as err:  # Mitsuba raises RuntimeError with its parser's message
         message = re.sub(r"^\[[\w.]+:\d+\]\s*", "", str(err)).strip()
-        what = "Mitsuba cannot load it" + (" (after the upgrade from Mitsuba 0.x)" if upgraded else "")
-        raise InputError.single(xml_path, "(load)", f"{what}: {message}") from err
+        if upgraded is None:
+            raise InputError.single(xml_path, "(load)", f"Mitsuba cannot load it: {message}") from err
+        where = f"; line numbers refer to the upgraded XML {upgraded_path}" if upgraded_path else ""
+        raise InputError.single(xml_path, "(load)", f"Mitsuba 3 cannot load it after the upgrade from Mitsuba 0.x: "
+                                f"{message}{where}; fix or remove that element in the source file") from err
     if not isinstance(scene, mi.Scene):
         raise InputError.single(xml_path, "(root)", f"not a Mitsuba scene: the root element is a "
                                 f"{scene.class_name()} (expected <scene version=...>)")

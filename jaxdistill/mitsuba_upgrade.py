@@ -79,7 +79,7 @@ DROPPED = {
     ("film", "*"): {"banner", "attach_log", "gamma", "exposure", "tonemap_method", "key", "burn", "reinhard_key",
                     "reinhard_burn"},
     ("sampler", "*"): {"dimension", "scramble"},
-    ("texture", "bitmap"): {"max_anisotropy", "cache", "channel"},
+    ("texture", "bitmap"): {"max_anisotropy", "cache"},
     ("shape", "*"): {"max_smooth_angle", "collapse", "recenter"},
     ("emitter", "envmap"): {"gamma", "cache"},
     ("emitter", "sunsky"): {"stretch", "resolution", "sun_radius_scale", "extend"},
@@ -558,6 +558,11 @@ class _Upgrader:
     # textures
 
     def _texture_bitmap(self, el) -> None:
+        channel = self.prop(el, "channel")
+        if channel is not None:
+            self.refuse(el, f"channel {channel.get('value')!r}: Mitsuba 3 bitmaps have no channel selection (alpha "
+                            "is dropped); save that channel as a grey image of its own and name it in 'filename'")
+            return
         filt = self.prop(el, "filter_type")
         if filt is not None and filt.get("value") not in ("bilinear", "nearest"):
             old = filt.get("value")

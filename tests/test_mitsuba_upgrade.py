@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from conftest import look_at_camera
+from jaxdistill import imageio
 from jaxdistill.errors import InputError
 from jaxdistill.mitsuba_upgrade import camel_to_snake, needs_upgrade, upgrade
 from jaxdistill.render import fragments as fr
@@ -230,3 +231,46 @@ def test_refused_scene_stops_prepare_scene_before_compute(tmp_path):
     assert f"{xml}: <shape type=\"sphere\"> <bsdf type=\"irawan\" id=\"Cloth\">: plugin 'irawan' has no Mitsuba 3 " \
            "equivalent; replace it by a Mitsuba 3 BSDF" in message
     assert not (tmp_path / "out").exists()
+
+
+def test_channel_selection_is_refused():
+    xml = """<scene version="0.5.0"><bsdf type="mask" id="Leaf"><texture type="bitmap" name="opacity">
+      <string name="filename" value="leaf.png"/><string name="channel" value="a"/></texture><bsdf type="diffuse"/></bsdf>
+    </scene>"""
+    with pytest.raises(InputError, match=r"<bsdf type=\"mask\" id=\"Leaf\"> <texture type=\"bitmap\" name=\"opacity\">: "
+                                         r"channel 'a': Mitsuba 3 bitmaps have no channel selection"):
+        upgrade(ET.fromstring(xml))
+
+
+def test_load_error_after_the_upgrade_names_the_upgraded_file(tmp_path):
+    xml = tmp_path / "old.xml"
+    xml.write_text('<scene version="0.5.0"><shape type="sphere"><bsdf type="diffuse">'
+                   '<float name="fooBar" value="1"/></bsdf></shape></scene>')
+    with pytest.raises(InputError) as err:
+        imp.load_source(xml, upgraded_dir=tmp_path / "out")
+    message = str(err.value)
+    assert "Mitsuba 3 cannot load it after the upgrade from Mitsuba 0.x" in message and '"foo_bar"' in message
+    assert str(tmp_path / "out" / "old.mitsuba3.xml") in message
+
+
+def test_a_05_room_imports_as_its_mitsuba3_original(tmp_path):
+    """The test room of test_prepare_scene written in 0.5 style (camelCase, <lookAt>) imports to
+    the same ground truth, masks and photos as the Mitsuba 3 original."""
+    from test_prepare_scene import write_room
+    original = write_room(tmp_path / "v3")
+    text = original.read_text().replace('version="3.0.0"', 'version="0.5.0"').replace("<lookat ", "<lookAt ")
+    for new, old in (("to_world", "toWorld"), ("diffuse_reflectance", "diffuseReflectance"), ("max_depth", "maxDepth"),
+                     ("filter_type", "filterType")):
+        text = text.replace(f'name="{new}"', f'name="{old}"')
+    old05 = original.parent / "scene05.xml"
+    old05.write_text(text)
+    args = dict(num_views=2, width=24, height=18, spp=2, seed=3, progress=False)
+    imp.prepare_scene(original, tmp_path / "a", **args)
+    imp.prepare_scene(old05, tmp_path / "b", **args)
+    assert (tmp_path / "b" / "scene05.mitsuba3.xml").is_file()
+    files = sorted(p.relative_to(tmp_path / "a") for p in (tmp_path / "a").rglob("*")
+                   if p.suffix in (".exr", ".png") and "photos" not in p.parts)
+    assert len(files) >= 2 * 5                      # albedo, normal, roughness, metallic, mask per view
+    for rel in files + [Path("photos") / f"view_{i:03d}.exr" for i in range(2)]:
+        a, b = imageio.read_image(tmp_path / "a" / rel), imageio.read_image(tmp_path / "b" / rel)
+        np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-6 * max(1.0, float(np.abs(a).max())), err_msg=str(rel))
