@@ -384,9 +384,10 @@ class _Upgrader:
             self.remove(el, fmt, f"{fmt.get('value')!r} is not an HDR format; Mitsuba 3 writes OpenEXR")
         pix = self.prop(el, "pixel_format")
         if pix is not None:
-            value = pix.get("value", "").lower()
-            new = {"luminancealpha": "luminance_alpha", "spectrum": "rgb", "spectrumalpha": "rgba"}.get(value, value)
-            if new != pix.get("value"):
+            value = pix.get("value", "")
+            new = {"luminancealpha": "luminance_alpha", "spectrum": "rgb", "spectrumalpha": "rgba"}.get(value.lower(),
+                                                                                                         value)
+            if new != value:
                 pix.set("value", new)
                 self.change(el, f"pixel_format {value!r} -> {new!r}")
         edges = self.prop(el, "high_quality_edges")
@@ -428,6 +429,7 @@ class _Upgrader:
             if child.get("name") == "kc":
                 self.remove(el, child, "Mitsuba 3's perspective camera has no lens distortion", True)
         self.retype(el, "perspective", "no radial distortion in Mitsuba 3")
+        self._sensor(el)
 
     def _sensor(self, el) -> None:
         duration = self.prop(el, "shutter_open_time")
