@@ -51,8 +51,9 @@ scene.json): photos linear EXR + sRGB PNG; targets/albedo linear RGB EXR; roughn
 metallic single-channel EXR; normal = camera-space unit normal as RGB↔X uses it (x right,
 y up, z towards the camera), flipped to face the camera, stored as (n + 1) / 2; albedo,
 roughness and metallic are 0 outside the mask; masks/<view>.png is 1 where a ray hits a
-surface that is neither an emitter nor glass nor cut out (mask BSDF opacity < 0.5). Roughness is perceptual: GGX alpha = roughness^2,
-so roughness = sqrt(alpha) (sqrt of the geometric mean for anisotropic alpha_u, alpha_v).
+surface that is neither an emitter nor glass nor cut out (mask BSDF opacity < 0.5). Roughness
+is perceptual: GGX alpha = roughness^2, so roughness = sqrt(alpha) (sqrt of the geometric mean
+for anisotropic alpha_u, alpha_v).
 """
 
 from __future__ import annotations

@@ -165,6 +165,14 @@ def _fmt(x: float) -> str:
     return f"{x:.9g}"
 
 
+def _number(text) -> float:
+    """The float in `text`, NaN when it is not one (a `$parameter`, a typo)."""
+    try:
+        return float(text)
+    except (TypeError, ValueError):
+        return math.nan
+
+
 class _Upgrader:
     def __init__(self, root: ET.Element, source: str, base_dir: Path | None):
         self.root = root
@@ -207,11 +215,8 @@ class _Upgrader:
         p = self.prop(el, name)
         if p is None:
             return default
-        if p.tag in ("float", "integer") and p.get("value") is not None:
-            try:
-                return float(p.get("value"))
-            except ValueError:
-                pass
+        if p.tag in ("float", "integer"):
+            return _number(p.get("value"))
         return math.nan   # a texture or a parameter: no constant
 
     def remove(self, el, child, why: str, warning: bool = False) -> None:
@@ -254,7 +259,8 @@ class _Upgrader:
         if self.base_dir is not None:
             self.absolute_filenames()
         for (old, new), n in sorted(self.renames.items()):
-            self.changes.append(Change("parameters", f"renamed {old!r} -> {new!r}" + (f" ({n} times)" if n > 1 else "")))
+            times = f" ({n} times)" if n > 1 else ""
+            self.changes.append(Change("parameters", f"renamed {old!r} -> {new!r}{times}"))
 
     def names(self, el) -> None:
         name = el.get("name")
@@ -296,7 +302,7 @@ class _Upgrader:
         elif el.tag == "blackbody":
             temperature = el.get("temperature", "").strip().rstrip("kK")
             multiplier = el.get("multiplier", "1")
-            if not re.fullmatch(r"[0-9.eE+-]+", temperature or "x") or float(multiplier or 1) != 1.0:
+            if math.isnan(_number(temperature)) or _number(multiplier) != 1.0:
                 self.refuse(el, "a <blackbody> needs a numeric temperature and no multiplier in Mitsuba 3; "
                                 "give the emitter's radiance as <rgb> instead")
                 return
@@ -434,9 +440,13 @@ class _Upgrader:
     def _sensor(self, el) -> None:
         duration = self.prop(el, "shutter_open_time")
         if duration is not None:
-            start = self.float_prop(el, "shutter_open", 0.0)
+            end = self.float_prop(el, "shutter_open", 0.0) + self.float_prop(el, "shutter_open_time", 0.0)
+            if math.isnan(end):
+                self.refuse(el, "shutterOpen and shutterOpenTime must be numbers to convert them to Mitsuba 3's "
+                                "shutter_open and shutter_close")
+                return
             el.remove(duration)
-            self.set_prop(el, "float", "shutter_close", _fmt(start + float(duration.get("value", 0))))
+            self.set_prop(el, "float", "shutter_close", _fmt(end))
             self.change(el, "shutter_open_time -> shutter_close = shutter_open + shutter_open_time")
 
     # emitters
@@ -454,7 +464,10 @@ class _Upgrader:
     def _emitter_sunsky(self, el) -> None:
         scale = self.prop(el, "scale")
         if scale is not None:
-            s = float(scale.get("value", 1))
+            s = self.float_prop(el, "scale", 1.0)
+            if math.isnan(s):
+                self.refuse(el, "a sunsky 'scale' must be a number (it becomes Mitsuba 3's sun_scale and sky_scale)")
+                return
             el.remove(scale)
             for name in ("sun_scale", "sky_scale"):
                 self.set_prop(el, "float", name, _fmt(self.float_prop(el, name, 1.0) * s))
@@ -535,7 +548,8 @@ class _Upgrader:
             w = []
         if len(nested) != 2 or len(w) != 2 or sum(w) <= 0:
             self.refuse(el, "only a mixturebsdf of two BSDFs with two constant weights maps to Mitsuba 3's blendbsdf "
-                            f"(found {len(nested)} BSDFs, weights {weights.get('value') if weights is not None else None!r})")
+                            f"(found {len(nested)} BSDFs, weights "
+                            f"{weights.get('value') if weights is not None else None!r})")
             return
         el.remove(weights)
         self.set_prop(el, "float", "weight", _fmt(w[1] / (w[0] + w[1])))
@@ -548,13 +562,13 @@ class _Upgrader:
         if len(textures) == 1 and textures[0].get("type") == "scale":
             scaled = textures[0]
             inner = [c for c in scaled if c.tag == "texture"]
-            factor = self.float_prop(scaled, "scale", 1.0)
+            factor = self.float_prop(scaled, "scale", 1.0) * self.float_prop(el, "scale", 1.0)
             if len(inner) != 1 or math.isnan(factor):
                 self.refuse(scaled, "a bump map's scale texture needs one nested texture and a constant scale")
                 return
             self.replace_with_child(scaled, inner[0], "bump map <texture type=\"scale\"> -> its nested texture")
             self.changes[-1] = dataclasses.replace(self.changes[-1], warning=False)
-            self.set_prop(el, "float", "scale", _fmt(factor * self.float_prop(el, "scale", 1.0)))
+            self.set_prop(el, "float", "scale", _fmt(factor))
             self.change(el, f"bump map scale = {factor:g}")
 
     # textures
@@ -583,7 +597,7 @@ class _Upgrader:
                                 "Mitsuba 3)", warning=len(modes) > 1 or new != mode)
         gamma = self.prop(el, "gamma")
         if gamma is not None:
-            g = float(gamma.get("value", -1))
+            g = self.float_prop(el, "gamma", -1.0)
             el.remove(gamma)
             if g == 1.0:
                 self.set_prop(el, "boolean", "raw", "true")
@@ -603,11 +617,15 @@ class _Upgrader:
         found = {k: self.float_prop(el, k, None) for k in ("uoffset", "voffset", "uscale", "vscale")}
         if all(v is None for v in found.values()):
             return
+        if any(v is not None and math.isnan(v) for v in found.values()):
+            self.refuse(el, "uoffset, voffset, uscale and vscale must be numbers to become Mitsuba 3's to_uv transform")
+            return
         for child in list(el):
             if child.get("name") in found:
                 el.remove(child)
         ou, ov = found["uoffset"] or 0.0, found["voffset"] or 0.0
-        su, sv = (1.0 if found["uscale"] is None else found["uscale"]), (1.0 if found["vscale"] is None else found["vscale"])
+        su = 1.0 if found["uscale"] is None else found["uscale"]
+        sv = 1.0 if found["vscale"] is None else found["vscale"]
         tr = ET.SubElement(el, "transform", {"name": "to_uv"})
         ET.SubElement(tr, "translate", {"x": _fmt(ou), "y": _fmt(ov)})   # to_uv = scale * translate, as Mitsuba 3
         ET.SubElement(tr, "scale", {"x": _fmt(su), "y": _fmt(sv)})
