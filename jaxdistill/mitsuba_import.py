@@ -469,7 +469,7 @@ def _load_upgraded(xml_path: Path, upgraded_dir):
     log.info("%s is Mitsuba %s XML: upgraded to Mitsuba 3 with %d changes", xml_path, result.source_version,
              len(result.changes))
     for change in result.changes:
-        (log.warning if change.warning else log.info)("upgrade: %s", change)
+        (log.warning if change.warning else log.info)("upgrade: %s: %s", change.where, change.what)
     target = None
     if upgraded_dir is not None:
         target = Path(upgraded_dir) / f"{xml_path.stem}.mitsuba3.xml"

@@ -355,9 +355,9 @@ class _Upgrader:
     # ------------------------------------------------------------------ plugins
 
     def retype(self, el, new: str, why: str, warning: bool = True) -> None:
-        old = el.get("type")
+        old, where = el.get("type"), self.where(el)
         el.set("type", new)
-        self.change(el, f"plugin {old!r} -> {new!r} ({why})", warning)
+        self.changes.append(Change(where, f"plugin {old!r} -> {new!r} ({why})", warning))
 
     def plugin(self, el) -> None:
         if el not in self.parents and el is not self.root:

@@ -132,9 +132,9 @@ def test_change_report_lists_each_change(upgraded):
                      "<sensor type=\"perspective\"> <lookat>: <lookAt> -> <lookat>",
                      "plugin 'ldrfilm' -> 'hdrfilm'", "removed parameter 'banner'", "removed parameter 'gamma'",
                      "<integrator type=\"path\">: removed parameter 'strict_normals'",
-                     "WARNING: <sensor type=\"perspective\"> <sampler type=\"independent\">: plugin 'sobol' -> "
+                     "WARNING: <sensor type=\"perspective\"> <sampler type=\"sobol\">: plugin 'sobol' -> "
                      "'independent'",
-                     "WARNING: <bsdf type=\"roughplastic\" id=\"Old\">: plugin 'phong' -> 'roughplastic'",
+                     "WARNING: <bsdf type=\"phong\" id=\"Old\">: plugin 'phong' -> 'roughplastic'",
                      "<texture type=\"bitmap\" name=\"opacity\">: gamma 1 -> raw",
                      "constant <spectrum value=\"5.0\"> -> <rgb value=\"5.0, 5.0, 5.0\">",
                      "2 relative file names made absolute"):
@@ -235,7 +235,8 @@ def test_refused_scene_stops_prepare_scene_before_compute(tmp_path):
 
 def test_channel_selection_is_refused():
     xml = """<scene version="0.5.0"><bsdf type="mask" id="Leaf"><texture type="bitmap" name="opacity">
-      <string name="filename" value="leaf.png"/><string name="channel" value="a"/></texture><bsdf type="diffuse"/></bsdf>
+      <string name="filename" value="leaf.png"/><string name="channel" value="a"/></texture>
+      <bsdf type="diffuse"/></bsdf>
     </scene>"""
     with pytest.raises(InputError) as err:
         upgrade(ET.fromstring(xml))
