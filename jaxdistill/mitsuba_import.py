@@ -1,5 +1,9 @@
 """Import a Mitsuba 3 scene as a jaxdistill scene with exact per-view ground truth.
 
+Mitsuba 0.5/0.6 files (root `version` below 2, as Bitterli's Rendering Resources ship them) are
+upgraded to Mitsuba 3 first by `jaxdistill.mitsuba_upgrade`; the changes are logged and the
+upgraded XML is written to the output folder as `<stem>.mitsuba3.xml`.
+
 `prepare_scene(xml, out_dir, num_views=..., width=..., height=..., spp=...)` does, in order:
 
 1. **Load** the XML with `mi.load_file(optimize=False)` (optimisation would merge shapes that
@@ -16,7 +20,8 @@
    `roughdielectric`) stay in the geometry, since they occlude, but are masked out of the
    ground truth.
 2. **Ground-truth materials** (`twosided` is unwrapped to its front BSDF; `principled`,
-   `diffuse`, `plastic`, `roughplastic`, `conductor`, `roughconductor`): see `MATERIALS` below.
+   `diffuse`, `plastic`, `roughplastic`, `conductor`, `roughconductor`; `mask`, as for foliage:
+   its nested BSDF's maps, and pixels where its opacity is below 0.5 masked): see `material_of`.
    Constants and textures of any Mitsuba type are evaluated by Mitsuba itself
    (`Texture.eval` at the original UV), so bitmaps get Mitsuba's own wrap mode, filter and
    sRGB decoding. Unsupported plugins raise one InputError listing every (shape, plugin).
@@ -46,8 +51,9 @@ scene.json): photos linear EXR + sRGB PNG; targets/albedo linear RGB EXR; roughn
 metallic single-channel EXR; normal = camera-space unit normal as RGB↔X uses it (x right,
 y up, z towards the camera), flipped to face the camera, stored as (n + 1) / 2; albedo,
 roughness and metallic are 0 outside the mask; masks/<view>.png is 1 where a ray hits a
-surface that is neither an emitter nor glass. Roughness is perceptual: GGX alpha = roughness^2,
-so roughness = sqrt(alpha) (sqrt of the geometric mean for anisotropic alpha_u, alpha_v).
+surface that is neither an emitter nor glass nor cut out (mask BSDF opacity < 0.5). Roughness
+is perceptual: GGX alpha = roughness^2, so roughness = sqrt(alpha) (sqrt of the geometric mean
+for anisotropic alpha_u, alpha_v).
 """
 
 from __future__ import annotations
@@ -70,6 +76,7 @@ from jaxdistill import imageio
 from jaxdistill import mitsuba_bridge as mb
 from jaxdistill.cameras import Camera, look_at, rgbx_camera_normals
 from jaxdistill.errors import InputError, ProblemList
+from jaxdistill.mitsuba_upgrade import needs_upgrade, upgrade
 from jaxdistill.render import fragments as fr
 from jaxdistill.scene import Mesh, Scene, View, read_scene, write_scene
 from jaxdistill.unwrap import UVDecision, unwrap_object, uv_problem
@@ -90,7 +97,8 @@ BSDF_PLUGINS = {
     "LinearRetarder": "retarder", "CircularPolarizer": "circular",
 }
 SUPPORTED_BSDFS = ("diffuse", "plastic", "roughplastic", "conductor", "roughconductor", "principled",
-                   "principledthin")
+                   "principledthin", "mask")
+CUTOUT_OPACITY = 0.5     # mask BSDF: pixels whose opacity is below this are masked (out of loss and metrics)
 MASKED_BSDFS = ("dielectric", "thindielectric", "roughdielectric")
 DROPPED_BSDFS = ("null",)
 SHAPE_PLUGINS = {"OBJMesh": "obj", "PLYMesh": "ply", "SerializedMesh": "serialized", "Mesh": "mesh",
@@ -157,18 +165,23 @@ def _eval_texture(texture, channels: int, uv: np.ndarray, points: np.ndarray) ->
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class GTMaterial:
-    """Ground truth of one BSDF: plugin name, whether it is masked (glass), and its fields."""
+    """Ground truth of one BSDF: plugin name, whether it is masked (glass), and its fields.
+
+    opacity: the `mask` BSDF's opacity (1 channel), None without one; where it is below
+    CUTOUT_OPACITY the pixel is masked out of loss and metrics (the photo shows what is behind).
+    """
 
     plugin: str
     masked: bool
     albedo: Field | None = None
     roughness: Field | None = None
     metallic: Field | None = None
+    opacity: Field | None = None
 
     def describe(self) -> dict:
         """JSON summary: constants as lists, varying fields as "texture"."""
         out = {"bsdf": self.plugin}
-        for name in ("albedo", "roughness", "metallic"):
+        for name in ("albedo", "roughness", "metallic", "opacity"):
             field = getattr(self, name)
             if field is not None:
                 const = field.constant
@@ -265,10 +278,14 @@ def material_of(bsdf) -> GTMaterial:
     roughness 0, metallic 0. roughplastic: diffuse_reflectance, sqrt(alpha), 0. principled(thin):
     base_color, roughness, metallic. conductor: albedo = specular_reflectance x F0(eta, k)
     (Fresnel reflectance at normal incidence), roughness 0, metallic 1; roughconductor: the same
-    with sqrt(alpha). dielectrics: masked.
+    with sqrt(alpha). dielectrics: masked. mask: the nested BSDF's ground truth, with its opacity.
     """
     inner = _unwrap_twosided(bsdf)
     plugin = _plugin_name(inner)
+    if plugin == "mask":
+        material = material_of(_Children(inner).objects["nested_bsdf"])   # Mitsuba requires one
+        return dataclasses.replace(material, plugin=f"mask({material.plugin})",
+                                   opacity=Field((_input(inner, "opacity", 1),), lambda x: x, 1))
     if plugin in MASKED_BSDFS:
         return GTMaterial(plugin, True)
     if plugin not in SUPPORTED_BSDFS:
@@ -413,6 +430,7 @@ class MitsubaSource:
     up: np.ndarray
     dropped: list[str]
     integrator: str
+    upgrade_changes: tuple[str, ...] = ()      # what the Mitsuba 0.x -> 3 upgrade changed (empty: none)
 
 
 def _check_files(xml_path: Path, problems: ProblemList) -> None:
@@ -436,8 +454,38 @@ def _check_files(xml_path: Path, problems: ProblemList) -> None:
             problems.add(xml_path, f"{where}.filename", f"file not found: {path}")
 
 
-def load_source(xml_path, *, up=None) -> MitsubaSource:
-    """Loads a Mitsuba 3 scene XML into SourceObjects; InputError for every problem found."""
+def _load_upgraded(xml_path: Path, upgraded_dir):
+    """(text, changes, written path) of a Mitsuba 0.5/0.6 file upgraded to Mitsuba 3 (text None
+    for a Mitsuba 2/3 file); changes logged and, when upgraded_dir is given, the text written
+    there as <stem>.mitsuba3.xml."""
+    try:
+        root = ET.parse(xml_path).getroot()
+    except ET.ParseError:
+        return None, (), None      # Mitsuba reports the syntax error with its position
+    if not needs_upgrade(root):
+        return None, (), None
+    result = upgrade(root, source=os.fspath(xml_path), base_dir=xml_path.parent.resolve())
+    text = result.to_string()
+    log.info("%s is Mitsuba %s XML: upgraded to Mitsuba 3 with %d changes", xml_path, result.source_version,
+             len(result.changes))
+    for change in result.changes:
+        (log.warning if change.warning else log.info)("upgrade: %s: %s", change.where, change.what)
+    target = None
+    if upgraded_dir is not None:
+        target = Path(upgraded_dir) / f"{xml_path.stem}.mitsuba3.xml"
+        target.parent.mkdir(parents=True, exist_ok=True)
+        target.write_text(text)
+        log.info("upgraded XML written to %s", target)
+    return text, result.changes, target
+
+
+def load_source(xml_path, *, up=None, upgraded_dir=None) -> MitsubaSource:
+    """Loads a Mitsuba scene XML into SourceObjects; InputError for every problem found.
+
+    A Mitsuba 0.5/0.6 file (root version < 2) is upgraded first (`jaxdistill.mitsuba_upgrade`):
+    the changes are logged, kept in `MitsubaSource.upgrade_changes`, and the upgraded XML is
+    written to `upgraded_dir` (when given) for inspection.
+    """
     mi = mb.load_mitsuba()
     xml_path = Path(xml_path)
     if not xml_path.is_file():
@@ -445,11 +493,19 @@ def load_source(xml_path, *, up=None) -> MitsubaSource:
     problems = ProblemList()
     _check_files(xml_path, problems)
     problems.raise_if_any()
+    upgraded, changes, upgraded_path = _load_upgraded(xml_path, upgraded_dir)
     try:
-        scene = mi.load_file(os.fspath(xml_path), optimize=False)
+        if upgraded is None:
+            scene = mi.load_file(os.fspath(xml_path), optimize=False)
+        else:
+            scene = mi.load_string(upgraded, optimize=False)
     except Exception as err:  # Mitsuba raises RuntimeError with its parser's message
         message = re.sub(r"^\[[\w.]+:\d+\]\s*", "", str(err)).strip()
-        raise InputError.single(xml_path, "(load)", f"Mitsuba cannot load it: {message}") from err
+        if upgraded is None:
+            raise InputError.single(xml_path, "(load)", f"Mitsuba cannot load it: {message}") from err
+        where = f"; line numbers refer to the upgraded XML {upgraded_path}" if upgraded_path else ""
+        raise InputError.single(xml_path, "(load)", f"Mitsuba 3 cannot load it after the upgrade from Mitsuba 0.x: "
+                                f"{message}{where}; fix or remove that element in the source file") from err
     if not isinstance(scene, mi.Scene):
         raise InputError.single(xml_path, "(root)", f"not a Mitsuba scene: the root element is a "
                                 f"{scene.class_name()} (expected <scene version=...>)")
@@ -508,7 +564,8 @@ def load_source(xml_path, *, up=None) -> MitsubaSource:
     up = np.asarray(up, np.float64)
     integrator = scene.integrator()
     return MitsubaSource(path=xml_path, scene=scene, objects=objects, up=up / np.linalg.norm(up), dropped=dropped,
-                         integrator=integrator.class_name() if integrator is not None else "default")
+                         integrator=integrator.class_name() if integrator is not None else "default",
+                         upgrade_changes=tuple(str(c) for c in changes))
 
 
 # ----------------------------------------------------------------------------- UV layout
@@ -749,6 +806,7 @@ class GroundTruthEvaluator:
         albedo = np.zeros((h * w, 3))
         rough = np.zeros((h * w, 1))
         metal = np.zeros((h * w, 1))
+        cutout = np.zeros(h * w, bool)       # mask BSDF opacity < CUTOUT_OPACITY
         flat = np.flatnonzero(hit.ravel())
         for object_id in np.unique(obj_ids):
             obj = self.objects[object_id]
@@ -762,6 +820,8 @@ class GroundTruthEvaluator:
             albedo[idx] = obj.material.albedo.evaluate(t, p)
             rough[idx] = obj.material.roughness.evaluate(t, p)
             metal[idx] = obj.material.metallic.evaluate(t, p)
+            if obj.material.opacity is not None:
+                cutout[idx] = obj.material.opacity.evaluate(t, p)[:, 0] < CUTOUT_OPACITY
 
         n = np.einsum("nk,nkc->nc", weights, self.corner_normal[tri])
         n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
@@ -772,6 +832,7 @@ class GroundTruthEvaluator:
 
         mask = hit.copy()
         mask[hit] = ~self.masked_face[tri]
+        mask &= ~cutout.reshape(h, w)
         keep = mask.ravel()[:, None]
         shape = (h, w, -1)
         return GroundTruth(albedo=(albedo * keep).reshape(shape).astype(np.float32),
@@ -817,7 +878,7 @@ def prepare_scene(xml_path, out_dir, *, num_views: int, width: int, height: int,
         log.warning("%s is not empty: files of an earlier import that this one does not rewrite stay there", out)
     timings = {}
     t0 = time.perf_counter()
-    source = load_source(xml_path, up=up)
+    source = load_source(xml_path, up=up, upgraded_dir=out)
     timings["load_s"] = time.perf_counter() - t0
     log.info("loaded %s: %d objects (%d faces), dropped %s in %.1f s", xml_path, len(source.objects),
              sum(len(o.faces) for o in source.objects), source.dropped or "none", timings["load_s"])

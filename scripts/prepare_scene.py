@@ -48,7 +48,7 @@ def parse_up(text: str):
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--mitsuba", required=True, help="Mitsuba 3 scene XML")
+    parser.add_argument("--mitsuba", required=True, help="Mitsuba 3 scene XML (Mitsuba 0.5/0.6 files are upgraded first)")
     parser.add_argument("--out", required=True, help="output folder")
     parser.add_argument("--views", type=int, default=24)
     parser.add_argument("--width", type=int, default=384)

@@ -261,12 +261,13 @@ def test_uv_problems():
 def test_unsupported_plugins_are_listed_together(tmp_path):
     extra = """
   <shape type="rectangle" id="bumpy"><bsdf type="bumpmap"><texture type="checkerboard"/><bsdf type="diffuse"/></bsdf></shape>
-  <shape type="rectangle" id="cutout"><bsdf type="mask"><float name="opacity" value="0.5"/><bsdf type="diffuse"/></bsdf></shape>"""
+  <shape type="rectangle" id="blended"><bsdf type="blendbsdf"><float name="weight" value="0.5"/><bsdf type="diffuse"/>
+    <bsdf type="plastic"/></bsdf></shape>"""
     xml = write_room(tmp_path, extra)
     with pytest.raises(InputError) as err:
         imp.prepare_scene(xml, tmp_path / "out", num_views=1, width=32, height=24, spp=1, progress=False)
     message = str(err.value)
-    assert "'bumpy'" in message and "bumpmap" in message and "'cutout'" in message and "'mask'" in message
+    assert "'bumpy'" in message and "bumpmap" in message and "'blended'" in message and "'blendbsdf'" in message
     assert len(err.value.problems) == 2
     assert not (tmp_path / "out").exists()
 
