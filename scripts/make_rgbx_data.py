@@ -151,7 +151,7 @@ def to_u8(x: np.ndarray) -> np.ndarray:
     return np.round(np.clip(x, 0.0, 1.0) * 255).astype(np.uint8)
 
 
-def render_room(seed: int, *, views: int, width: int, height: int, spp: int):
+def render_room(seed: int, *, views: int, width: int, height: int, spp: int, max_depth: int = 5):
     """(arrays {name: (V, H, W, C) uint8}, metadata) of the room of `seed`."""
     room = random_room(seed)
     mesh, sizes = build_scene_geometry(room.objects)
@@ -167,7 +167,7 @@ def render_room(seed: int, *, views: int, width: int, height: int, spp: int):
     emitter_ids = [k for k, (_, _, m) in enumerate(room.objects) if m.emission]
 
     scene = mitsuba_scene(room, mesh, textures)
-    integrator = mb.load_mitsuba().load_dict(mb.intrinsic_integrator())
+    integrator = mb.load_mitsuba().load_dict(mb.intrinsic_integrator(max_depth))
     photos, irradiance, gt = [], [], {k: [] for k in ("albedo", "normal", "roughness", "metallic", "valid")}
     for i, (cam, frag, g) in enumerate(zip(cams, frags, sampled)):
         image = mb.render(scene, cam, spp=spp, seed=seed * 1009 + i, integrator=integrator)
@@ -195,13 +195,14 @@ def render_room(seed: int, *, views: int, width: int, height: int, spp: int):
     }
     meta = {"seed": seed, "room_size": room.size.tolist(), "objects": len(room.objects), "faces": int(mesh.num_faces),
             "exposure_stops": stops, "irradiance_exposure_stops": irradiance_stops, "sun": room.sun_irradiance is not None, "sky": room.sky_radiance is not None,
-            "emitters": len(emitter_ids), "spp": spp,
+            "emitters": len(emitter_ids), "spp": spp, "max_depth": max_depth,
             "cameras": [{"K": c.K.tolist(), "c2w": c.c2w.tolist()} for c in cams]}
     return arrays, meta
 
 
 def write_shard(path: Path, arrays, meta) -> None:
     """Atomic: written to a temporary name, then renamed, so a killed run leaves no half shard."""
+    path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp.npz")
     np.savez_compressed(tmp, meta=np.frombuffer(json.dumps(meta).encode(), np.uint8), **arrays)
     os.replace(tmp, path)
@@ -224,10 +225,11 @@ def main(argv=None) -> int:
     parser.add_argument("--views", type=int, default=12, help="views per room")
     parser.add_argument("--width", type=int, default=128)
     parser.add_argument("--height", type=int, default=96)
-    parser.add_argument("--spp", type=int, default=128)
+    parser.add_argument("--spp", type=int, default=64, help="samples per pixel (isolated outliers are filtered)")
+    parser.add_argument("--max_depth", type=int, default=5, help="path length of the photo and the irradiance's rays")
     parser.add_argument("--variant", choices=("auto", "llvm_ad_rgb", "scalar_rgb"), default="auto")
     args = parser.parse_args(argv)
-    for name in ("rooms", "views", "spp"):
+    for name in ("rooms", "views", "spp", "max_depth"):
         if getattr(args, name) < 1:
             parser.error(f"--{name} must be >= 1")
     if args.width % 8 or args.height % 8:
@@ -241,7 +243,8 @@ def main(argv=None) -> int:
           f"{len(seeds) - len(todo)} already written in {args.out}; Mitsuba {mb.load_mitsuba().variant()}")
     start = time.perf_counter()
     for seed in tqdm(todo, desc="rooms", unit="room"):
-        arrays, meta = render_room(seed, views=args.views, width=args.width, height=args.height, spp=args.spp)
+        arrays, meta = render_room(seed, views=args.views, width=args.width, height=args.height, spp=args.spp,
+                                   max_depth=args.max_depth)
         write_shard(args.out / f"room_{seed:07d}.npz", arrays, meta)
     print(f"wrote {len(todo)} rooms in {(time.perf_counter() - start) / 60:.1f} min")
     return 0

@@ -1,0 +1,155 @@
+"""scripts/train_rgbx.py: its export is a diffusers folder that diffusers, transformers and our
+loader read to the same networks; training stages resume bit-identically (tiny sizes)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+diffusers = pytest.importorskip("diffusers")
+transformers = pytest.importorskip("transformers")
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "scripts"))
+
+import train_rgbx  # noqa: E402
+from jaxdistill.models.clip import CLIPTextConfig, CLIPTextTransformer  # noqa: E402
+from jaxdistill.models.convert import load_rgbx  # noqa: E402
+from jaxdistill.models.tokenizer import load_tokenizer  # noqa: E402
+from jaxdistill.models.unet import UNet2DCondition, UNetConfig  # noqa: E402
+from jaxdistill.models.vae import AutoencoderKL, VAEConfig  # noqa: E402
+from tiny_clip_vocab import write_tiny_clip_tokenizer  # noqa: E402
+from tiny_rgbx import nchw, nhwc, rel_err  # noqa: E402
+
+TINY_VAE = dict(train_rgbx.VAE, block_out_channels=(8, 16, 16, 16), norm_num_groups=8)
+TINY_UNET = dict(train_rgbx.UNET, block_out_channels=(8, 16, 16, 16), norm_num_groups=8, attention_head_dim=(2, 2, 4, 4),
+                 cross_attention_dim=16)
+TINY_TEXT = dict(train_rgbx.TEXT, hidden_size=16, intermediate_size=32, num_attention_heads=2, projection_dim=16)
+
+
+def random_params(module, key, *inputs):
+    """Flax init, then every leaf replaced by seeded noise (norm scales around 1), so no
+    transposition or naming error can hide behind zeros and ones."""
+    params = module.init(key, *inputs)
+    leaves, tree = jax.tree.flatten_with_path(params)
+    rng = np.random.default_rng(0)
+    out = []
+    for path, x in leaves:
+        name = str(path[-1])
+        fan_in = np.prod(x.shape[:-1]) if x.ndim > 1 else 1
+        noise = rng.standard_normal(x.shape).astype(np.float32)
+        out.append(jnp.asarray(1 + 0.2 * noise if "scale" in name else noise / np.sqrt(max(fan_in, 1)) * (0.1 if x.ndim == 1 else 1)))
+    return jax.tree.unflatten(tree, out)
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    root = tmp_path_factory.mktemp("export")
+    tok_dir = write_tiny_clip_tokenizer(root / "tok", pad_token="!", style="modern")
+    tok = load_tokenizer(tok_dir)
+    key = jax.random.key(3)
+    unet = UNet2DCondition(UNetConfig.from_dict(TINY_UNET))
+    vae = AutoencoderKL(VAEConfig.from_dict(TINY_VAE))
+    text = CLIPTextTransformer(CLIPTextConfig.from_dict(dict(TINY_TEXT, vocab_size=len(tok.backend.get_vocab()))))
+    unet_p = random_params(unet, key, jnp.zeros((1, 12, 16, 8)), jnp.zeros((1,)), jnp.zeros((1, 77, 16)))
+    vae_p = random_params(vae, key, jnp.zeros((1, 32, 32, 3)))
+    text_p = random_params(text, key, jnp.zeros((1, 77), jnp.int32))
+    folder = root / "model"
+    train_rgbx.export(folder, tok_dir, unet_p, vae_p, text_p, scaling=0.37, unet=TINY_UNET, vae=TINY_VAE, text=TINY_TEXT)
+    return folder, (unet, unet_p), (vae, vae_p), (text, text_p), tok
+
+
+def test_export_is_read_back_by_our_loader_exactly(exported):
+    folder, (_, unet_p), (_, vae_p), (_, text_p), _ = exported
+    loaded = load_rgbx(folder)
+    assert loaded.networks.vae.config.scaling_factor == pytest.approx(0.37)
+    for part, params in (("unet", unet_p), ("vae", vae_p), ("text_encoder", text_p)):
+        ours, back = jax.tree.leaves(params), jax.tree.leaves(loaded.params[part])
+        assert len(ours) == len(back)
+        assert all(np.array_equal(np.asarray(a), np.asarray(b)) for a, b in zip(ours, back)), part
+
+
+def test_diffusers_and_transformers_load_the_export_and_agree_with_ours(exported):
+    folder, (unet, unet_p), (vae, vae_p), (text, text_p), tok = exported
+    rng = np.random.default_rng(1)
+    sample = rng.standard_normal((2, 12, 16, 8)).astype(np.float32)
+    t = np.array([10.0, 900.0], np.float32)
+    context = rng.standard_normal((2, 77, 16)).astype(np.float32)
+    t_unet = diffusers.UNet2DConditionModel.from_pretrained(folder / "unet").eval()
+    with torch.no_grad():
+        ref = t_unet(torch.from_numpy(nchw(sample)), torch.from_numpy(t), torch.from_numpy(context)).sample.numpy()
+    assert rel_err(unet.apply(unet_p, sample, t, context), nhwc(ref)) < 1e-5
+
+    images = rng.uniform(-1, 1, (1, 32, 48, 3)).astype(np.float32)
+    t_vae = diffusers.AutoencoderKL.from_pretrained(folder / "vae").eval()
+    assert t_vae.config.scaling_factor == pytest.approx(0.37)
+    with torch.no_grad():
+        posterior = t_vae.encode(torch.from_numpy(nchw(images))).latent_dist
+        decoded = t_vae.decode(posterior.mean).sample.numpy()
+    mean, _ = vae.apply(vae_p, images, method="encode")
+    assert rel_err(mean, nhwc(posterior.mean.numpy())) < 1e-5
+    assert rel_err(vae.apply(vae_p, mean, method="decode"), nhwc(decoded)) < 1e-5
+
+    ids = tok.encode(["Albedo (diffuse basecolor)", ""])
+    t_text = transformers.CLIPTextModel.from_pretrained(folder / "text_encoder").eval()
+    t_tok = transformers.CLIPTokenizer.from_pretrained(folder / "tokenizer")
+    assert t_tok(["Albedo (diffuse basecolor)", ""], padding="max_length", max_length=77).input_ids == ids.tolist()
+    with torch.no_grad():
+        hidden = t_text(torch.from_numpy(np.asarray(ids, np.int64))).last_hidden_state.numpy()
+    assert rel_err(text.apply(text_p, jnp.asarray(ids)), hidden) < 1e-5
+
+
+def tiny_shards(folder: Path, rooms: int = 2, views: int = 3) -> None:
+    import make_rgbx_data
+
+    rng = np.random.default_rng(0)
+    for seed in range(rooms):
+        arrays = {k: rng.integers(0, 256, (views, 16, 32, c), dtype=np.uint8)
+                  for k, c in (("photo", 3), ("albedo", 3), ("normal", 3), ("roughness", 1), ("metallic", 1), ("irradiance", 3))}
+        arrays["valid"] = np.ones((views, 16, 32, 1), np.uint8)
+        make_rgbx_data.write_shard(folder / f"room_{seed:07d}.npz", arrays, {"seed": seed})
+
+
+@pytest.fixture
+def request_restore():
+    """Config values to restore after the test: [(jax config name, previous value)]."""
+    saved = []
+    yield saved
+    for name, value in saved:
+        jax.config.update(name, value)
+
+
+def test_training_stops_on_its_budget_and_resumes_bit_identically(tmp_path, monkeypatch, request_restore):
+    """4 VAE + 4 UNet steps in one run equal the same run cut after 2 and after 4 more steps
+    (`--stop_after_steps`, exit 75 with a checkpoint, as a time limit or SIGTERM would) and resumed."""
+    monkeypatch.setattr(train_rgbx, "VAE", TINY_VAE)
+    monkeypatch.setattr(train_rgbx, "UNET", TINY_UNET)
+    monkeypatch.setattr(train_rgbx, "TEXT", TINY_TEXT)
+    # each run jits its own closures: a persistent compilation cache compiles each program once
+    for name, value in (("jax_compilation_cache_dir", str(tmp_path / "xla")),
+                        ("jax_persistent_cache_min_compile_time_secs", 0.0),
+                        ("jax_persistent_cache_min_entry_size_bytes", 0)):
+        previous = getattr(jax.config, name)
+        jax.config.update(name, value)
+        request_restore.append((name, previous))
+    tiny_shards(tmp_path / "data")
+    common = ["--data", str(tmp_path / "data"), "--vae_batch=2", "--unet_batch=4", "--ckpt_every=3", "--stage=unet",
+              "--vae_steps=4", "--unet_steps=4"]
+    assert train_rgbx.main(common + ["--work", str(tmp_path / "a")]) == 0
+    for budget, stage in ((2, "vae"), (4, "unet")):              # vae 0-2 | vae 2-4, unet 0-2 | unet 2-4
+        with pytest.raises(SystemExit) as stop:
+            train_rgbx.main(common + ["--work", str(tmp_path / "b"), f"--stop_after_steps={budget}"])
+        assert stop.value.code == train_rgbx.Budget.EXIT_UNFINISHED
+        assert sorted(int(p.name) for p in (tmp_path / "b" / f"ckpt_{stage}").iterdir() if p.name.isdigit())[-1] == 2
+    assert train_rgbx.main(common + ["--work", str(tmp_path / "b")]) == 0
+    la, lb = (np.load(tmp_path / w / "latents.npz") for w in ("a", "b"))
+    for k in la.files:
+        np.testing.assert_array_equal(la[k], lb[k])
+    final = [(tmp_path / w / "unet_loss.jsonl").read_text().splitlines()[-1] for w in ("a", "b")]
+    assert final[0] == final[1] and '"step": 4' in final[0]
