@@ -89,11 +89,23 @@ def _check_before_compute(config: DistillConfig, out: Path, choice) -> int | Non
     return latest
 
 
+def _check_gt_document(spec: str) -> None:
+    """A jaxdistill scene's gt.json is checked before any compute (evaluation reads it after setup)."""
+    from jaxdistill.datasets import split_spec
+    from jaxdistill.problem import resolve_scene_path
+
+    fmt, path = split_spec(spec)
+    if fmt == "scene":
+        root = resolve_scene_path(path)
+        evaluation.read_gt_document(root.parent if root.is_file() else root)
+
+
 def run(config: DistillConfig, *, progress: bool = True) -> dict:
     """Runs the distillation described by `config`; returns the metrics written to metrics.json."""
     wall_start = time.perf_counter()
     out = Path(config.out_dir)
     latest = _check_before_compute(config, out, choose_prior(config))
+    _check_gt_document(config.scene)
     problem = build_problem(config)
     recorded = _recorded_config(config, problem.choice.kind)
     banner = f"PRIOR: {problem.choice.kind.upper()} -- {problem.choice.reason}"
@@ -142,7 +154,7 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
                 _drain(pending, history, bar, state, store, recorded, out)
             traces.check(1)
             bar.update()
-            if config.eval_every and done % config.eval_every == 0 and eval_context.gt is not None:
+            if config.eval_every and done % config.eval_every == 0 and eval_context.gt_maps is not None:
                 history["eval_step"].append(done)
                 history["albedo_psnr"].append(quick_psnr(state, problem, eval_context))
             if config.ckpt_every and done % config.ckpt_every == 0 and done < config.steps:
@@ -220,8 +232,7 @@ def evaluation_context(config: DistillConfig, problem: Problem) -> EvalContext:
                           chain=problem.frozen["chain"], height=problem.height, width=problem.width)
     else:
         plan = build_gather_plans(frags, problem.space, config.sampler)
-    gt = evaluation.read_ground_truth(scene)
-    gt_maps = evaluation.gt_view_maps(gt, scene, frags) if gt else evaluation.image_ground_truth(scene, frags)
+    gt, gt_maps = evaluation.view_ground_truth(scene, frags)
     return EvalContext(gt, frags, cameras, gt_maps, evaluation.evaluation_masks(gt, scene, frags), plan)
 
 
@@ -268,6 +279,10 @@ def write_outputs(config: DistillConfig, problem: Problem, texels: np.ndarray, h
             if base is not None:
                 result["baseline_per_view_estimates"] = base.result()
                 result["improvement"] = _improvement(result["ours"], result["baseline_per_view_estimates"])
+                same = evaluation.targets_are_ground_truth(scene, channels.maps)
+                if same:
+                    result["baseline_note"] = (f"the per-view targets of {', '.join(same)} are the ground truth "
+                                               "files: their baseline is GT scored against itself")
     else:
         result["ours"] = None
         result["note"] = ("the scene has no ground truth (neither gt.json in jaxdistill-gt format nor views' "
