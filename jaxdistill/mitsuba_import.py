@@ -809,7 +809,13 @@ def render_irradiance(xml_path, cameras: Sequence[Camera], *, spp: int, seed: in
     """
     import drjit as dr
     depth = _integrator_max_depth(Path(xml_path))
-    mi = mb.load_mitsuba(IRRADIANCE_VARIANT)
+    try:
+        mi = mb.load_mitsuba(IRRADIANCE_VARIANT)
+    except (ImportError, RuntimeError, AttributeError) as err:   # no LLVM library found by Dr.Jit
+        mb.load_mitsuba()
+        raise InputError.single("mitsuba", IRRADIANCE_VARIANT, f"the irradiance ground truth needs Mitsuba's "
+                                f"{IRRADIANCE_VARIANT} variant, which cannot start here ({err}); install LLVM "
+                                "(e.g. apt install llvm, or set DRJIT_LIBLLVM_PATH to libLLVM.so)") from None
     try:
         scene = mi.load_file(os.fspath(xml_path), optimize=False)
         nested = mi.load_dict({"type": "path", "max_depth": max(depth - 1, 1) if depth > 0 else -1})

@@ -272,6 +272,10 @@ def write_outputs(config: DistillConfig, problem: Problem, texels: np.ndarray, h
     baseline = evaluation.read_baseline(scene, channels.maps, [f.shape for f in ctx.fragments])
     result = {"maps_written": [str(p.relative_to(out)) for p in written]}
     if ctx.gt_maps is not None:
+        covered = sorted({m for per_view in ctx.gt_maps for m in per_view} & set(channels.maps))
+        if not covered:
+            result["note"] = (f"the scene's ground truth covers none of the distilled maps ({', '.join(channels.maps)})"
+                              ": no metrics against GT")
         with ThreadPoolExecutor(2) as pool:          # the metrics are NumPy: two threads, two cores
             ours = pool.submit(evaluation.evaluate, pred, ctx.gt_maps, ctx.masks)
             base = pool.submit(evaluation.evaluate, baseline, ctx.gt_maps, ctx.masks) if baseline else None

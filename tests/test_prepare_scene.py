@@ -471,4 +471,19 @@ def test_prepared_scene_runs_in_the_main_job_with_evaluation(source, tmp_path, m
         ours = imageio.read_image(run_dir / "renders" / "albedo" / f"{view.name}.png", linear=False)[mask]
         gt = imageio.linear_to_srgb(np.clip(imageio.read_image(view.ground_truth["albedo"]), 0, 1))[mask]
         psnrs.append(10 * np.log10(1.0 / np.mean((ours - gt) ** 2)))
-    assert abs(np.mean(psnrs) - doc["ours"]["albedo_psnr"]) < 0.05 * doc["ours"]["albedo_psnr"]
+    assert abs(np.mean(psnrs) - doc["ours"]["albedo_psnr"]) < 0.02 * doc["ours"]["albedo_psnr"]   # 8-bit PNGs
+
+
+def test_irradiance_without_llvm_is_a_clear_error(tmp_path, monkeypatch):
+    from jaxdistill import mitsuba_bridge
+    real = mitsuba_bridge.load_mitsuba
+
+    def no_llvm(variant=mitsuba_bridge.VARIANT):
+        if variant != mitsuba_bridge.VARIANT:
+            raise ImportError(f"variant {variant} is not available: libLLVM not found")
+        return real(variant)
+
+    monkeypatch.setattr(imp.mb, "load_mitsuba", no_llvm)
+    cam = look_at_camera((0.0, 0.0, 1.0), (0.0, 0.0, 0.0), width=8, height=6)
+    with pytest.raises(InputError, match="llvm_ad_rgb variant, which cannot start here .*install LLVM"):
+        imp.render_irradiance(write_xml(tmp_path, ""), [cam], spp=1)
