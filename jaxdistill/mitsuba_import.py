@@ -793,7 +793,8 @@ IRRADIANCE_VARIANT = "llvm_ad_rgb"
 IRRADIANCE_TARGET_PERCENTILE = 99.0     # targets: scene-wide scale putting this percentile at 0.9
 
 
-def render_irradiance(xml_path, cameras: Sequence[Camera], *, spp: int, seed: int = 0) -> list[np.ndarray]:
+def render_irradiance(xml_path, cameras: Sequence[Camera], *, spp: int, seed: int = 0,
+                      xml_text: str | None = None) -> list[np.ndarray]:
     """Per view (H, W, 3) float32 diffuse irradiance E / pi at each pixel centre's first hit (0 on misses).
 
     E / pi is the radiance a white Lambertian surface would reflect there (so a diffuse pixel is
@@ -805,19 +806,16 @@ def render_irradiance(xml_path, cameras: Sequence[Camera], *, spp: int, seed: in
     heuristic); beyond the first bounce Mitsuba's `path` integrator, one bounce shorter than the
     scene integrator's max_depth (so E / pi x albedo is what the photos show on diffuse surfaces).
     Runs in Mitsuba's vectorised `llvm_ad_rgb` variant (one wavefront per view and sample), then
-    switches back.
+    switches back. The scene is loaded again in that variant from `xml_text` when given (an
+    upgraded Mitsuba 0.x file, with absolute file names), else from `xml_path`.
     """
-    import drjit as dr
-    depth = _integrator_max_depth(Path(xml_path))
+    depth = _integrator_max_depth(Path(xml_path), xml_text)
+    mi, dr = irradiance_mitsuba()
     try:
-        mi = mb.load_mitsuba(IRRADIANCE_VARIANT)
-    except (ImportError, RuntimeError, AttributeError) as err:   # no LLVM library found by Dr.Jit
-        mb.load_mitsuba()
-        raise InputError.single("mitsuba", IRRADIANCE_VARIANT, f"the irradiance ground truth needs Mitsuba's "
-                                f"{IRRADIANCE_VARIANT} variant, which cannot start here ({err}); install LLVM "
-                                "(e.g. apt install llvm, or set DRJIT_LIBLLVM_PATH to libLLVM.so)") from None
-    try:
-        scene = mi.load_file(os.fspath(xml_path), optimize=False)
+        if xml_text is None:
+            scene = mi.load_file(os.fspath(xml_path), optimize=False)
+        else:
+            scene = mi.load_string(xml_text, optimize=False)
         nested = mi.load_dict({"type": "path", "max_depth": max(depth - 1, 1) if depth > 0 else -1})
         sampler = mi.load_dict({"type": "independent"})
         out = []
@@ -833,10 +831,25 @@ def render_irradiance(xml_path, cameras: Sequence[Camera], *, spp: int, seed: in
         mb.load_mitsuba()                               # back to the scalar variant of everything else
 
 
-def _integrator_max_depth(xml_path: Path) -> int:
+def irradiance_mitsuba():
+    """(mitsuba, drjit) with the IRRADIANCE_VARIANT set and its JIT started; InputError saying how
+    to install LLVM when it cannot start (the scalar variant is set back then)."""
+    try:
+        import drjit as dr
+        mi = mb.load_mitsuba(IRRADIANCE_VARIANT)
+        dr.eval(mi.Float(0.0))                          # Dr.Jit starts its LLVM backend on first use
+    except (ImportError, RuntimeError, AttributeError) as err:   # no LLVM library found by Dr.Jit
+        mb.load_mitsuba()
+        raise InputError.single("mitsuba", IRRADIANCE_VARIANT, f"the irradiance ground truth needs Mitsuba's "
+                                f"{IRRADIANCE_VARIANT} variant, which cannot start here ({err}); install LLVM "
+                                "(e.g. apt install llvm, or set DRJIT_LIBLLVM_PATH to libLLVM.so)") from None
+    return mi, dr
+
+
+def _integrator_max_depth(xml_path: Path, xml_text: str | None = None) -> int:
     """The max_depth of the XML's top-level integrator (`$name` resolved from <default>); -1 when unset."""
     try:
-        root = ET.parse(xml_path).getroot()
+        root = ET.fromstring(xml_text) if xml_text is not None else ET.parse(xml_path).getroot()
     except (ET.ParseError, OSError):
         return -1
     defaults = {d.get("name"): d.get("value") for d in root.findall("default")}
@@ -938,6 +951,8 @@ def prepare_scene(xml_path, out_dir, *, num_views: int, width: int, height: int,
     Returns a summary (also in import.json): objects, UV decisions, view statistics, timings.
     """
     _check_arguments(xml_path, num_views, width, height, spp)
+    irradiance_mitsuba()                       # before any compute: the irradiance needs LLVM
+    mb.load_mitsuba()
     out = Path(out_dir)
     if out.is_dir() and any(out.iterdir()):
         log.warning("%s is not empty: files of an earlier import that this one does not rewrite stay there", out)

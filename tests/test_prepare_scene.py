@@ -398,6 +398,11 @@ def test_irradiance_in_a_closed_glowing_box_counts_every_bounce(tmp_path):
     cam = look_at_camera((0.1, 0.2, 0.0), (1.0, 0.3, 0.2), up=(0.0, 1.0, 0.0), width=16, height=12)
     image = imp.render_irradiance(xml, [cam], spp=32, seed=0)[0]
     np.testing.assert_allclose(image.reshape(-1, 3).mean(0), [2.0, 4.0 / 3.0, 1.0], rtol=0.02)
+    # the same scene given as text (an upgraded Mitsuba 0.x file), with max_depth 2: direct light only
+    text = xml.read_text().replace('<integrator type="path"/>',
+                                   '<integrator type="path"><integer name="max_depth" value="2"/></integrator>')
+    direct = imp.render_irradiance(tmp_path / "absent.xml", [cam], spp=32, seed=0, xml_text=text)[0]
+    np.testing.assert_allclose(direct.reshape(-1, 3).mean(0), 1.0, rtol=0.02)
 
 
 def test_imported_irradiance_times_albedo_is_the_photo_on_diffuse_surfaces(tmp_path):
@@ -474,7 +479,7 @@ def test_prepared_scene_runs_in_the_main_job_with_evaluation(source, tmp_path, m
     assert abs(np.mean(psnrs) - doc["ours"]["albedo_psnr"]) < 0.02 * doc["ours"]["albedo_psnr"]   # 8-bit PNGs
 
 
-def test_irradiance_without_llvm_is_a_clear_error(tmp_path, monkeypatch):
+def test_irradiance_without_llvm_is_a_clear_error_before_any_compute(tmp_path, monkeypatch, room_xml):
     from jaxdistill import mitsuba_bridge
     real = mitsuba_bridge.load_mitsuba
 
@@ -487,3 +492,20 @@ def test_irradiance_without_llvm_is_a_clear_error(tmp_path, monkeypatch):
     cam = look_at_camera((0.0, 0.0, 1.0), (0.0, 0.0, 0.0), width=8, height=6)
     with pytest.raises(InputError, match="llvm_ad_rgb variant, which cannot start here .*install LLVM"):
         imp.render_irradiance(write_xml(tmp_path, ""), [cam], spp=1)
+    monkeypatch.setattr(imp, "load_source", lambda *a, **k: pytest.fail("the import started before the check"))
+    with pytest.raises(InputError, match="install LLVM"):
+        imp.prepare_scene(room_xml, tmp_path / "out", num_views=1, width=16, height=12, spp=1, progress=False)
+    assert not (tmp_path / "out").exists()
+
+
+def test_reimport_removes_the_gt_json_an_earlier_import_wrote(room_xml, tmp_path):
+    """Earlier imports wrote their metadata as gt.json (no textures), which evaluation refuses; a
+    new import into the same folder removes it, but never a gt.json with GT textures."""
+    old, textured = tmp_path / "old", tmp_path / "textured"
+    for folder, doc in ((old, {"format": "jaxdistill-gt", "version": 1, "source": {"mitsuba": str(room_xml)}}),
+                        (textured, {"format": "jaxdistill-gt", "version": 1, "source": {"mitsuba": str(room_xml)},
+                                    "textures": {"albedo": {}}})):
+        folder.mkdir()
+        (folder / "gt.json").write_text(json.dumps(doc))
+        imp.prepare_scene(room_xml, folder, num_views=1, width=16, height=12, spp=1, progress=False)
+    assert not (old / "gt.json").exists() and (textured / "gt.json").is_file()
