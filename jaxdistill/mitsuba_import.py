@@ -1098,6 +1098,13 @@ def _write_readme(out: Path, source: MitsubaSource, summary: dict, mesh: Mesh) -
                                f"--width={s['width']} --height={s['height']} --spp={s['spp']} --seed={s['seed']})"),
         "```",
         "",
+        "Distil it (from the jaxdistill checkout; all five maps have targets and ground truth):",
+        "",
+        "```",
+        f"python -m jaxdistill.main --flagfile=configs/bedroom.cfg --scene={out} --out_dir={out}_run "
+        f"--views_per_step={min(8, s['views'])}",
+        "```",
+        "",
         "## Contents",
         "",
         f"- `scene.json`, `mesh.glb`: {len(mesh.object_names)} objects, {mesh.num_faces} triangles, texture layout "
