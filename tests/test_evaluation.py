@@ -86,9 +86,9 @@ def test_gt_json_without_any_map_is_refused_before_compute(tiny, tmp_path, monke
     (folder / "gt.json").write_text(json.dumps({"format": "jaxdistill-gt", "version": 1, "source": {}}))
 
     def poisoned(*args, **kwargs):
-        raise AssertionError("build_problem ran: the bad gt.json was not caught before compute")
+        raise AssertionError("rays were cast: the bad gt.json was not caught before compute")
 
-    monkeypatch.setattr(train, "build_problem", poisoned)
+    monkeypatch.setattr(fr, "compute_fragments", poisoned)
     config = config_lib.validate(DistillConfig(scene=str(folder), out_dir=str(tmp_path / "run"), steps=2,
                                                views_per_step=2, prior="views"))
     with pytest.raises(InputError) as err:
