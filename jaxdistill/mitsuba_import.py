@@ -810,6 +810,7 @@ def render_irradiance(xml_path, cameras: Sequence[Camera], *, spp: int, seed: in
     upgraded Mitsuba 0.x file, with absolute file names), else from `xml_path`.
     """
     depth = _integrator_max_depth(Path(xml_path), xml_text)
+    previous = mb.load_mitsuba().variant()
     mi, dr = irradiance_mitsuba()
     try:
         if xml_text is None:
@@ -828,18 +829,19 @@ def render_irradiance(xml_path, cameras: Sequence[Camera], *, spp: int, seed: in
             out.append((total / spp).reshape(cam.height, cam.width, 3).astype(np.float32))
         return out
     finally:
-        mb.load_mitsuba()                               # back to the scalar variant of everything else
+        mb.load_mitsuba(previous)                       # back to the variant of everything else
 
 
 def irradiance_mitsuba():
     """(mitsuba, drjit) with the IRRADIANCE_VARIANT set and its JIT started; InputError saying how
-    to install LLVM when it cannot start (the scalar variant is set back then)."""
+    to install LLVM when it cannot start (the variant set before is set back then)."""
+    previous = mb.load_mitsuba().variant()
     try:
         import drjit as dr
         mi = mb.load_mitsuba(IRRADIANCE_VARIANT)
         dr.eval(mi.Float(0.0))                          # Dr.Jit starts its LLVM backend on first use
     except (ImportError, RuntimeError, AttributeError) as err:   # no LLVM library found by Dr.Jit
-        mb.load_mitsuba()
+        mb.load_mitsuba(previous)
         raise InputError.single("mitsuba", IRRADIANCE_VARIANT, f"the irradiance ground truth needs Mitsuba's "
                                 f"{IRRADIANCE_VARIANT} variant, which cannot start here ({err}); install LLVM "
                                 "(e.g. apt install llvm, or set DRJIT_LIBLLVM_PATH to libLLVM.so)") from None
@@ -951,8 +953,9 @@ def prepare_scene(xml_path, out_dir, *, num_views: int, width: int, height: int,
     Returns a summary (also in import.json): objects, UV decisions, view statistics, timings.
     """
     _check_arguments(xml_path, num_views, width, height, spp)
+    previous = mb.load_mitsuba().variant()
     irradiance_mitsuba()                       # before any compute: the irradiance needs LLVM
-    mb.load_mitsuba()
+    mb.load_mitsuba(previous)
     out = Path(out_dir)
     if out.is_dir() and any(out.iterdir()):
         log.warning("%s is not empty: files of an earlier import that this one does not rewrite stay there", out)

@@ -378,7 +378,9 @@ def test_irradiance_under_a_disk_light_is_the_analytic_formula(tmp_path):
   <shape type="disk"><transform name="to_world"><scale value="{r}"/><rotate x="1" angle="180"/>
     <translate z="{h}"/></transform><emitter type="area">{rgb("radiance", radiance)}</emitter></shape>""")
     cam = look_at_camera((0.0, 0.0, 0.6), (0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0), width=24, height=18)
+    before = imp.mb.load_mitsuba().variant()
     image = imp.render_irradiance(xml, [cam], spp=32, seed=3)[0].reshape(-1, 3)
+    assert mi.variant() == before                     # the llvm variant is left again
     o, d = cam.pixel_rays()
     rho = np.hypot(*(o + d * (-o[:, 2:] / d[:, 2:]))[:, :2].T)
     expected = 0.5 * (1 - (h ** 2 + rho ** 2 - r ** 2) / np.sqrt((h ** 2 + rho ** 2 + r ** 2) ** 2
