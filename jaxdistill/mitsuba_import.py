@@ -844,7 +844,8 @@ def irradiance_mitsuba():
         mb.load_mitsuba(previous)
         raise InputError.single("mitsuba", IRRADIANCE_VARIANT, f"the irradiance ground truth needs Mitsuba's "
                                 f"{IRRADIANCE_VARIANT} variant, which cannot start here ({err}); install LLVM "
-                                "(e.g. apt install llvm, or set DRJIT_LIBLLVM_PATH to libLLVM.so)") from None
+                                "19 (e.g. apt-get install libllvm19; older LLVMs may fail to compile), or set "
+                                "DRJIT_LIBLLVM_PATH to its libLLVM .so file") from None
     return mi, dr
 
 
