@@ -1,11 +1,14 @@
 """Per-view evaluation of distilled texels: renders in file space, ground truth, and metrics.
 
-Ground truth comes from the scene's `gt.json` (format "jaxdistill-gt", as the embedded bedroom
-ships): per-object GT texture pages sampled through the scene's UVs with our bilinear gather,
-normals from the geometry (face normals as the mesh orients them, in RGB<->X camera space),
-and emitter objects excluded. Without one, the views' `ground_truth` images (image space, as
-datasets such as FIPT's ship them) are used; views' masks drop pixels in both cases. Scenes
-with neither are evaluated against nothing (metrics say so).
+Ground truth per view and map (`view_ground_truth`) comes from two sources:
+- the scene's `gt.json` (format "jaxdistill-gt", as the embedded bedroom ships): per-object GT
+  texture pages sampled through the scene's UVs with our bilinear gather, normals from the
+  geometry (face normals as the mesh orients them, in RGB<->X camera space), and emitter
+  objects excluded;
+- the views' `ground_truth` images (image space, as `scripts/prepare_scene.py` and datasets
+  such as FIPT's write them), for every map gt.json does not provide (all of them without one).
+Views' masks drop pixels in both cases. Scenes with neither are evaluated against nothing
+(metrics say so). A gt.json in our format that provides no map is refused, naming the file.
 All per-view maps here are in file space (see maps.py), at the photos' native resolution.
 """
 
@@ -43,22 +46,41 @@ class GroundTruth:
     exclude_objects: tuple[str, ...]
 
 
+def read_gt_document(root: Path | None) -> dict | None:
+    """The parsed `root/gt.json` when it is in our format (else None); InputError naming the
+    file and field when it cannot be ground truth (no map in it, unknown maps, not an object).
+    Needs no scene: `train.run` calls it before any compute."""
+    if root is None or not (Path(root) / "gt.json").is_file():
+        return None
+    path = Path(root) / "gt.json"
+    doc = read_json(path, "missing")
+    if not isinstance(doc, dict) or doc.get("format") != GT_FORMAT:
+        return None
+    textures = doc.get("textures", {})
+    if not isinstance(textures, dict) or not all(isinstance(v, dict) for v in textures.values()):
+        raise InputError.single(path, "textures", "expected {map: {object: image path}}")
+    if not textures and doc.get("normal") != "geometry":
+        raise InputError.single(path, "textures", "no ground-truth texture for any map (and \"normal\" is not "
+                                "\"geometry\"): add textures, or delete gt.json so that the views' ground_truth "
+                                "images are used")
+    for name in textures:
+        if name not in CHANNELS or name == "normal":
+            raise InputError.single(path, f"textures.{name}", "GT textures can be albedo, roughness, metallic or "
+                                    "irradiance (normals come from the geometry with \"normal\": \"geometry\")")
+    return doc
+
+
 def read_ground_truth(scene: Scene) -> GroundTruth | None:
     """The scene's gt.json ground truth, or None when the scene has none in our format."""
-    if scene.root is None or not (scene.root / "gt.json").is_file():
+    doc = read_gt_document(scene.root)
+    if doc is None:
         return None
     path = scene.root / "gt.json"
-    doc = read_json(path, "missing")
-    if doc.get("format") != GT_FORMAT:
-        return None
     names = scene.mesh.object_names
     if scene.texture_layout != "pages":
         raise InputError.single(path, "textures", "per-object GT textures need a scene with texture_layout 'pages'")
     pages = {}
     for name, per_object in doc.get("textures", {}).items():
-        if name not in CHANNELS or name == "normal":
-            raise InputError.single(path, f"textures.{name}", "GT textures can be albedo, roughness, metallic or "
-                                    "irradiance (normals come from the geometry with \"normal\": \"geometry\")")
         missing = [o for o in names if o not in per_object]
         if missing:
             raise InputError.single(path, f"textures.{name}", f"no texture for objects {missing}")
@@ -89,8 +111,10 @@ def camera_normals(normals_world: np.ndarray, triangle: np.ndarray, camera) -> n
 def gt_view_maps(gt: GroundTruth, scene: Scene, fragments: Sequence) -> list[dict[str, np.ndarray]]:
     """Per view, {map: (H, W, C) file-space GT} for the maps the GT provides."""
     names = list(gt.pages)
-    stacked = [np.concatenate([gt.pages[m][o] for m in names], -1) for o in range(scene.num_objects)]
-    sampled = sample_pages(stacked, fragments, range(scene.num_objects)) if names else [None] * len(fragments)
+    sampled = [None] * len(fragments)
+    if names:
+        stacked = [np.concatenate([gt.pages[m][o] for m in names], -1) for o in range(scene.num_objects)]
+        sampled = sample_pages(stacked, fragments, range(scene.num_objects))
     normals = face_normals(scene.mesh)
     out = []
     for view, frag, image in zip(scene.views, fragments, sampled):
@@ -134,6 +158,18 @@ def image_ground_truth(scene: Scene, fragments: Sequence) -> list[dict[str, np.n
             maps[m] = image[..., :CHANNELS[m]]
         out.append(maps)
     return out
+
+
+def view_ground_truth(scene: Scene, fragments: Sequence) -> tuple[GroundTruth | None, list[dict] | None]:
+    """(gt.json ground truth or None, per view {map: (H, W, C) file-space GT} or None when the
+    scene has no ground truth at all): gt.json's maps, and the views' `ground_truth` images for
+    the maps gt.json does not provide."""
+    gt = read_ground_truth(scene)
+    textured = gt_view_maps(gt, scene, fragments) if gt else None
+    images = image_ground_truth(scene, fragments)
+    if textured is None or images is None:
+        return gt, textured if textured is not None else images
+    return gt, [{**i, **t} for t, i in zip(textured, images)]
 
 
 @jax.jit
@@ -188,6 +224,14 @@ def read_baseline(scene: Scene, maps: Sequence[str], shapes: Sequence[tuple[int,
         out.append({m: resize(read_target(m, view.targets[m]), h, w)[..., :3 if m not in ("roughness", "metallic")
                                                                         else 1] for m in maps})
     return out
+
+
+def targets_are_ground_truth(scene: Scene, maps: Sequence[str]) -> list[str]:
+    """The maps whose per-view targets are every view's ground-truth file itself (as
+    scripts/prepare_scene.py writes them): their baseline scores are GT against GT."""
+    return [m for m in maps if all(m in v.targets and v.ground_truth.get(m) is not None
+                                   and Path(v.targets[m]).resolve() == Path(v.ground_truth[m]).resolve()
+                                   for v in scene.views)]
 
 
 def write_renders(folder: Path, names: Sequence[str], views: Sequence[dict], threads: int = 2) -> None:

@@ -43,10 +43,15 @@ upgraded XML is written to the output folder as `<stem>.mitsuba3.xml`.
    reconstruction mesh, the same triangles as Mitsuba's) give triangle id and barycentrics;
    the ORIGINAL texcoords of that triangle are interpolated and the material evaluated there,
    so the maps are exact whatever the new layout.
-6. **Photos**: Mitsuba path traces each view (the scene's own integrator, `spp` samples,
+6. **Irradiance** per view (`render_irradiance`): E / pi at each pixel centre's first hit,
+   the radiance a white Lambertian surface would reflect there under the scene's own light
+   (original materials everywhere else), `spp` samples, in Mitsuba's `llvm_ad_rgb` variant.
+   Written as ground truth (HDR) and, scaled by one scene-wide factor into [0, 1], as targets.
+7. **Photos**: Mitsuba path traces each view (the scene's own integrator, `spp` samples,
    seed = seed + view index) through `mitsuba_bridge.render`.
 
-Conventions of the files written (also in the `gt.json` and README.md written beside
+scene.json is complete: every view has targets and ground truth for all five maps and its
+mask. Conventions of the files written (also in the `import.json` and README.md written beside
 scene.json): photos linear EXR + sRGB PNG; targets/albedo linear RGB EXR; roughness and
 metallic single-channel EXR; normal = camera-space unit normal as RGB↔X uses it (x right,
 y up, z towards the camera), flipped to face the camera, stored as (n + 1) / 2; albedo,
@@ -83,8 +88,9 @@ from jaxdistill.unwrap import UVDecision, unwrap_object, uv_problem
 
 log = logging.getLogger(__name__)
 
-GT_FORMAT = "jaxdistill-gt"
-GT_VERSION = 1
+IMPORT_FORMAT = "jaxdistill-mitsuba-import"
+IMPORT_VERSION = 2
+IMPORT_FILE = "import.json"      # not gt.json: that name is per-object GT textures (evaluation.GT_FORMAT)
 # Mitsuba class name -> plugin name (as written in the XML), for the plugins we recognise.
 BSDF_PLUGINS = {
     "SmoothDiffuse": "diffuse", "SmoothPlastic": "plastic", "RoughPlastic": "roughplastic",
@@ -431,6 +437,7 @@ class MitsubaSource:
     dropped: list[str]
     integrator: str
     upgrade_changes: tuple[str, ...] = ()      # what the Mitsuba 0.x -> 3 upgrade changed (empty: none)
+    xml_text: str | None = None                # the upgraded XML of a Mitsuba 0.x file (None: load `path`)
 
 
 def _check_files(xml_path: Path, problems: ProblemList) -> None:
@@ -565,7 +572,7 @@ def load_source(xml_path, *, up=None, upgraded_dir=None) -> MitsubaSource:
     integrator = scene.integrator()
     return MitsubaSource(path=xml_path, scene=scene, objects=objects, up=up / np.linalg.norm(up), dropped=dropped,
                          integrator=integrator.class_name() if integrator is not None else "default",
-                         upgrade_changes=tuple(str(c) for c in changes))
+                         upgrade_changes=tuple(str(c) for c in changes), xml_text=upgraded)
 
 
 # ----------------------------------------------------------------------------- UV layout
@@ -841,6 +848,125 @@ class GroundTruthEvaluator:
                            normal=normal.reshape(shape).astype(np.float32), mask=mask, hit=hit)
 
 
+# ----------------------------------------------------------------------------- irradiance
+
+
+IRRADIANCE_VARIANT = "llvm_ad_rgb"
+IRRADIANCE_TARGET_PERCENTILE = 99.0     # targets: scene-wide scale putting this percentile at 0.9
+
+
+def render_irradiance(xml_path, cameras: Sequence[Camera], *, spp: int, seed: int = 0,
+                      xml_text: str | None = None) -> list[np.ndarray]:
+    """Per view (H, W, 3) float32 diffuse irradiance E / pi at each pixel centre's first hit (0 on misses).
+
+    E / pi is the radiance a white Lambertian surface would reflect there (so a diffuse pixel is
+    albedo x irradiance): the cosine-weighted mean of the incident radiance of the ORIGINAL scene
+    over the hemisphere of the shading normal turned towards the camera. Only the first hit is
+    white; light arriving there keeps every original material, emitter and interreflection. (A
+    render of the scene with all materials white would not: its interreflections are brighter.)
+    Estimator per sample: emitter sampling and a cosine-sampled direction combined by MIS (balance
+    heuristic); beyond the first bounce Mitsuba's `path` integrator, one bounce shorter than the
+    scene integrator's max_depth (so E / pi x albedo is what the photos show on diffuse surfaces).
+    Runs in Mitsuba's vectorised `llvm_ad_rgb` variant (one wavefront per view and sample), then
+    switches back. The scene is loaded again in that variant from `xml_text` when given (an
+    upgraded Mitsuba 0.x file, with absolute file names), else from `xml_path`.
+    """
+    depth = _integrator_max_depth(Path(xml_path), xml_text)
+    previous = mb.load_mitsuba().variant()
+    mi, dr = irradiance_mitsuba()
+    try:
+        if xml_text is None:
+            scene = mi.load_file(os.fspath(xml_path), optimize=False)
+        else:
+            scene = mi.load_string(xml_text, optimize=False)
+        nested = mi.load_dict({"type": "path", "max_depth": max(depth - 1, 1) if depth > 0 else -1})
+        sampler = mi.load_dict({"type": "independent"})
+        out = []
+        for v, cam in enumerate(cameras):
+            origins, directions = cam.pixel_rays()
+            total = np.zeros((len(origins), 3))
+            for s in range(spp):
+                sampler.seed(dr.opaque(mi.UInt32, ((seed * 7919 + v) * 65537 + s) % 2 ** 32), len(origins))
+                total += _irradiance_sample(mi, dr, scene, nested, sampler, origins, directions)
+            out.append((total / spp).reshape(cam.height, cam.width, 3).astype(np.float32))
+        return out
+    finally:
+        mb.load_mitsuba(previous)                       # back to the variant of everything else
+
+
+def irradiance_mitsuba():
+    """(mitsuba, drjit) with the IRRADIANCE_VARIANT set and its JIT started; InputError saying how
+    to install LLVM when it cannot start (the variant set before is set back then)."""
+    previous = mb.load_mitsuba().variant()
+    try:
+        import drjit as dr
+        mi = mb.load_mitsuba(IRRADIANCE_VARIANT)
+        dr.eval(mi.Float(0.0))                          # Dr.Jit starts its LLVM backend on first use
+    except (ImportError, RuntimeError, AttributeError) as err:   # no LLVM library found by Dr.Jit
+        mb.load_mitsuba(previous)
+        raise InputError.single("mitsuba", IRRADIANCE_VARIANT, f"the irradiance ground truth needs Mitsuba's "
+                                f"{IRRADIANCE_VARIANT} variant, which cannot start here ({err}); install LLVM "
+                                "19 (e.g. apt-get install libllvm19; older LLVMs may fail to compile), or set "
+                                "DRJIT_LIBLLVM_PATH to its libLLVM .so file") from None
+    return mi, dr
+
+
+def _integrator_max_depth(xml_path: Path, xml_text: str | None = None) -> int:
+    """The max_depth of the XML's top-level integrator (`$name` resolved from <default>); -1 when unset."""
+    try:
+        root = ET.fromstring(xml_text) if xml_text is not None else ET.parse(xml_path).getroot()
+    except (ET.ParseError, OSError):
+        return -1
+    defaults = {d.get("name"): d.get("value") for d in root.findall("default")}
+    integrator = root.find("integrator")
+    for element in integrator.iter("integer") if integrator is not None else ():
+        if element.get("name") in ("max_depth", "maxDepth"):
+            value = element.get("value", "-1")
+            value = defaults.get(value[1:], "-1") if value.startswith("$") else value
+            try:
+                return int(value)
+            except ValueError:
+                return -1
+    return -1
+
+
+def _irradiance_sample(mi, dr, scene, nested, sampler, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """(N, 3) one-sample estimates of E / pi at the first hits of rays (origins, directions)."""
+    ray = mi.Ray3f(mi.Point3f(*[origins[:, i].astype(np.float32) for i in range(3)]),
+                   mi.Vector3f(*[directions[:, i].astype(np.float32) for i in range(3)]))
+    si = scene.ray_intersect(ray)
+    valid = si.is_valid()
+    n = si.sh_frame.n
+    n = dr.select(dr.dot(n, ray.d) > 0, -n, n)          # the side the camera sees
+    inv_pi = 1.0 / math.pi
+    # emitter sampling
+    ds, weight = scene.sample_emitter_direction(si, sampler.next_2d(), True, valid)
+    cos_e = dr.maximum(dr.dot(n, ds.d), 0.0)
+    w_e = dr.select(ds.delta, 1.0, ds.pdf / dr.maximum(ds.pdf + cos_e * inv_pi, 1e-30))
+    estimate = weight * (cos_e * inv_pi * w_e)
+    # a cosine-sampled direction; the path integrator's first vertex adds the emission it hits
+    local = mi.warp.square_to_cosine_hemisphere(sampler.next_2d())
+    wo = mi.Frame3f(n).to_world(local)
+    pdf = local.z * inv_pi
+    ray2 = si.spawn_ray(wo)
+    si2 = scene.ray_intersect(ray2, valid)
+    ds2 = mi.DirectionSample3f(scene, si2, si)
+    emitted = dr.select(valid & (ds2.emitter != None), ds2.emitter.eval(si2, valid), 0.0)  # noqa: E711
+    pdf_e = scene.pdf_emitter_direction(si, ds2, valid)
+    w_b = pdf / dr.maximum(pdf + pdf_e, 1e-30)
+    radiance, _, _ = nested.sample(scene, sampler, mi.RayDifferential3f(ray2), None, valid)
+    estimate += (radiance - emitted) + w_b * emitted    # f cos / pdf = 1 for a white Lambertian
+    estimate = dr.select(valid & (local.z > 0), estimate, 0.0)
+    return np.stack([np.array(estimate[i], np.float64) for i in range(3)], axis=1)
+
+
+def irradiance_target_scale(images: Sequence[np.ndarray], masks: Sequence[np.ndarray]) -> float:
+    """One scene-wide factor putting the IRRADIANCE_TARGET_PERCENTILE of the masked irradiance at 0.9."""
+    values = np.concatenate([im[m].max(axis=-1) for im, m in zip(images, masks)]) if images else np.zeros(0)
+    peak = float(np.percentile(values, IRRADIANCE_TARGET_PERCENTILE)) if values.size else 0.0
+    return 0.9 / peak if peak > 0 else 1.0
+
+
 # ----------------------------------------------------------------------------- the whole import
 
 
@@ -858,6 +984,22 @@ def _check_arguments(xml_path, num_views, width, height, spp) -> None:
     problems.raise_if_any()
 
 
+def _remove_stale_gt_json(out: Path) -> None:
+    """Deletes the gt.json an earlier version of this import wrote (its metadata, no GT textures):
+    evaluation reads gt.json as per-object GT textures and would refuse it."""
+    path = out / "gt.json"
+    if not path.is_file():
+        return
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return
+    if isinstance(doc, dict) and "textures" not in doc and isinstance(doc.get("source"), dict) \
+            and "mitsuba" in doc["source"]:
+        path.unlink()
+        log.warning("removed %s written by an earlier import (its metadata is now %s)", path, IMPORT_FILE)
+
+
 def _licence_text(xml_path: Path) -> str | None:
     for name in ("LICENSE.txt", "LICENSE", "LICENSE.md", "COPYING"):
         path = xml_path.parent / name
@@ -868,11 +1010,15 @@ def _licence_text(xml_path: Path) -> str | None:
 
 def prepare_scene(xml_path, out_dir, *, num_views: int, width: int, height: int, spp: int, seed: int = 0,
                   up=None, command: str | None = None, progress: bool = True) -> dict:
-    """Imports a Mitsuba 3 scene into `out_dir` (scene.json, mesh, photos, GT, gt.json, README.md).
+    """Imports a Mitsuba 3 scene into `out_dir` (scene.json, mesh, photos, targets, ground truth,
+    masks, import.json, README.md).
 
-    Returns a summary (also in gt.json): objects, UV decisions, view statistics, timings.
+    Returns a summary (also in import.json): objects, UV decisions, view statistics, timings.
     """
     _check_arguments(xml_path, num_views, width, height, spp)
+    previous = mb.load_mitsuba().variant()
+    irradiance_mitsuba()                       # before any compute: the irradiance needs LLVM
+    mb.load_mitsuba(previous)
     out = Path(out_dir)
     if out.is_dir() and any(out.iterdir()):
         log.warning("%s is not empty: files of an earlier import that this one does not rewrite stay there", out)
@@ -898,10 +1044,11 @@ def prepare_scene(xml_path, out_dir, *, num_views: int, width: int, height: int,
     log.info("placed %d views in %.1f s (%d candidates)", len(cams), timings["view_placement_s"],
              view_stats["candidates"])
 
+    _remove_stale_gt_json(out)
     t = time.perf_counter()
     frags = fr.compute_fragments(mesh, cams, cache_dir=False, progress=progress)
     names = [f"view_{i:03d}" for i in range(len(cams))]
-    per_view = []
+    per_view, masks = [], []
     for name, cam, frag in zip(tqdm(names, desc="ground truth", unit="view", disable=not progress), cams, frags):
         gt = gt_eval.evaluate(cam, frag)
         imageio.write_image(out / "targets" / "albedo" / f"{name}.exr", gt.albedo)
@@ -909,10 +1056,22 @@ def prepare_scene(xml_path, out_dir, *, num_views: int, width: int, height: int,
         imageio.write_image(out / "targets" / "metallic" / f"{name}.exr", gt.metallic)
         imageio.write_image(out / "targets" / "normal" / f"{name}.exr", gt.normal)
         imageio.write_image(out / "masks" / f"{name}.png", gt.mask.astype(np.float32), encode_srgb=False)
+        masks.append(gt.mask)
         per_view.append({"name": name, "hit_fraction": float(gt.hit.mean()), "valid_fraction": float(gt.mask.mean()),
                          "fov_x_deg": float(np.degrees(2 * np.arctan(cam.width / (2 * cam.K[0, 0]))))})
     timings["ground_truth_s"] = time.perf_counter() - t
     log.info("ground truth for %d views in %.1f s", len(cams), timings["ground_truth_s"])
+
+    t = time.perf_counter()
+    irradiance = [np.where(m[..., None], e, 0.0) for e, m in zip(render_irradiance(source.path, cams, spp=spp, seed=seed,
+                                                                                   xml_text=source.xml_text),
+                                                                 masks)]
+    scale = irradiance_target_scale(irradiance, masks)
+    for name, image in zip(names, irradiance):
+        imageio.write_image(out / "ground_truth" / "irradiance" / f"{name}.exr", image)
+        imageio.write_image(out / "targets" / "irradiance" / f"{name}.exr", np.clip(image * scale, 0.0, 1.0))
+    timings["irradiance_s"] = time.perf_counter() - t
+    log.info("irradiance (E / pi, %s) of %d views in %.1f s", IRRADIANCE_VARIANT, len(cams), timings["irradiance_s"])
 
     t = time.perf_counter()
     bar = tqdm(list(zip(names, cams)), desc=f"render (spp {spp})", unit="view", disable=not progress)
@@ -924,16 +1083,19 @@ def prepare_scene(xml_path, out_dir, *, num_views: int, width: int, height: int,
     timings["render_s"] = time.perf_counter() - t
     log.info("rendered %d views at %dx%d, spp %d in %.1f s", len(cams), width, height, spp, timings["render_s"])
 
+    exact = ("albedo", "normal", "roughness", "metallic")     # the targets of these maps ARE the ground truth
     views = tuple(View(name=name, camera=cam, photo=out / "photos" / f"{name}.exr",
-                       targets={m: out / "targets" / m / f"{name}.exr" for m in ("albedo", "normal", "roughness",
-                                                                                "metallic")})
+                       targets={m: out / "targets" / m / f"{name}.exr" for m in exact + ("irradiance",)},
+                       mask=out / "masks" / f"{name}.png",
+                       ground_truth={**{m: out / "targets" / m / f"{name}.exr" for m in exact},
+                                     "irradiance": out / "ground_truth" / "irradiance" / f"{name}.exr"})
                   for name, cam in zip(names, cams))
     scene_name = source.path.parent.name or source.path.stem
     write_scene(Scene(name=scene_name, mesh=mesh, views=views, texture_layout="pages"), out)
     timings["total_s"] = time.perf_counter() - t0
 
     summary = {
-        "format": GT_FORMAT, "version": GT_VERSION,
+        "format": IMPORT_FORMAT, "version": IMPORT_VERSION,
         "source": {"mitsuba": os.fspath(Path(xml_path).resolve()), "integrator": source.integrator,
                    "up": source.up.tolist(), "dropped_shapes": source.dropped},
         "settings": {"views": num_views, "width": width, "height": height, "spp": spp, "seed": seed},
@@ -947,13 +1109,20 @@ def prepare_scene(xml_path, out_dir, *, num_views: int, width: int, height: int,
             "normal": "targets/normal/<view>.exr camera-space unit normal, x right, y up, z towards the camera "
                       "(RGB<->X), flipped to face the camera, stored as (n + 1) / 2; (0.5, 0.5, 0.5) where no "
                       "surface is hit; defined on emitters and glass too",
-            "mask": "masks/<view>.png 1 where a ray hits a surface that is neither an emitter nor glass",
+            "irradiance": "ground_truth/irradiance/<view>.exr linear RGB E / pi (the radiance a white Lambertian "
+                          "surface would reflect: photo = albedo x irradiance on diffuse surfaces), HDR, same units as "
+                          "the photos; targets/irradiance/<view>.exr the same x irradiance_target_scale, clipped to "
+                          "[0, 1] (RGB<->X's output range); 0 outside the mask",
+            "mask": "masks/<view>.png 1 where a ray hits a surface that is neither an emitter nor glass; "
+                    "scene.json references it as each view's mask (out of loss and metrics)",
+            "ground_truth": "scene.json views[].ground_truth: albedo, normal, roughness, metallic are the targets' "
+                            "files (exact), irradiance ground_truth/irradiance/<view>.exr",
             "materials": "diffuse: albedo = reflectance, roughness 1, metallic 0; plastic: diffuse_reflectance, 0, "
                          "0; roughplastic: diffuse_reflectance, sqrt(alpha), 0; principled: base_color, roughness, "
                          "metallic; conductor: albedo = specular_reflectance x F0(eta, k), roughness 0 "
                          "(roughconductor: sqrt(alpha)), metallic 1; twosided: its front BSDF",
         },
-        "masks": {name: f"masks/{name}.png" for name in names},
+        "irradiance_target_scale": scale,
         "objects": [{"name": o.name, "shape": o.shape, "faces": int(len(o.faces)), "emitter": o.emitter,
                      "masked": o.masked, "uv": d.reason if d.reunwrapped else "kept",
                      "uv_seconds": round(d.seconds, 3), **(o.material.describe() if o.material else {})}
@@ -965,7 +1134,7 @@ def prepare_scene(xml_path, out_dir, *, num_views: int, width: int, height: int,
                        "valid_fraction": float(np.mean([v["valid_fraction"] for v in per_view]))},
         "timings": {k: round(v, 2) for k, v in timings.items()},
     }
-    (out / "gt.json").write_text(json.dumps(summary, indent=1))
+    (out / IMPORT_FILE).write_text(json.dumps(summary, indent=1))
     _write_readme(out, source, summary, mesh)
     read_scene(out)          # self-check: the written scene validates
     return summary
@@ -996,6 +1165,13 @@ def _write_readme(out: Path, source: MitsubaSource, summary: dict, mesh: Mesh) -
                                f"--width={s['width']} --height={s['height']} --spp={s['spp']} --seed={s['seed']})"),
         "```",
         "",
+        "Distil it (from the jaxdistill checkout; all five maps have targets and ground truth):",
+        "",
+        "```",
+        f"python -m jaxdistill.main --flagfile=configs/bedroom.cfg --scene={out} --out_dir={out}_run "
+        f"--views_per_step={min(8, s['views'])}",
+        "```",
+        "",
         "## Contents",
         "",
         f"- `scene.json`, `mesh.glb`: {len(mesh.object_names)} objects, {mesh.num_faces} triangles, texture layout "
@@ -1003,8 +1179,13 @@ def _write_readme(out: Path, source: MitsubaSource, summary: dict, mesh: Mesh) -
         f"{', '.join(summary['reunwrapped']) or 'none'}.",
         f"- {s['views']} views at {s['width']}x{s['height']}, path traced by Mitsuba "
         f"({summary['source']['integrator']}, {s['spp']} spp).",
-        "- `targets/<map>/<view>.exr` ground truth, `masks/<view>.png`, `gt.json` (conventions, per-object "
-        "materials and UV decisions, per-view statistics, timings).",
+        "- `targets/<map>/<view>.exr` (albedo, normal, roughness, metallic: the exact ground truth; irradiance: "
+        "scaled into [0, 1]), `ground_truth/irradiance/<view>.exr`, `masks/<view>.png` (each view's `mask` in "
+        "scene.json), `import.json` (conventions, per-object materials and UV decisions, per-view statistics, "
+        "timings).",
+        "- The targets of albedo, normal, roughness and metallic are the ground truth itself: a run with the "
+        "`views` prior on them is an upper bound, not a method result; for a real test, replace them with "
+        "estimates (`python -m jaxdistill.estimate`) or use `--prior=rgbx`.",
         "",
         "## Conventions",
         "",

@@ -122,8 +122,8 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
     wall_start = time.perf_counter()
     out = Path(config.out_dir)
     latest = _check_before_compute(config, out, choose_prior(config))
-    problem = build_problem(config, check_scene=lambda scene: check_views_per_step(config, len(scene.views),
-                                                                                  config.scene))
+    problem = build_problem(config, check_scene=lambda scene: (
+        check_views_per_step(config, len(scene.views), config.scene), evaluation.read_ground_truth(scene)))
     recorded = _recorded_config(config, problem.choice.kind)
     banner = f"PRIOR: {problem.choice.kind.upper()} -- {problem.choice.reason}"
     logging.warning("%s\n%s\n%s", "=" * len(banner), banner, "=" * len(banner))
@@ -171,7 +171,7 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
                 _drain(pending, history, bar, state, store, recorded, out)
             traces.check(1)
             bar.update()
-            if config.eval_every and done % config.eval_every == 0 and eval_context.gt is not None:
+            if config.eval_every and done % config.eval_every == 0 and eval_context.gt_maps is not None:
                 history["eval_step"].append(done)
                 history["albedo_psnr"].append(quick_psnr(state, problem, eval_context))
             if config.ckpt_every and done % config.ckpt_every == 0 and done < config.steps:
@@ -250,8 +250,7 @@ def evaluation_context(config: DistillConfig, problem: Problem) -> EvalContext:
                           chain=problem.frozen["chain"], height=problem.height, width=problem.width)
     else:
         plan = build_gather_plans(frags, problem.space, config.sampler)
-    gt = evaluation.read_ground_truth(scene)
-    gt_maps = evaluation.gt_view_maps(gt, scene, frags) if gt else evaluation.image_ground_truth(scene, frags)
+    gt, gt_maps = evaluation.view_ground_truth(scene, frags)
     return EvalContext(gt, frags, cameras, gt_maps, evaluation.evaluation_masks(gt, scene, frags), plan)
 
 
@@ -291,6 +290,10 @@ def write_outputs(config: DistillConfig, problem: Problem, texels: np.ndarray, h
     baseline = evaluation.read_baseline(scene, channels.maps, [f.shape for f in ctx.fragments])
     result = {"maps_written": [str(p.relative_to(out)) for p in written]}
     if ctx.gt_maps is not None:
+        covered = sorted({m for per_view in ctx.gt_maps for m in per_view} & set(channels.maps))
+        if not covered:
+            result["note"] = (f"the scene's ground truth covers none of the distilled maps ({', '.join(channels.maps)})"
+                              ": no metrics against GT")
         with ThreadPoolExecutor(2) as pool:          # the metrics are NumPy: two threads, two cores
             ours = pool.submit(evaluation.evaluate, pred, ctx.gt_maps, ctx.masks)
             base = pool.submit(evaluation.evaluate, baseline, ctx.gt_maps, ctx.masks) if baseline else None
@@ -298,6 +301,10 @@ def write_outputs(config: DistillConfig, problem: Problem, texels: np.ndarray, h
             if base is not None:
                 result["baseline_per_view_estimates"] = base.result()
                 result["improvement"] = _improvement(result["ours"], result["baseline_per_view_estimates"])
+                same = evaluation.targets_are_ground_truth(scene, channels.maps)
+                if same:
+                    result["baseline_note"] = (f"the per-view targets of {', '.join(same)} are the ground truth "
+                                               "files: their baseline is GT scored against itself")
     else:
         result["ours"] = None
         result["note"] = ("the scene has no ground truth (neither gt.json in jaxdistill-gt format nor views' "

@@ -6,11 +6,16 @@
 Writes into DIR: scene.json + mesh.glb (the reconstruction mesh: the scene's triangles, one
 object per Mitsuba shape, UVs kept or re-unwrapped with xatlas so they lie in [0, 1] without
 overlap), photos/<view>.exr|png (Mitsuba path traced), targets/{albedo,normal,roughness,
-metallic}/<view>.exr (ground truth evaluated at the original UVs), masks/<view>.png (valid =
-hit, not emitter, not glass), gt.json (conventions, materials, UV decisions, statistics,
-timings) and README.md. How each step works: `jaxdistill/mitsuba_import.py`.
+metallic}/<view>.exr (ground truth evaluated at the original UVs), irradiance (E / pi rendered
+by Mitsuba: ground_truth/irradiance/<view>.exr, and scaled into [0, 1] as
+targets/irradiance/<view>.exr), masks/<view>.png (valid = hit, not emitter, not glass), each
+referenced by its view in scene.json (targets, ground_truth, mask: a complete scene for the
+main job and its evaluation), import.json (conventions, materials, UV decisions, statistics,
+timings) and README.md. How each step works: `jaxdistill/mitsuba_import.py`. Then:
 
-Needs the `scenes` extra (Mitsuba 3). Bad input (missing XML or texture files, not a
+    python -m jaxdistill.main --flagfile=configs/bedroom.cfg --scene=DIR --out_dir=RUN --views_per_step=8
+
+Needs the `scenes` extra (Mitsuba 3; the irradiance needs its llvm_ad_rgb variant, i.e. libLLVM). Bad input (missing XML or texture files, not a
 scene, unsupported plugins, bad flags) is reported as a list of problems, exit status 2.
 
 The real scene this was written for, `../shared/scenes/staircase2`, is "Modern Hall" by

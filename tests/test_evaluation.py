@@ -1,0 +1,111 @@
+"""Evaluation's ground truth: gt.json textures, per-view images, both, neither, and a bad gt.json."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from jaxdistill import config as config_lib, evaluation, imageio, train
+from jaxdistill.config import DistillConfig
+from jaxdistill.errors import InputError
+from jaxdistill.render import fragments as fr
+from jaxdistill.scene import read_scene, write_scene
+from tiny_scene import write_tiny_scene
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory) -> Path:
+    return write_tiny_scene(tmp_path_factory.mktemp("tiny_eval"), views=2).parent
+
+
+def with_view_ground_truth(folder: Path, maps=("albedo", "irradiance")) -> dict:
+    """Adds per-view ground_truth images (constant per view and map) to the scene; returns the values."""
+    scene = read_scene(folder)
+    values, views = {}, []
+    for i, view in enumerate(scene.views):
+        h, w = view.camera.height, view.camera.width
+        paths = {}
+        for k, m in enumerate(maps):
+            values[view.name, m] = np.full((h, w, 3), 0.1 + 0.2 * i + 0.05 * k, np.float32)
+            paths[m] = folder / "gt_images" / m / f"{view.name}.exr"
+            imageio.write_image(paths[m], values[view.name, m])
+        views.append(dataclasses.replace(view, ground_truth=paths))
+    write_scene(dataclasses.replace(scene, views=tuple(views)), folder)
+    return values
+
+
+def frags_of(scene):
+    return fr.compute_fragments(scene.mesh, [v.camera for v in scene.views], cache_dir=False, progress=False)
+
+
+def test_gt_json_maps_and_per_view_ground_truth_combine(tiny, tmp_path):
+    """gt.json gives albedo (its textures win), roughness, metallic and geometry normals; the views'
+    images give irradiance, which gt.json lacks."""
+    import shutil
+    folder = tmp_path / "scene"
+    shutil.copytree(tiny, folder)
+    values = with_view_ground_truth(folder)
+    scene = read_scene(folder)
+    frags = frags_of(scene)
+    gt, maps = evaluation.view_ground_truth(scene, frags)
+    textured = evaluation.gt_view_maps(gt, scene, frags)
+    for view, per_view, tex in zip(scene.views, maps, textured):
+        assert set(per_view) == {"albedo", "roughness", "metallic", "normal", "irradiance"}
+        np.testing.assert_array_equal(per_view["albedo"], tex["albedo"])            # gt.json's, not the image's
+        assert not np.allclose(per_view["albedo"], values[view.name, "albedo"])
+        np.testing.assert_allclose(per_view["irradiance"], values[view.name, "irradiance"], rtol=1e-6)
+    (folder / "gt.json").unlink()
+    _, maps = evaluation.view_ground_truth(read_scene(folder), frags)
+    assert set(maps[0]) == {"albedo", "irradiance"}
+    np.testing.assert_allclose(maps[1]["albedo"], values[scene.views[1].name, "albedo"], rtol=1e-6)
+
+
+def test_gt_json_with_only_geometry_normals_gives_normals(tiny, tmp_path):
+    import shutil
+    folder = tmp_path / "scene"
+    shutil.copytree(tiny, folder)
+    (folder / "gt.json").write_text(json.dumps({"format": "jaxdistill-gt", "version": 1, "normal": "geometry"}))
+    scene = read_scene(folder)
+    frags = frags_of(scene)
+    _, maps = evaluation.view_ground_truth(scene, frags)
+    hit = frags[0].hit
+    assert set(maps[0]) == {"normal"}
+    np.testing.assert_allclose(np.linalg.norm(maps[0]["normal"][hit], axis=-1), 1.0, rtol=1e-5)
+
+
+def test_gt_json_without_any_map_is_refused_before_compute(tiny, tmp_path, monkeypatch):
+    """What an earlier prepare_scene.py wrote: our format, no textures. The run stops before any
+    setup, naming the file and the field, instead of crashing in evaluation after the run."""
+    import shutil
+    folder = tmp_path / "scene"
+    shutil.copytree(tiny, folder)
+    (folder / "gt.json").write_text(json.dumps({"format": "jaxdistill-gt", "version": 1, "source": {}}))
+
+    def poisoned(*args, **kwargs):
+        raise AssertionError("rays were cast: the bad gt.json was not caught before compute")
+
+    monkeypatch.setattr(fr, "compute_fragments", poisoned)
+    config = config_lib.validate(DistillConfig(scene=str(folder), out_dir=str(tmp_path / "run"), steps=2,
+                                               views_per_step=2, prior="views"))
+    with pytest.raises(InputError) as err:
+        train.run(config, progress=False)
+    message = str(err.value)
+    print(message)
+    assert f"{folder / 'gt.json'}: textures: no ground-truth texture for any map" in message
+    assert "delete gt.json" in message
+    (folder / "gt.json").write_text(json.dumps({"format": "jaxdistill-gt", "textures": {"normal": {}}}))
+    with pytest.raises(InputError, match=r"textures\.normal: GT textures can be"):
+        evaluation.read_gt_document(folder)
+
+
+def test_scene_without_ground_truth_has_none(tiny, tmp_path):
+    import shutil
+    folder = tmp_path / "scene"
+    shutil.copytree(tiny, folder)
+    (folder / "gt.json").unlink()
+    scene = read_scene(folder)
+    assert evaluation.view_ground_truth(scene, frags_of(scene)) == (None, None)
