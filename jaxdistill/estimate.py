@@ -17,7 +17,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import time
-import zlib
 from pathlib import Path
 
 import jax
@@ -116,8 +115,7 @@ def run(cfg: EstimateConfig) -> dict:
             image_latent = prior.encode_photo(rgbx, imageio.read_photo_srgb(path, exposure), str(path))   # c_v, shared by the maps
             for map_name in cfg.maps:
                 t0 = time.perf_counter()
-                view_key = jax.random.fold_in(jax.random.fold_in(key, zlib.crc32(name.encode())),
-                                              list(MAP_PROMPTS).index(map_name))
+                view_key = prior.view_map_key(key, name, map_name)
                 # linear values, sRGB-encoded into the PNG: exactly how scene targets are read back
                 result = prior.estimate_from_latent(rgbx, image_latent, map_name, view_key, num_steps=cfg.steps,
                                                     gamma=False)

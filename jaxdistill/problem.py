@@ -50,22 +50,30 @@ class PriorChoice:
 
 
 def choose_prior(config: DistillConfig) -> PriorChoice:
-    """rgbx or views, from --prior, --rgbx_dir and $JAXDISTILL_RGBX_DIR (never a silent fallback:
-    a folder that was named but does not exist is an error, not a reason to use views)."""
+    """rgbx or views, from --prior, --rgbx_dir and $JAXDISTILL_RGBX_DIR. The rgbx prior's weights:
+    the user's (--rgbx_dir, else the variable), else the model shipped in the package
+    (`models/shipped.py`). Never a silent fallback: a folder that was named but does not exist
+    is an error, not a reason to use another model."""
+    from jaxdistill.models.shipped import shipped_folder
+
     folder = rgbx_dir(config)
     source = "--rgbx_dir" if config.rgbx_dir else f"${RGBX_DIR_ENV}"
     if config.prior == "views":
         return PriorChoice("views", "--prior=views: the scene's per-view target images")
     if folder and not Path(folder).expanduser().is_dir():
         raise InputError.single("flags", source, f"{folder} does not exist; {rgbx_hint()}")
-    if config.prior == "rgbx":
-        if not folder:
-            raise InputError.single("flags", "--prior=rgbx", f"needs the RGB<->X weights; {rgbx_hint()}")
-        return PriorChoice("rgbx", f"--prior=rgbx with weights from {source}={folder}", folder)
     if folder:
-        return PriorChoice("rgbx", f"--prior=auto found RGB<->X weights at {folder} ({source})", folder)
-    return PriorChoice("views", f"--prior=auto found no RGB<->X weights (--rgbx_dir unset, ${RGBX_DIR_ENV} unset): "
-                                "distilling the scene's per-view target images instead")
+        return PriorChoice("rgbx", f"--prior={config.prior} with weights from {source}={folder}", folder)
+    shipped = shipped_folder()
+    if shipped is not None:
+        return PriorChoice("rgbx", f"--prior={config.prior}: no weights given (--rgbx_dir, ${RGBX_DIR_ENV} unset), "
+                           "so the model shipped in the package: a small RGB<->X-family stand-in trained on synthetic "
+                           f"rooms ({shipped / 'README.md'}); for the real RGB<->X, {rgbx_hint()}", str(shipped))
+    if config.prior == "rgbx":
+        raise InputError.single("flags", "--prior=rgbx", "needs weights and this installation has no shipped model "
+                                f"(jaxdistill/models/rgbx_rooms); {rgbx_hint()}")
+    return PriorChoice("views", f"--prior=auto found no RGB<->X weights (--rgbx_dir unset, ${RGBX_DIR_ENV} unset, "
+                                "no shipped model): distilling the scene's per-view target images instead")
 
 
 # ----------------------------------------------------------------------------- view resampling
@@ -128,6 +136,7 @@ class Problem:
     counts: np.ndarray
     normal_rotation: np.ndarray
     timings: dict
+    rgbx_model: Any = None            # the loaded RgbxPrior (rgbx prior only): per-view estimates use it
 
     @property
     def num_views(self) -> int:
@@ -191,7 +200,7 @@ def _rgbx_prior(config: DistillConfig, choice: PriorChoice, scene, channels, hei
                                     progress=lambda it: tqdm(it, total=len(scene.views), desc="photo latents",
                                                              unit="view", dynamic_ncols=True))
     frozen["alphas_cumprod"] = np.asarray(rgbx.sched.alphas_cumprod(model.scheduler))
-    return prior, frozen
+    return prior, frozen, model
 
 
 STATE_COPIES = 3        # texels and AdamW's two moments, float32
@@ -288,9 +297,9 @@ def _build_problem(config: DistillConfig, *, cache_dir=None, check_scene=None) -
     t0 = time.perf_counter()
     if choice.kind == "views":
         prior, prior_frozen = _views_prior(scene, channels, height, width)
-        alphas = None
+        alphas, model = None, None
     else:
-        prior, prior_frozen = _rgbx_prior(config, choice, scene, channels, height, width)
+        prior, prior_frozen, model = _rgbx_prior(config, choice, scene, channels, height, width)
         alphas = prior_frozen.pop("alphas_cumprod")
     timings["prior_setup_s"] = time.perf_counter() - t0
     frozen = {"chain": plan.chain, "prior": prior_frozen, "alphas_cumprod": alphas}
@@ -298,7 +307,8 @@ def _build_problem(config: DistillConfig, *, cache_dir=None, check_scene=None) -
     return Problem(scene=scene, channels=channels, choice=choice, prior=prior, frozen=frozen, space=space,
                    fragments=frags, native_fragments=native_frags, height=height, width=width, plan_index=np.asarray(plan.index),
                    plan_weight=np.asarray(plan.weight), plan_hit=np.asarray(plan.hit), pixel_weight=weights,
-                   counts=counts, normal_rotation=rotations, timings=timings)
+                   counts=counts, normal_rotation=rotations, timings=timings,
+                   rgbx_model=model)
 
 
 def initial_file_values(maps: Sequence[str]) -> dict[str, float]:

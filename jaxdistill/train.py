@@ -19,12 +19,13 @@ import numpy as np
 from absl import logging
 from tqdm.auto import tqdm
 
-from jaxdistill import MAP_NAMES, checkpoint, evaluation, export, imageio
+from jaxdistill import MAP_NAMES, checkpoint, evaluation, export, imageio, model_estimates
 from jaxdistill.config import DistillConfig, check_views_per_step, resumable_flags
 from jaxdistill.distill import (StepSettings, data_mesh, init_state, jit_step, make_optimizer,
                                 make_step)
 from jaxdistill.errors import InputError
 from jaxdistill.maps import model_to_file
+from jaxdistill.models.shipped import model_info
 from jaxdistill.problem import Problem, build_problem, choose_prior, initial_file_values
 from jaxdistill.render.gather_plan import GatherPlan, build_gather_plans
 from jaxdistill.render.sampler import expand
@@ -197,7 +198,8 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
         "steps": config.steps, "steps_this_run": steps_run, "resumed_from": start_step if config.resume else None,
         "wall_seconds": time.perf_counter() - wall_start, "loop_seconds": loop_seconds,
         "seconds_per_step": loop_seconds / max(steps_run, 1), "setup_timings": problem.timings,
-        "prior": {"kind": problem.choice.kind, "reason": problem.choice.reason, "folder": problem.choice.folder},
+        "prior": {"kind": problem.choice.kind, "reason": problem.choice.reason, "folder": problem.choice.folder,
+                  "model": model_info(problem.choice.folder) if problem.choice.folder else None},
         "device": {"backend": jax.default_backend(), "devices": [str(d) for d in devices],
                    "kind": devices[0].device_kind},
         "peak_host_memory_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
@@ -287,7 +289,16 @@ def write_outputs(config: DistillConfig, problem: Problem, texels: np.ndarray, h
     names = [v.name for v in scene.views]
     if config.renders:
         evaluation.write_renders(out / "renders", names, pred)
-    baseline = evaluation.read_baseline(scene, channels.maps, [f.shape for f in ctx.fragments])
+    shapes = [f.shape for f in ctx.fragments]
+    if problem.rgbx_model is not None:     # the rgbx prior is scored against its own per-view estimates
+        folder = model_estimates.cached_estimates(
+            problem.rgbx_model, [(v.name, v.photo, v.exposure) for v in scene.views], channels.maps, problem.height,
+            problem.width, dtype=config.prior_dtype, seed=config.seed)
+        baseline = model_estimates.read_estimates(folder, [v.name for v in scene.views], channels.maps, shapes)
+        baseline_source = f"the model's own per-view estimates ({model_estimates.ESTIMATE_STEPS} DDIM steps, {folder})"
+    else:
+        baseline = evaluation.read_baseline(scene, channels.maps, shapes)
+        baseline_source = "the scene's per-view target images"
     result = {"maps_written": [str(p.relative_to(out)) for p in written]}
     if ctx.gt_maps is not None:
         covered = sorted({m for per_view in ctx.gt_maps for m in per_view} & set(channels.maps))
@@ -300,8 +311,9 @@ def write_outputs(config: DistillConfig, problem: Problem, texels: np.ndarray, h
             result["ours"] = ours.result()
             if base is not None:
                 result["baseline_per_view_estimates"] = base.result()
+                result["baseline_source"] = baseline_source
                 result["improvement"] = _improvement(result["ours"], result["baseline_per_view_estimates"])
-                same = evaluation.targets_are_ground_truth(scene, channels.maps)
+                same = [] if problem.rgbx_model is not None else evaluation.targets_are_ground_truth(scene, channels.maps)
                 if same:
                     result["baseline_note"] = (f"the per-view targets of {', '.join(same)} are the ground truth "
                                                "files: their baseline is GT scored against itself")

@@ -56,7 +56,7 @@ REPO = Path(__file__).resolve().parents[1]
 MAPS = ("albedo", "normal", "roughness", "metallic", "irradiance")
 
 # diffusers / transformers configs (what export writes); our Flax configs are read from them
-VAE = dict(in_channels=3, out_channels=3, block_out_channels=(32, 64, 64, 64), layers_per_block=1,
+VAE = dict(in_channels=3, out_channels=3, block_out_channels=(16, 32, 64, 64), layers_per_block=1,
            down_block_types=("DownEncoderBlock2D",) * 4, up_block_types=("UpDecoderBlock2D",) * 4,
            latent_channels=4, norm_num_groups=16, sample_size=128, scaling_factor=1.0)
 UNET = dict(sample_size=16, in_channels=8, out_channels=4, block_out_channels=(32, 64, 64, 64), layers_per_block=1,
@@ -307,7 +307,7 @@ def export(folder: Path, tokenizer_dir: Path, unet_params, vae_params, text_para
     from transformers import CLIPTextConfig as TorchTextConfig
     from transformers import CLIPTextModel
 
-    from jaxdistill.models.convert import _IGNORED_KEYS, _normalise_key
+    from jaxdistill.models.convert import _IGNORED_KEYS, MODEL_INDEX, _normalise_key
 
     folder.mkdir(parents=True, exist_ok=True)
     tok = load_tokenizer(tokenizer_dir)
@@ -326,11 +326,7 @@ def export(folder: Path, tokenizer_dir: Path, unet_params, vae_params, text_para
     shutil.copytree(tokenizer_dir, folder / "tokenizer", dirs_exist_ok=True)
     (folder / "scheduler").mkdir(exist_ok=True)
     (folder / "scheduler" / "scheduler_config.json").write_text(json.dumps(SCHEDULER, indent=2))
-    (folder / "model_index.json").write_text(json.dumps({
-        "_class_name": "StableDiffusionAOVMatEstPipeline", "_diffusers_version": "0.20.0",
-        "scheduler": ["diffusers", "DDIMScheduler"], "text_encoder": ["transformers", "CLIPTextModel"],
-        "tokenizer": ["transformers", "CLIPTokenizer"], "unet": ["diffusers", "UNet2DConditionModel"],
-        "vae": ["diffusers", "AutoencoderKL"]}, indent=2))
+    (folder / "model_index.json").write_text(json.dumps(MODEL_INDEX, indent=2))
 
 
 def check_export(folder: Path, unet_params, vae_params, text_params) -> None:

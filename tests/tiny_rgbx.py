@@ -14,6 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxdistill.models.convert import MODEL_INDEX
+
 # The real RGB↔X sizes (shared/DESIGN.md §3), for scripts that time real-size networks.
 RGBX_UNET = dict(
     sample_size=96, in_channels=8, out_channels=4, block_out_channels=(320, 640, 1280, 1280), layers_per_block=2,
@@ -94,11 +96,7 @@ def write_tiny_rgbx(folder: str | Path, seed: int = 0, pad_token: str = "!", une
     t.save_pretrained(folder / "text_encoder", safe_serialization=True)
     (folder / "scheduler").mkdir(exist_ok=True)
     (folder / "scheduler" / "scheduler_config.json").write_text(json.dumps(RGBX_SCHEDULER, indent=2))
-    (folder / "model_index.json").write_text(json.dumps({
-        "_class_name": "StableDiffusionAOVMatEstPipeline", "_diffusers_version": "0.20.0",
-        "scheduler": ["diffusers", "DDIMScheduler"], "text_encoder": ["transformers", "CLIPTextModel"],
-        "tokenizer": ["transformers", "CLIPTokenizer"], "unet": ["diffusers", "UNet2DConditionModel"],
-        "vae": ["diffusers", "AutoencoderKL"]}, indent=2))
+    (folder / "model_index.json").write_text(json.dumps(MODEL_INDEX, indent=2))
     return folder
 
 

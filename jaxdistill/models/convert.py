@@ -38,6 +38,11 @@ log = logging.getLogger(__name__)
 CONVERTER_VERSION = 1
 RGBX_IN_CHANNELS = 8
 PARTS = ("unet", "vae", "text_encoder", "tokenizer", "scheduler")
+MODEL_INDEX = {   # zheng95z/rgb-to-x's model_index.json: what writers of such folders put there
+    "_class_name": "StableDiffusionAOVMatEstPipeline", "_diffusers_version": "0.20.0",
+    "scheduler": ["diffusers", "DDIMScheduler"], "text_encoder": ["transformers", "CLIPTextModel"],
+    "tokenizer": ["transformers", "CLIPTokenizer"], "unet": ["diffusers", "UNet2DConditionModel"],
+    "vae": ["diffusers", "AutoencoderKL"]}
 _WEIGHT_STEMS = {"unet": "diffusion_pytorch_model", "vae": "diffusion_pytorch_model", "text_encoder": "model"}
 # the PyTorch class of each part, for the .bin → safetensors conversion hint
 _TORCH_CLASSES = {"unet": ("diffusers", "UNet2DConditionModel"), "vae": ("diffusers", "AutoencoderKL"),

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import zlib
 from typing import Any, NamedTuple
 
 import jax
@@ -213,7 +214,22 @@ def estimate_from_latent(prior: RgbxPrior, image_latent, map_name: str, key: jax
     if map_name not in MAP_PROMPTS:
         raise InputError.single("estimate", "map_name", f"{map_name!r}; choose one of {sorted(MAP_PROMPTS)}")
     x_T = jax.random.normal(key, image_latent.shape, jnp.float32)  # DDIM's init_noise_sigma is 1
-    latent = _sample(prior.networks, prior.scheduler, num_steps, guidance, prior.params, image_latent,
-                     prior.text[map_name], x_T)
-    image = decode_latents(prior.networks.vae, prior.params["vae"], latent)[0]
+    return estimate_batch(prior, image_latent, map_name, x_T, num_steps, guidance, gamma)[0]
+
+
+def view_map_key(key: jax.Array, view_name: str, map_name: str) -> jax.Array:
+    """The noise key of one view's estimate of one map: `key` folded with the view name's CRC-32
+    and the map's index, so every view and map has its own noise whatever is estimated with it."""
+    return jax.random.fold_in(jax.random.fold_in(key, zlib.crc32(view_name.encode())), list(MAP_PROMPTS).index(map_name))
+
+
+def estimate_batch(prior: RgbxPrior, image_latents, map_name: str, x_T, num_steps: int = 50,
+                   guidance: Guidance = Guidance(), gamma: bool = True) -> np.ndarray:
+    """`estimate_from_latent` for a batch: image latents and initial noise x_T (B, h, w, 4) →
+    (B, H, W, 3) float32 maps (one DDIM sampling of the whole batch)."""
+    if map_name not in MAP_PROMPTS:
+        raise InputError.single("estimate", "map_name", f"{map_name!r}; choose one of {sorted(MAP_PROMPTS)}")
+    latent = _sample(prior.networks, prior.scheduler, num_steps, guidance, prior.params, image_latents,
+                     prior.text[map_name], jnp.asarray(x_T, jnp.float32))
+    image = decode_latents(prior.networks.vae, prior.params["vae"], latent)
     return np.asarray(model_space_to_map(image, map_name, gamma))

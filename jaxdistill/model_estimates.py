@@ -1,0 +1,108 @@
+"""The rgbx prior's own per-view estimates: the baseline a distillation with that model is scored against.
+
+Each view's photo, at the run's render size, sampled by the model with the authors' demo
+settings (`jaxdistill.estimate`: 50 DDIM steps, noise per view and map from the seed), all views
+of one map in one batch. They are written as scene-target PNGs (the encoding `estimate` writes,
+read back by `view_images.read_target`, so the cache can also be listed as a scene's targets for
+the `views` prior) into a cache folder keyed by the model's weights, the photos, the size and
+the settings: computed once, reused by every run that would compute the same thing.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from pathlib import Path
+from typing import Sequence
+
+import jax
+import numpy as np
+from absl import logging
+from tqdm.auto import tqdm
+
+from jaxdistill import imageio
+from jaxdistill.models import prior as rgbx
+from jaxdistill.render.fragments import default_cache_dir
+from jaxdistill.view_images import read_target, resize
+
+ESTIMATE_STEPS = 50          # the authors' demo
+BATCH = 16                   # views per sampling call
+
+
+def cache_key(model_folder: Path, photos: Sequence[tuple[str, Path, float]], height: int, width: int, steps: int,
+              seed: int, dtype: str) -> str:
+    """A digest of what determines the estimates: the weights files (name, size, mtime), each
+    photo (name, path, size, mtime, exposure), the size and the sampling settings."""
+    h = hashlib.sha256(json.dumps({"v": 1, "size": [height, width], "steps": steps, "seed": seed,
+                                   "dtype": dtype}).encode())
+    for p in sorted(Path(model_folder).rglob("*")):
+        if p.is_file() and p.suffix in (".safetensors", ".json", ".txt"):
+            st = p.stat()
+            h.update(f"{p.relative_to(model_folder)}:{st.st_size}:{st.st_mtime_ns}".encode())
+    for name, path, exposure in photos:
+        st = Path(path).stat()
+        h.update(f"{name}:{Path(path).resolve()}:{st.st_size}:{st.st_mtime_ns}:{exposure}".encode())
+    return h.hexdigest()[:20]
+
+
+def estimate_views(model: rgbx.RgbxPrior, photos: Sequence[tuple[str, Path, float]], maps: Sequence[str],
+                   height: int, width: int, folder: Path, *, steps: int = ESTIMATE_STEPS, seed: int = 0,
+                   progress: bool = True) -> dict:
+    """Writes folder/<map>/<view>.png for every photo (name, path, exposure in stops) resized to
+    height x width; returns the summary also written to folder/estimate.json."""
+    key = jax.random.key(seed)
+    factor = model.networks.vae.config.downsampling_factor
+    latent_shape = (1, height // factor, width // factor, 4)
+    start = time.perf_counter()
+    latents = []
+    for name, path, exposure in photos:
+        photo = resize(imageio.read_photo_srgb(path, exposure), height, width)
+        latents.append(rgbx.encode_photo(model, photo, str(path)))
+    latents = np.concatenate([np.asarray(x) for x in latents])
+    with tqdm(total=len(photos) * len(maps), desc="model's per-view estimates", unit="map", disable=not progress,
+              dynamic_ncols=True) as bar:
+        for m in maps:
+            for i in range(0, len(photos), BATCH):
+                names = [n for n, _, _ in photos[i:i + BATCH]]
+                noise = np.concatenate([np.asarray(jax.random.normal(rgbx.view_map_key(key, n, m), latent_shape))
+                                        for n in names])
+                images = rgbx.estimate_batch(model, latents[i:i + BATCH], m, noise, steps, gamma=False)
+                for n, image in zip(names, images):
+                    imageio.write_image(folder / m / f"{n}.png", image, encode_srgb=m in rgbx.GAMMA_MAPS)
+                bar.update(len(names))
+    summary = {"model": str(model.loaded.folder), "views": [n for n, _, _ in photos], "maps": list(maps),
+               "size": [height, width], "steps": steps, "seed": seed,
+               "seconds": time.perf_counter() - start}
+    (folder / "estimate.json").write_text(json.dumps(summary, indent=1))
+    return summary
+
+
+def cached_estimates(model: rgbx.RgbxPrior, photos: Sequence[tuple[str, Path, float]], maps: Sequence[str],
+                     height: int, width: int, *, dtype: str = "float32", steps: int = ESTIMATE_STEPS, seed: int = 0,
+                     cache_dir: Path | None = None, progress: bool = True) -> Path:
+    """The folder of the model's estimates (see `estimate_views`), computed only when the cache
+    (`cache_dir`, default `default_cache_dir()/estimates`) lacks them."""
+    key = cache_key(model.loaded.folder, photos, height, width, steps, seed, dtype)
+    folder = Path(cache_dir or default_cache_dir() / "estimates") / key
+    done = folder / "estimate.json"
+    if done.is_file() and set(maps) <= set(json.loads(done.read_text())["maps"]):
+        logging.info("the model's per-view estimates: cached in %s", folder)
+        return folder
+    tmp = folder.with_name(folder.name + ".tmp")
+    summary = estimate_views(model, photos, maps, height, width, tmp, steps=steps, seed=seed, progress=progress)
+    if folder.exists():
+        import shutil
+
+        shutil.rmtree(folder)
+    tmp.replace(folder)
+    logging.info("the model's per-view estimates: %d views x %d maps in %.0f s, cached in %s", len(photos), len(maps),
+                 summary["seconds"], folder)
+    return folder
+
+
+def read_estimates(folder: Path, names: Sequence[str], maps: Sequence[str],
+                   shapes: Sequence[tuple[int, int]]) -> list[dict]:
+    """Per view, the cached estimates in file space (as `evaluation.read_baseline` gives targets),
+    resized to `shapes`."""
+    return [{m: resize(read_target(m, folder / m / f"{n}.png"), h, w) for m in maps} for n, (h, w) in zip(names, shapes)]
