@@ -229,7 +229,7 @@ def run_main(*args, env=None):
 
 def test_cli_explains_how_to_get_the_rgbx_weights(tiny_scene, tmp_path):
     env = {"JAXDISTILL_RGBX_DIR": ""}
-    result = run_main(f"--scene={tiny_scene}", f"--out_dir={tmp_path}/o", "--prior=rgbx", env=env)
+    result = run_main(f"--scene={tiny_scene}", f"--out_dir={tmp_path}/o", f"--rgbx_dir={tmp_path}/nowhere", env=env)
     assert result.returncode != 0
     assert "huggingface-cli download zheng95z/rgb-to-x" in result.stderr and "Adobe Research License" in result.stderr
     partial = tmp_path / "rgbx"
@@ -251,6 +251,9 @@ def test_views_prior_names_a_missing_target(tmp_path):
 
 
 def test_auto_prior_uses_rgbx_weights_end_to_end(tiny_scene, rgbx_dir, tmp_path, monkeypatch):
+    from jaxdistill.models import shipped
+
+    monkeypatch.setattr(shipped, "SHIPPED_DIR", tmp_path / "no_shipped_model")   # auto: views when no weights at all
     monkeypatch.setenv("JAXDISTILL_RGBX_DIR", str(rgbx_dir))
     views_run = tmp_path / "views_run"
     monkeypatch.delenv("JAXDISTILL_RGBX_DIR")
@@ -265,6 +268,11 @@ def test_auto_prior_uses_rgbx_weights_end_to_end(tiny_scene, rgbx_dir, tmp_path,
                           eval_every=0), progress=False)
     doc = json.loads((out / "metrics.json").read_text())
     assert doc["prior"]["kind"] == "rgbx" and "JAXDISTILL_RGBX_DIR" in doc["prior"]["reason"]
+    assert doc["prior"]["model"] == {"name": "rgb-to-x", "source": "user", "folder": str(rgbx_dir)}
+    # scored against the model's own per-view estimates, not the scene's targets
+    assert doc["baseline_source"].startswith("the model's own per-view estimates (50 DDIM steps")
+    assert doc["baseline_per_view_estimates"]["albedo_psnr"] != json.loads(
+        (views_run / "metrics.json").read_text())["baseline_per_view_estimates"]["albedo_psnr"]
     assert doc["traces"] == 1 and all(np.isfinite(doc["history"]["loss"]))
     assert (out / "maps" / "albedo" / "room_wall_x0.exr").is_file()
 

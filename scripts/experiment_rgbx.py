@@ -1,0 +1,209 @@
+"""The distillation experiment with a learned prior (the thesis's Table 5.1), on CPU.
+
+    python scripts/experiment_rgbx.py --scenes=bedroom,data/heldout_scenes/room_0 --out=out/experiment
+    python scripts/experiment_rgbx.py ... --runs=sds_thesis --set=sds_thesis:steps=200    # one row, changed
+
+For every scene, with one RGB<->X-family model (default: the model shipped in the package), the
+rows of one table, every one scored against the scene's ground truth at the photos' size by
+the main job's own evaluation (`jaxdistill.evaluation`):
+
+- `trivial`: the photo as albedo (linear, clipped), the training data's mean roughness and
+  metallic, normals facing the camera, the photo's luminance as irradiance;
+- `estimates`: the model's per-view estimates (`model_estimates`: the demo's 50 DDIM steps at
+  the render size), each view on its own;
+- `fusion`: those estimates fused by the `views` prior (the scene with the estimates as its
+  per-view targets);
+- `sds_*`: score distillation with the model through the rgbx prior, at the settings of
+  `RUNS` (thesis: its settings except the number of steps; default: configs/bedroom.cfg's);
+  ablations are more entries of `RUNS` or `--set`.
+
+Every run writes OUT/<scene>/<run>/metrics.json (a run that has one is skipped, so the script
+resumes); OUT/table.json and OUT/table.md gather them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from jaxdistill import evaluation, imageio, model_estimates, train
+from jaxdistill.config import DistillConfig, validate
+from jaxdistill.datasets import ImportOptions, open_scene
+from jaxdistill.models import convert
+from jaxdistill.models import prior as rgbx
+from jaxdistill.models.shipped import model_info, shipped_folder
+from jaxdistill.render import fragments as fr
+from jaxdistill.scene import write_scene
+from jaxdistill.view_images import read_target, resize
+
+MAPS = ("albedo", "normal", "roughness", "metallic", "irradiance")
+RENDER_SIZE = 128
+TRIVIAL_ROUGHNESS, TRIVIAL_METALLIC = 0.6, 0.05      # close to the training rooms' means (make_rgbx_data.py)
+
+# main-job settings shared by the rows (configs/bedroom.cfg's, at the model's resolution)
+COMMON = dict(maps=MAPS, render_size=RENDER_SIZE, texture_size="auto", max_texture_size=512, sampler="trilinear",
+              log_every=10, eval_every=0, renders=False, contact_views=4, ckpt_every=0)
+RUNS = {
+    "fusion": dict(prior="views", steps=100, views_per_step=32, lr=0.05, lr_schedule="cosine"),
+    # the thesis's settings (configs/thesis.cfg) but for the number of steps: batch 1, lr 0.01
+    # constant, weight decay 0.01, t in [0.2, 0.98], w_t = w_i = 1, image-space loss, visibility
+    "sds_thesis": dict(prior="rgbx", steps=800, views_per_step=1, lr=0.01, lr_schedule="constant", weight_decay=0.01,
+                       t_min=0.2, t_max=0.98, anneal="none", w_t=1.0, w_i=1.0, loss_space="image",
+                       visibility_weighting=True, sampler="bilinear"),
+    "sds": dict(prior="rgbx", steps=100, views_per_step=16, lr=0.05, lr_schedule="cosine", t_min=0.2, t_max=0.98),
+}
+
+
+def score(scene, per_view: list[dict]) -> dict:
+    """Mean metrics over views of per-view file-space maps (native size) against the scene's GT."""
+    frags = fr.compute_fragments(scene.mesh, [v.camera for v in scene.views], progress=False)
+    gt, gt_maps = evaluation.view_ground_truth(scene, frags)
+    if gt_maps is None:
+        raise SystemExit(f"{scene.root}: no ground truth (gt.json or views' ground_truth): nothing to score")
+    return evaluation.evaluate(per_view, gt_maps, evaluation.evaluation_masks(gt, scene, frags))
+
+
+def trivial_maps(scene) -> list[dict]:
+    out = []
+    for v in scene.views:
+        h, w = v.camera.height, v.camera.width
+        photo = np.clip(imageio.read_image(v.photo)[..., :3] * 2.0 ** v.exposure, 0.0, 1.0)
+        grey = photo @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+        out.append({"albedo": photo, "roughness": np.full((h, w, 1), TRIVIAL_ROUGHNESS, np.float32),
+                    "metallic": np.full((h, w, 1), TRIVIAL_METALLIC, np.float32),
+                    "normal": np.broadcast_to(np.float32([0, 0, 1]), (h, w, 3)).copy(),
+                    "irradiance": np.repeat(grey[..., None], 3, -1)})
+    return out
+
+
+def render_hw(scene) -> tuple[int, int]:
+    h, w = scene.views[0].camera.height, scene.views[0].camera.width
+    scale = RENDER_SIZE / max(h, w)
+    short = max(8, int(round(min(h, w) * scale / 8)) * 8)
+    return (RENDER_SIZE, short) if h >= w else (short, RENDER_SIZE)
+
+
+def estimates_folder(scene, model_dir: Path) -> Path:
+    model = rgbx.load_prior(convert.load_rgbx(model_dir))
+    h, w = render_hw(scene)
+    return model_estimates.cached_estimates(model, [(v.name, v.photo, v.exposure) for v in scene.views], MAPS, h, w)
+
+
+def fusion_scene(scene, folder: Path, out: Path) -> Path:
+    """A copy of scene.json (same mesh, photos, GT) whose per-view targets are the estimates,
+    resampled to the photos' size (targets must match their view) in the scene-target encoding."""
+    views = []
+    for v in scene.views:
+        targets = {}
+        for m in MAPS:
+            values = resize(read_target(m, folder / m / f"{v.name}.png"), v.camera.height, v.camera.width)
+            if m == "normal":
+                values = (values + 1.0) / 2.0
+            targets[m] = out / "targets" / m / f"{v.name}.png"
+            imageio.write_image(targets[m], np.clip(values, 0.0, 1.0), encode_srgb=m in rgbx.GAMMA_MAPS)
+        views.append(dataclasses.replace(v, targets=targets))
+    views = tuple(views)
+    write_scene(dataclasses.replace(scene, views=views), out)
+    gt = Path(scene.root) / "gt.json"
+    if gt.is_file():       # gt.json names its textures relative to its folder: point them back at the scene
+        doc = json.loads(gt.read_text())
+        for m, per_object in doc.get("textures", {}).items():
+            doc["textures"][m] = {o: str((Path(scene.root) / p).resolve()) for o, p in per_object.items()}
+        (out / "gt.json").write_text(json.dumps(doc, indent=1))
+    return out
+
+
+def run_main(scene_path: Path, out: Path, model_dir: Path, settings: dict) -> dict:
+    config = validate(DistillConfig(scene=str(scene_path), out_dir=str(out), rgbx_dir=str(model_dir),
+                                    allow_outside_paths=True, **{**COMMON, **settings}))
+    start = time.perf_counter()
+    result = train.run(config)
+    result["experiment_wall_seconds"] = time.perf_counter() - start
+    return result
+
+
+def row(metrics: dict | None) -> dict:
+    keys = ("albedo_psnr", "albedo_ssim", "albedo_si_psnr", "albedo_si_ssim", "normal_angular_deg", "roughness_mse",
+            "metallic_mse", "irradiance_si_psnr")
+    return {k: metrics.get(k) for k in keys} if metrics else {}
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--scenes", required=True, help="comma-separated scene folders ('bedroom' = embedded)")
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--rgbx_dir", type=Path, default=None, help="model folder (default: the shipped model)")
+    parser.add_argument("--runs", default="trivial,estimates,fusion,sds_thesis,sds",
+                        help=f"rows: trivial, estimates and any of {', '.join(RUNS)}")
+    parser.add_argument("--set", action="append", default=[], help="RUN:field=value (a DistillConfig field)")
+    args = parser.parse_args(argv)
+    model_dir = args.rgbx_dir or shipped_folder()
+    if model_dir is None:
+        raise SystemExit("--rgbx_dir: no model given and none shipped in this installation")
+    runs = {k: dict(v) for k, v in RUNS.items()}
+    for item in args.set:
+        name, _, assignment = item.partition(":")
+        field, _, value = assignment.partition("=")
+        base = runs.setdefault(name, dict(runs.get(name.split("+")[0], {})))
+        kind = type(DistillConfig.__dataclass_fields__[field].default)
+        base[field] = (value.lower() in ("1", "true", "yes")) if kind is bool else kind(value)
+    table = {}
+    for spec in args.scenes.split(","):
+        scene = open_scene(spec, ImportOptions(allow_outside_paths=True))
+        name = Path(spec).name
+        folder = args.out / name
+        folder.mkdir(parents=True, exist_ok=True)
+        rows = table.setdefault(name, {})
+        for run in args.runs.split(","):
+            path = folder / run / "metrics.json"
+            if not path.is_file():
+                print(f"== {name}: {run}", flush=True)
+                start = time.perf_counter()
+                if run == "trivial":
+                    result = {"ours": score(scene, trivial_maps(scene))}
+                elif run == "estimates":
+                    est = estimates_folder(scene, model_dir)
+                    shapes = [(v.camera.height, v.camera.width) for v in scene.views]
+                    result = {"ours": score(scene, model_estimates.read_estimates(
+                        est, [v.name for v in scene.views], MAPS, shapes)), "folder": str(est)}
+                elif run in runs:
+                    scene_path = Path(scene.root)
+                    if runs[run]["prior"] == "views":
+                        scene_path = fusion_scene(scene, estimates_folder(scene, model_dir), folder / "fusion_scene")
+                    result = run_main(scene_path, folder / run, model_dir, runs[run])
+                else:
+                    raise SystemExit(f"--runs: unknown run {run!r}")
+                result["seconds"] = time.perf_counter() - start
+                result["settings"] = runs.get(run)
+                path.parent.mkdir(parents=True, exist_ok=True)
+                path.write_text(json.dumps(train._json_safe(result), indent=1))
+            result = json.loads(path.read_text())
+            rows[run] = dict(row(result.get("ours")), seconds=result.get("seconds"))
+    doc = {"model": model_info(model_dir), "table": table}
+    (args.out / "table.json").write_text(json.dumps(doc, indent=1))
+    (args.out / "table.md").write_text(markdown(table))
+    print(markdown(table))
+    return 0
+
+
+def markdown(table: dict) -> str:
+    cols = [("albedo_psnr", "albedo PSNR"), ("albedo_si_psnr", "si-PSNR"), ("albedo_ssim", "SSIM"),
+            ("albedo_si_ssim", "si-SSIM"), ("normal_angular_deg", "normal °"), ("roughness_mse", "rough. L2"),
+            ("metallic_mse", "metal. L2"), ("irradiance_si_psnr", "irr. si-PSNR"), ("seconds", "wall s")]
+    lines = ["| scene | row | " + " | ".join(c for _, c in cols) + " |", "|" + "---|" * (len(cols) + 2)]
+    for scene, rows in table.items():
+        for run, values in rows.items():
+            cells = [("—" if values.get(k) is None else f"{values[k]:.3f}" if "mse" in k or "ssim" in k
+                      else f"{values[k]:.2f}") for k, _ in cols]
+            lines.append(f"| {scene} | {run} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,89 @@
+"""Which rgbx weights a run uses (the user's, else the shipped model) and the model's own
+per-view estimates that an rgbx run is scored against (batched, cached)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from jaxdistill import estimate, imageio, model_estimates
+from jaxdistill.config import DistillConfig
+from jaxdistill.errors import InputError
+from jaxdistill.models import convert, shipped
+from jaxdistill.models import prior as rgbx
+from jaxdistill.problem import choose_prior
+from jaxdistill.scene import read_scene
+from tiny_scene import write_tiny_scene
+
+
+@pytest.fixture
+def no_env(monkeypatch):
+    monkeypatch.delenv("JAXDISTILL_RGBX_DIR", raising=False)
+
+
+def test_user_weights_come_first_then_the_shipped_model(rgbx_dir, tmp_path, monkeypatch, no_env):
+    fake = tmp_path / "shipped"
+    fake.mkdir()
+    (fake / "model_index.json").write_text("{}")
+    monkeypatch.setattr(shipped, "SHIPPED_DIR", fake)
+    for prior in ("auto", "rgbx"):
+        choice = choose_prior(DistillConfig(scene="s", out_dir="o", prior=prior, rgbx_dir=str(rgbx_dir)))
+        assert (choice.kind, choice.folder) == ("rgbx", str(rgbx_dir))
+        choice = choose_prior(DistillConfig(scene="s", out_dir="o", prior=prior))
+        assert (choice.kind, choice.folder) == ("rgbx", str(fake))
+        assert "shipped" in choice.reason and "huggingface-cli download zheng95z/rgb-to-x" in choice.reason
+    assert choose_prior(DistillConfig(scene="s", out_dir="o", prior="views", rgbx_dir=str(rgbx_dir))).kind == "views"
+    with pytest.raises(InputError, match="--rgbx_dir.*does not exist"):      # never a silent fallback
+        choose_prior(DistillConfig(scene="s", out_dir="o", rgbx_dir=str(tmp_path / "nowhere")))
+
+
+def test_without_a_shipped_model_auto_fuses_views_and_rgbx_says_how_to_get_weights(tmp_path, monkeypatch, no_env):
+    monkeypatch.setattr(shipped, "SHIPPED_DIR", tmp_path / "absent")
+    assert shipped.shipped_folder() is None
+    assert choose_prior(DistillConfig(scene="s", out_dir="o")).kind == "views"
+    with pytest.raises(InputError, match="--prior=rgbx.*no shipped model.*huggingface-cli download"):
+        choose_prior(DistillConfig(scene="s", out_dir="o", prior="rgbx"))
+
+
+def test_model_info_names_user_and_shipped_weights(rgbx_dir):
+    assert shipped.model_info(rgbx_dir) == {"name": "rgb-to-x", "source": "user", "folder": str(rgbx_dir)}
+    folder = shipped.shipped_folder()
+    if folder is not None:
+        info = shipped.model_info(folder)
+        assert info["source"] == "shipped" and info["name"] and info["version"]
+
+
+def test_batched_cached_estimates_equal_the_estimate_command(rgbx_dir, tmp_path, monkeypatch):
+    """The baseline of an rgbx run is what `python -m jaxdistill.estimate` writes for each view
+    (same noise per view and map), computed once per (weights, photos, size, settings)."""
+    scene = read_scene(write_tiny_scene(tmp_path / "scene", views=3, width=32, height=24))
+    photos = [(v.name, v.photo, v.exposure) for v in scene.views]
+    maps = ("albedo", "normal", "roughness")
+    model = rgbx.load_prior(convert.load_rgbx(rgbx_dir))
+    cache = tmp_path / "cache"
+    folder = model_estimates.cached_estimates(model, photos, maps, 24, 32, steps=4, seed=3, cache_dir=cache,
+                                              progress=False)
+    reference = tmp_path / "cli"
+    estimate.run(estimate.EstimateConfig(prior_dir=str(rgbx_dir), out_dir=str(reference), scene=str(scene.root),
+                                         maps=maps, steps=4, seed=3))
+    for name, _, _ in photos:
+        for m in maps:
+            ours = imageio.read_image(folder / m / f"{name}.png", linear=False)
+            theirs = imageio.read_image(reference / m / f"{name}.png", linear=False)
+            assert ours.shape == theirs.shape == (24, 32, 3)
+            # batch of 3 vs batch of 1: float differences may flip a few 8-bit roundings
+            assert np.max(np.abs(ours - theirs)) <= 2.5 / 255 and np.mean(np.abs(ours - theirs)) < 0.1 / 255
+    read = model_estimates.read_estimates(folder, [p[0] for p in photos], maps, [(48, 64)] * 3)
+    assert read[0]["albedo"].shape == (48, 64, 3) and read[0]["roughness"].shape == (48, 64, 1)
+    # normals come back as vectors (files hold (n + 1) / 2), as the scene's targets do
+    assert read[1]["normal"].min() >= -1.0 and read[1]["normal"].max() <= 1.0 and read[1]["normal"].min() < 0.0
+
+    def recompute(*args, **kwargs):
+        raise AssertionError("the cached estimates were computed again")
+
+    monkeypatch.setattr(model_estimates, "estimate_views", recompute)
+    again = model_estimates.cached_estimates(model, photos, maps[:2], 24, 32, steps=4, seed=3, cache_dir=cache,
+                                             progress=False)
+    assert again == folder
+    with pytest.raises(AssertionError, match="computed again"):      # another seed is another baseline
+        model_estimates.cached_estimates(model, photos, maps, 24, 32, steps=4, seed=4, cache_dir=cache, progress=False)
