@@ -14,9 +14,13 @@ counts (for `max_to_keep`) a directory without it.
 
 from __future__ import annotations
 
+import contextlib
+import gc
 import json
+import logging
 import shutil
 import signal
+import sys
 from pathlib import Path
 from typing import Any, Iterable, Iterator
 
@@ -115,6 +119,24 @@ def _jsonable(config: dict, what: str) -> dict:
         except (TypeError, ValueError) as err:
             raise TypeError(f"{what}[{name!r}] = {value!r} is not JSON-able: {err}") from None
     return out
+
+
+@contextlib.contextmanager
+def _quiet_abandoned_reads():
+    """While a damaged step is read: the failed read leaves orbax/TensorStore coroutines that
+    Python reports as "Exception ignored in: <coroutine ...>" with a traceback when they are
+    collected. The damage is reported once, by the caller; these go to the debug log."""
+    previous = sys.unraisablehook
+
+    def hook(unraisable):
+        logging.getLogger(__name__).debug("ignored while reading a damaged checkpoint: %r", unraisable.exc_value)
+
+    sys.unraisablehook = hook
+    try:
+        yield
+    finally:
+        gc.collect()          # collect the abandoned reads now, while the quiet hook is installed
+        sys.unraisablehook = previous
 
 
 class CheckpointStore:
@@ -244,7 +266,10 @@ class CheckpointStore:
         """Why the complete checkpoint `step` cannot be read back (array or config files damaged
         after the commit: a bad disk, a partial copy), or None when the config and every array
         read. Reads the whole state once, as saved (no target needed)."""
-        step = int(step)
+        with _quiet_abandoned_reads():
+            return self._damage(int(step))
+
+    def _damage(self, step: int) -> str | None:
         try:
             config = self._mngr.restore(step, args=ocp.args.Composite(config=ocp.args.JsonRestore())).config
         except Exception as err:  # noqa: BLE001 - any failure to read means the step is unusable; reported
