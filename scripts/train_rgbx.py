@@ -296,9 +296,10 @@ def torch_state(flax_params: dict, torch_shapes: dict[str, tuple]) -> dict:
 
 
 def export(folder: Path, tokenizer_dir: Path, unet_params, vae_params, text_params, *, scaling: float,
-           unet: dict = UNET, vae: dict = VAE, text: dict = TEXT) -> None:
+           unet: dict = UNET, vae: dict = VAE, text: dict = TEXT, dtype: str = "float32") -> None:
     """Writes the diffusers folder with diffusers/transformers' own save_pretrained (configs are
-    the diffusers/transformers dicts; `scaling` becomes the VAE's scaling_factor)."""
+    the diffusers/transformers dicts; `scaling` becomes the VAE's scaling_factor); weights
+    stored as `dtype` (float16 halves the folder; loaders compute in float32 either way)."""
     import shutil
 
     import torch
@@ -322,21 +323,24 @@ def export(folder: Path, tokenizer_dir: Path, unet_params, vae_params, text_para
         missing = [k for k in missing if _normalise_key(k) not in _IGNORED_KEYS]
         if missing or unexpected:
             raise RuntimeError(f"{name}: missing {missing[:5]}, unexpected {unexpected[:5]}")
-        model.eval().save_pretrained(folder / name, safe_serialization=True)
+        model = model.eval().to(getattr(torch, dtype))
+        model.save_pretrained(folder / name, safe_serialization=True)
     shutil.copytree(tokenizer_dir, folder / "tokenizer", dirs_exist_ok=True)
     (folder / "scheduler").mkdir(exist_ok=True)
     (folder / "scheduler" / "scheduler_config.json").write_text(json.dumps(SCHEDULER, indent=2))
     (folder / "model_index.json").write_text(json.dumps(MODEL_INDEX, indent=2))
 
 
-def check_export(folder: Path, unet_params, vae_params, text_params) -> None:
-    """Our loader reads the exported folder back to exactly the trained parameters."""
+def check_export(folder: Path, unet_params, vae_params, text_params, dtype: str = "float32") -> None:
+    """Our loader reads the exported folder back to exactly the trained parameters (rounded to
+    the export dtype)."""
     from jaxdistill.models.convert import load_rgbx
 
     loaded = load_rgbx(folder)
     for part, params in (("unet", unet_params), ("vae", vae_params), ("text_encoder", text_params)):
         a, b = jax.tree.leaves(loaded.params[part]), jax.tree.leaves(params)
-        assert len(a) == len(b) and all(np.array_equal(np.asarray(x), np.asarray(y)) for x, y in zip(a, b)), part
+        assert len(a) == len(b) and all(np.array_equal(np.asarray(x), np.asarray(y).astype(dtype).astype(np.float32))
+                                        for x, y in zip(a, b)), part
 
 
 # ----------------------------------------------------------------------------- main
@@ -358,6 +362,8 @@ def main(argv=None) -> int:
     parser.add_argument("--unet_lr", type=float, default=1e-3)
     parser.add_argument("--ema", type=float, default=0.999)
     parser.add_argument("--p_drop", type=float, default=0.1, help="photo and prompt dropout, each")
+    parser.add_argument("--export_dtype", choices=("float32", "float16"), default="float16",
+                        help="weights dtype of the exported folder (float16: half the size)")
     parser.add_argument("--ckpt_every", type=int, default=250)
     parser.add_argument("--stop_after_steps", type=int, default=0, help="train at most this many steps in this run")
     parser.add_argument("--time_limit", type=float, default=0.0, help="minutes; then checkpoint and exit 75")
@@ -386,8 +392,9 @@ def main(argv=None) -> int:
     _, unet_params = train_unet(args, latents, contexts, scaling)
     if args.stage == "unet":
         return 0
-    export(out, args.work / "tokenizer", unet_params, vae_params, text_params, scaling=scaling, unet=UNET, vae=VAE, text=TEXT)
-    check_export(out, unet_params, vae_params, text_params)
+    export(out, args.work / "tokenizer", unet_params, vae_params, text_params, scaling=scaling, unet=UNET, vae=VAE, text=TEXT,
+           dtype=args.export_dtype)
+    check_export(out, unet_params, vae_params, text_params, args.export_dtype)
     size = sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
     print(f"exported {out} ({size / 2**20:.1f} MiB), read back identical; total {(time.perf_counter() - start) / 60:.1f} min")
     return 0

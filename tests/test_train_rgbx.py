@@ -153,3 +153,15 @@ def test_training_stops_on_its_budget_and_resumes_bit_identically(tmp_path, monk
         np.testing.assert_array_equal(la[k], lb[k])
     final = [(tmp_path / w / "unet_loss.jsonl").read_text().splitlines()[-1] for w in ("a", "b")]
     assert final[0] == final[1] and '"step": 4' in final[0]
+
+
+def test_float16_export_halves_the_weights_and_reads_back_rounded(exported, tmp_path):
+    folder, (_, unet_p), (_, vae_p), (_, text_p), _ = exported
+    half = tmp_path / "half"
+    train_rgbx.export(half, folder / "tokenizer", unet_p, vae_p, text_p, scaling=0.37, unet=TINY_UNET, vae=TINY_VAE,
+                      text=TINY_TEXT, dtype="float16")
+    train_rgbx.check_export(half, unet_p, vae_p, text_p, "float16")     # raises unless equal to the rounded weights
+    with pytest.raises(AssertionError):
+        train_rgbx.check_export(half, unet_p, vae_p, text_p, "float32")  # rounding did happen
+    size = {f: sum(p.stat().st_size for p in (f / "unet").glob("*.safetensors")) for f in (folder, half)}
+    assert size[half] < 0.6 * size[folder]          # half the bytes per weight, plus the same header
