@@ -346,6 +346,21 @@ def check_export(folder: Path, unet_params, vae_params, text_params, dtype: str 
 # ----------------------------------------------------------------------------- main
 
 
+def model_record(args, images: int, scaling: float) -> dict:
+    """jaxdistill_model.json: what `models/shipped.py` reports as the model (name, version) and
+    how it was made (data, recipe, final losses), for the model card and metrics.json."""
+    def last_loss(stage):
+        path = args.work / f"{stage}_loss.jsonl"
+        return json.loads(path.read_text().splitlines()[-1])["loss"] if path.is_file() else None
+
+    return {"name": args.name, "version": args.version, "images": images, "data": str(args.data),
+            "seed": args.seed, "latent_scaling_factor": scaling, "export_dtype": args.export_dtype,
+            "vae": {"steps": args.vae_steps, "batch": args.vae_batch, "lr": args.vae_lr, "final_loss": last_loss("vae")},
+            "unet": {"steps": args.unet_steps, "batch": args.unet_batch, "lr": args.unet_lr, "ema": args.ema,
+                     "p_drop": args.p_drop, "final_loss": last_loss("unet")},
+            "command": "python scripts/train_rgbx.py " + " ".join(sys.argv[1:])}
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--data", type=Path, required=True, help="folder of make_rgbx_data.py shards")
@@ -362,6 +377,8 @@ def main(argv=None) -> int:
     parser.add_argument("--unet_lr", type=float, default=1e-3)
     parser.add_argument("--ema", type=float, default=0.999)
     parser.add_argument("--p_drop", type=float, default=0.1, help="photo and prompt dropout, each")
+    parser.add_argument("--name", default="jaxdistill-rgbx-rooms", help="model name in jaxdistill_model.json")
+    parser.add_argument("--version", default="1")
     parser.add_argument("--export_dtype", choices=("float32", "float16"), default="float16",
                         help="weights dtype of the exported folder (float16: half the size)")
     parser.add_argument("--ckpt_every", type=int, default=250)
@@ -395,6 +412,7 @@ def main(argv=None) -> int:
     export(out, args.work / "tokenizer", unet_params, vae_params, text_params, scaling=scaling, unet=UNET, vae=VAE, text=TEXT,
            dtype=args.export_dtype)
     check_export(out, unet_params, vae_params, text_params, args.export_dtype)
+    (out / "jaxdistill_model.json").write_text(json.dumps(model_record(args, len(photos), scaling), indent=1))
     size = sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
     print(f"exported {out} ({size / 2**20:.1f} MiB), read back identical; total {(time.perf_counter() - start) / 60:.1f} min")
     return 0

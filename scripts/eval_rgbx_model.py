@@ -1,0 +1,113 @@
+"""Scores an RGB<->X-family model's per-image estimates on held-out rendered rooms.
+
+    python scripts/eval_rgbx_model.py --data=data/rgbx/heldout [--rgbx_dir=DIR] [--out=eval.json]
+
+For every image of `make_rgbx_data.py` shards (by default the held-out split, rooms the model
+never saw), the model's estimate of each map (the demo's 50 DDIM steps, noise per image and map
+from --seed, as `jaxdistill.estimate` draws it) against the exact ground truth, with the main
+job's metrics (`jaxdistill.metrics.evaluate_view`, valid pixels: not emitters, no misses), next
+to the trivial baseline: the photo as albedo (linear), the mean material, normals facing the
+camera, the photo's luminance as irradiance. Prints a table, writes JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+from tqdm import tqdm
+
+from jaxdistill import imageio, metrics
+from jaxdistill.models import convert
+from jaxdistill.models import prior as rgbx
+from jaxdistill.models.shipped import model_info, shipped_folder
+
+MAPS = ("albedo", "normal", "roughness", "metallic", "irradiance")
+TRIVIAL_ROUGHNESS, TRIVIAL_METALLIC = 0.6, 0.05
+
+
+def ground_truth(z, i: int) -> dict:
+    """File-space GT maps of image i of a shard (uint8 arrays as make_rgbx_data writes them)."""
+    f = lambda k: z[k][i].astype(np.float32) / 255.0          # noqa: E731
+    return {"albedo": imageio.srgb_to_linear(f("albedo")), "normal": 2.0 * f("normal") - 1.0,
+            "roughness": f("roughness")[..., :1], "metallic": f("metallic")[..., :1],
+            "irradiance": imageio.srgb_to_linear(f("irradiance"))}
+
+
+def trivial(photo_srgb: np.ndarray) -> dict:
+    h, w = photo_srgb.shape[:2]
+    linear = imageio.srgb_to_linear(photo_srgb)
+    grey = linear @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+    return {"albedo": linear, "normal": np.broadcast_to(np.float32([0, 0, 1]), (h, w, 3)),
+            "roughness": np.full((h, w, 1), TRIVIAL_ROUGHNESS, np.float32),
+            "metallic": np.full((h, w, 1), TRIVIAL_METALLIC, np.float32), "irradiance": np.repeat(grey[..., None], 3, -1)}
+
+
+def to_file_space(name: str, image: np.ndarray) -> np.ndarray:
+    """`estimate_batch(gamma=False)` output of one map → the file space metrics compare."""
+    if name == "normal":
+        return 2.0 * image - 1.0
+    return image[..., :1] if name in rgbx.GREY_MAPS else image
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--data", type=Path, required=True, help="folder of make_rgbx_data.py shards")
+    parser.add_argument("--rgbx_dir", type=Path, default=None, help="model folder (default: the shipped model)")
+    parser.add_argument("--out", type=Path, default=None, help="JSON with per-image and mean metrics")
+    parser.add_argument("--steps", type=int, default=50)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--limit", type=int, default=0, help="score at most this many images (0: all)")
+    args = parser.parse_args(argv)
+    folder = args.rgbx_dir or shipped_folder()
+    if folder is None:
+        raise SystemExit("--rgbx_dir: no model given and none shipped in this installation")
+    shards = sorted(p for p in args.data.glob("room_*.npz") if ".tmp" not in p.name)
+    if not shards:
+        raise SystemExit(f"{args.data}: no room_*.npz shards; make them with scripts/make_rgbx_data.py --split=heldout")
+    model = rgbx.load_prior(convert.load_rgbx(folder))
+    key = jax.random.key(args.seed)
+    ours, base, names = [], [], []
+    start = time.perf_counter()
+    images = []
+    for path in shards:
+        with np.load(path) as z:
+            for i in range(len(z["photo"])):
+                images.append((f"{path.stem}/{i}", z["photo"][i].astype(np.float32) / 255.0, ground_truth(z, i),
+                               z["valid"][i][..., 0] > 0))
+    images = images[:args.limit or None]
+    for j in tqdm(range(0, len(images), 16), desc="estimates", unit="batch"):
+        chunk = images[j:j + 16]
+        latents = np.concatenate([np.asarray(rgbx.encode_photo(model, photo)) for _, photo, _, _ in chunk])
+        pred = [{} for _ in chunk]
+        for m in MAPS:
+            noise = np.concatenate([np.asarray(jax.random.normal(rgbx.view_map_key(key, n, m), (1,) + latents.shape[1:]))
+                                    for n, _, _, _ in chunk])
+            for p, image in zip(pred, rgbx.estimate_batch(model, latents, m, noise, args.steps, gamma=False)):
+                p[m] = to_file_space(m, image)
+        for (name, photo, gt, valid), p in zip(chunk, pred):
+            names.append(name)
+            ours.append(metrics.evaluate_view(p, gt, valid))
+            base.append(metrics.evaluate_view(trivial(photo), gt, valid))
+    result = {"model": model_info(folder), "data": str(args.data), "images": len(names), "steps": args.steps,
+              "seconds": time.perf_counter() - start, "estimates": metrics.aggregate(ours),
+              "trivial": metrics.aggregate(base), "per_image": dict(zip(names, ours))}
+    keys = ("albedo_psnr", "albedo_si_psnr", "albedo_ssim", "normal_angular_deg", "roughness_mse", "metallic_mse",
+            "irradiance_si_psnr")
+    print(f"{len(names)} held-out images, {args.steps} DDIM steps, {result['seconds']:.0f} s")
+    print("| | " + " | ".join(keys) + " |\n|---|" + "---|" * len(keys))
+    for row in ("estimates", "trivial"):
+        print(f"| {row} | " + " | ".join(f"{result[row][k]:.4g}" for k in keys) + " |")
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(result, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
