@@ -250,9 +250,11 @@ normal (cosine >= {DIFFUSE_COSINE}); albedo supersampled 2x2 like the photo's pi
 brightness ratio photo / (albedo x irradiance) over {d['pixels']} pixels: median **{d['median_ratio']:.3f}**
 (10th-90th percentile {d['p10']:.3f}-{d['p90']:.3f}; Monte Carlo noise of both at {info['spp']} spp), ratio of sums {d['sum_ratio']:.3f}.
 
-The materials are Mitsuba's `principled` BSDF, which is not Lambertian: its diffuse lobe
-retro-reflects at grazing angles on rough surfaces and darkens them on smooth ones, and
-dielectrics add a specular lobe. Over all {e['pixels']} valid dielectric pixels the median is
+The materials are Mitsuba's `principled` BSDF, which is not Lambertian: its (Disney) diffuse
+lobe brightens rough surfaces where the view or the light is grazing (walls lit by a ceiling
+panel) and darkens smooth ones, and dielectrics add a specular lobe; so the figure is not 1 to
+the Monte Carlo noise as for Lambertian scenes (staircase2: 0.996; the integrator's own test: a
+Lambertian plane within 3 %). Over all {e['pixels']} valid dielectric pixels the median is
 {e['median_ratio']:.3f} (ratio of sums {e['sum_ratio']:.3f}); over all {a['pixels']} valid pixels, metals
 included, {a['median_ratio']:.3f}. The same holds for the training data, rendered by the same code.
 
