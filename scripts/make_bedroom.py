@@ -367,9 +367,16 @@ def build_scene_geometry(objs) -> tuple[Mesh, list[int]]:
 def write_textures(objs, sizes, rng, folder: Path) -> dict[str, list[np.ndarray]]:
     """Writes 8-bit GT textures and returns what they decode to (the exact ground truth):
     albedo (S, S, 3) linear, roughness and metallic (S, S, 1) in [0, 1]."""
+    maps = [albedo_and_maps(material, rng, size) for (_, _, material), size in zip(objs, sizes)]
+    return write_texture_pages([name for name, _, _ in objs], maps, folder)
+
+
+def write_texture_pages(names, maps, folder: Path) -> dict[str, list[np.ndarray]]:
+    """Writes each object's (albedo linear, roughness, metallic) pages as 8-bit PNGs
+    folder/<map>/<name>.png (albedo sRGB-encoded) and returns what they decode to:
+    albedo (S, S, 3) linear, roughness and metallic (S, S, 1)."""
     gt = {"albedo": [], "roughness": [], "metallic": []}
-    for (name, _, material), size in zip(objs, sizes):
-        albedo, rough, metal = albedo_and_maps(material, rng, size)
+    for name, (albedo, rough, metal) in zip(names, maps):
         for key, values, srgb in (("albedo", albedo, True), ("roughness", rough, False), ("metallic", metal, False)):
             path = folder / key / f"{name}.png"
             imageio.write_image(path, values, encode_srgb=srgb)
@@ -604,15 +611,21 @@ def generate(out: Path, *, seed: int, views: int, width: int, height: int, spp: 
     times["render_s"], times["aov_check_s"] = t_render, t_aov
 
     write_scene(Scene(name="bedroom", mesh=mesh, views=tuple(view_list), texture_layout="pages"), out)
-    gt_doc = {"format": "jaxdistill-gt", "version": 1,
-              "textures": {k: {n: f"gt/textures/{k}/{n}.png" for n, _, _ in objs} for k in gt_tex},
-              "texture_encoding": {"albedo": "srgb", "roughness": "linear", "metallic": "linear"},
-              "normal": "geometry", "exclude_objects": list(EMITTER_OBJECTS), "sampler": "bilinear"}
-    (out / "gt.json").write_text(json.dumps(gt_doc, indent=1))
+    write_gt_json(out, [n for n, _, _ in objs], EMITTER_OBJECTS)
     (out / "estimates.json").write_text(json.dumps({"seed": seed, "model": ESTIMATE_MODEL, "views": estimates}, indent=1))
     write_preview(out)
     return {"objects": len(objs), "faces": mesh.num_faces, "page_sizes": dict(zip(mesh.object_names, sizes)),
             "views": len(cams), "agreement": agreement, "baseline": metrics.aggregate(baseline), "times": times}
+
+
+def write_gt_json(out: Path, names, exclude_objects) -> None:
+    """gt.json: the GT pages gt/textures/<map>/<object>.png of `write_texture_pages`, normals from
+    the geometry, `exclude_objects` (emitters) out of the metrics."""
+    doc = {"format": "jaxdistill-gt", "version": 1,
+           "textures": {k: {n: f"gt/textures/{k}/{n}.png" for n in names} for k in ("albedo", "roughness", "metallic")},
+           "texture_encoding": {"albedo": "srgb", "roughness": "linear", "metallic": "linear"},
+           "normal": "geometry", "exclude_objects": list(exclude_objects), "sampler": "bilinear"}
+    (out / "gt.json").write_text(json.dumps(doc, indent=1))
 
 
 def write_preview(folder: Path, views=(0, 12, 24, 36)) -> Path:

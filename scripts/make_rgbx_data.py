@@ -24,6 +24,7 @@ installed (`apt-get install libllvm19`), else `scalar_rgb` (slower, same images 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import os
@@ -44,8 +45,19 @@ from make_bedroom import build_scene_geometry, preview, rolled_camera
 from procedural_rooms import Room, material_maps, random_room
 
 HELDOUT_SEED = 1_000_000
+SPLIT_ROOMS = {"train": HELDOUT_SEED, "heldout": 1_000_000}   # indices per split: seeds never overlap
 MAPS = ("albedo", "normal", "roughness", "metallic", "irradiance")
 SUPERSAMPLE = 2
+
+
+def room_seed(split: str, index: int) -> int:
+    """The seed of room `index` of `split`: train i -> i, heldout i -> HELDOUT_SEED + i.
+    ValueError for an unknown split or an index outside [0, SPLIT_ROOMS[split])."""
+    if split not in SPLIT_ROOMS:
+        raise ValueError(f"unknown split {split!r}; use one of {', '.join(SPLIT_ROOMS)}")
+    if not (isinstance(index, (int, np.integer)) and 0 <= index < SPLIT_ROOMS[split]):
+        raise ValueError(f"room index {index!r} is outside the {split} split's range 0 .. {SPLIT_ROOMS[split] - 1}")
+    return (HELDOUT_SEED if split == "heldout" else 0) + int(index)
 
 
 def quantised_textures(room: Room, sizes, seed: int) -> dict[str, list[np.ndarray]]:
@@ -151,8 +163,28 @@ def to_u8(x: np.ndarray) -> np.ndarray:
     return np.round(np.clip(x, 0.0, 1.0) * 255).astype(np.uint8)
 
 
-def render_room(seed: int, *, views: int, width: int, height: int, spp: int, max_depth: int = 5):
-    """(arrays {name: (V, H, W, C) uint8}, metadata) of the room of `seed`."""
+@dataclasses.dataclass
+class RoomRender:
+    """A room rendered in linear light. Per view: `photos` (H, W, 3) radiance, isolated fireflies
+    removed; `irradiance` (H, W, 3) E / pi at the first hit (photo units); `gt` {albedo (linear),
+    normal (RGB<->X camera space), roughness, metallic, valid}, our gather sampler supersampled
+    SUPERSAMPLE x SUPERSAMPLE and averaged like the photo's pixel box; `valid` (H, W, 1) bool:
+    pixel fully covered by non-emitting geometry."""
+
+    room: Room
+    mesh: object
+    sizes: list
+    textures: dict
+    cameras: list
+    photos: list
+    irradiance: list
+    gt: dict
+    emitter_ids: list
+
+
+def render_linear(seed: int, *, views: int, width: int, height: int, spp: int, max_depth: int = 5,
+                  progress: bool = False) -> RoomRender:
+    """The room of `seed` rendered in linear light (`RoomRender`); a progress bar with `progress`."""
     room = random_room(seed)
     mesh, sizes = build_scene_geometry(room.objects)
     textures = quantised_textures(room, sizes, seed)
@@ -160,7 +192,7 @@ def render_room(seed: int, *, views: int, width: int, height: int, spp: int, max
     cams = place_cameras(room, mesh, rng, views, width, height)
     f = SUPERSAMPLE
     fine = [cameras.Camera(np.diag([f, f, 1.0]) @ c.K, c.c2w, c.width * f, c.height * f) for c in cams]
-    frags = fr.compute_fragments(mesh, fine, cache_dir=False, progress=False)
+    frags = fr.compute_fragments(mesh, fine, cache_dir=False, progress=progress)
     stacked = [np.concatenate([textures[k][o] for k in ("albedo", "roughness", "metallic")], -1) for o in range(len(sizes))]
     sampled = sample_pages(stacked, frags, range(len(sizes)))
     normals_world = face_normals(mesh)
@@ -169,7 +201,8 @@ def render_room(seed: int, *, views: int, width: int, height: int, spp: int, max
     scene = mitsuba_scene(room, mesh, textures)
     integrator = mb.load_mitsuba().load_dict(mb.intrinsic_integrator(max_depth))
     photos, irradiance, gt = [], [], {k: [] for k in ("albedo", "normal", "roughness", "metallic", "valid")}
-    for i, (cam, frag, g) in enumerate(zip(cams, frags, sampled)):
+    bar = tqdm(list(zip(cams, frags, sampled)), desc=f"render room {seed} ({spp} spp)", unit="view", disable=not progress)
+    for i, (cam, frag, g) in enumerate(bar):
         image = mb.render(scene, cam, spp=spp, seed=seed * 1009 + i, integrator=integrator)
         photos.append(remove_fireflies(image[..., :3]))
         irradiance.append(image[..., mb.IRRADIANCE_CHANNELS])
@@ -180,6 +213,14 @@ def render_room(seed: int, *, views: int, width: int, height: int, spp: int, max
         gt["metallic"].append(box_down(g[..., 4:5], f))
         valid = (frag.object_id >= 0) & ~np.isin(frag.object_id, emitter_ids)
         gt["valid"].append(box_down(valid[..., None].astype(np.float32), f) > 0.999)
+    return RoomRender(room=room, mesh=mesh, sizes=sizes, textures=textures, cameras=cams, photos=photos,
+                      irradiance=irradiance, gt=gt, emitter_ids=emitter_ids)
+
+
+def render_room(seed: int, *, views: int, width: int, height: int, spp: int, max_depth: int = 5):
+    """(arrays {name: (V, H, W, C) uint8}, metadata) of the room of `seed`."""
+    r = render_linear(seed, views=views, width=width, height=height, spp=spp, max_depth=max_depth)
+    room, mesh, cams, photos, irradiance, gt, emitter_ids = r.room, r.mesh, r.cameras, r.photos, r.irradiance, r.gt, r.emitter_ids
     masks = [v[..., 0] for v in gt["valid"]]
     stops = exposure.scene_exposure(photos, masks)
     irradiance_stops = exposure.scene_exposure(irradiance, masks)
@@ -234,10 +275,13 @@ def main(argv=None) -> int:
             parser.error(f"--{name} must be >= 1")
     if args.width % 8 or args.height % 8:
         parser.error("--width and --height must be multiples of 8 (the VAE's downsampling)")
+    try:
+        room_seed(args.split, args.first), room_seed(args.split, args.first + args.rooms - 1)
+    except ValueError as err:
+        parser.error(f"--first/--rooms: {err}")
     mb.load_mitsuba(mb.llvm_variant() if args.variant == "auto" else args.variant)
     args.out.mkdir(parents=True, exist_ok=True)
-    offset = HELDOUT_SEED if args.split == "heldout" else 0
-    seeds = [offset + args.first + i for i in range(args.rooms)]
+    seeds = [room_seed(args.split, args.first + i) for i in range(args.rooms)]
     todo = [s for s in seeds if not (args.out / f"room_{s:07d}.npz").exists()]
     print(f"{args.split}: {len(seeds)} rooms x {args.views} views at {args.width}x{args.height}, {args.spp} spp; "
           f"{len(seeds) - len(todo)} already written in {args.out}; Mitsuba {mb.load_mitsuba().variant()}")
