@@ -54,7 +54,7 @@ def choose_prior(config: DistillConfig) -> PriorChoice:
     the user's (--rgbx_dir, else the variable), else the model shipped in the package
     (`models/shipped.py`). Never a silent fallback: a folder that was named but does not exist
     is an error, not a reason to use another model."""
-    from jaxdistill.models.shipped import shipped_folder
+    from jaxdistill.models.shipped import model_info, shipped_folder
 
     folder = rgbx_dir(config)
     source = "--rgbx_dir" if config.rgbx_dir else f"${RGBX_DIR_ENV}"
@@ -66,9 +66,11 @@ def choose_prior(config: DistillConfig) -> PriorChoice:
         return PriorChoice("rgbx", f"--prior={config.prior} with weights from {source}={folder}", folder)
     shipped = shipped_folder()
     if shipped is not None:
+        info = model_info(shipped)
         return PriorChoice("rgbx", f"--prior={config.prior}: no weights given (--rgbx_dir, ${RGBX_DIR_ENV} unset), "
-                           "so the model shipped in the package: a small RGB<->X-family stand-in trained on synthetic "
-                           f"rooms ({shipped / 'README.md'}); for the real RGB<->X, {rgbx_hint()}", str(shipped))
+                           f"so the model shipped in the package, {info['name']} v{info.get('version')}: a small "
+                           f"RGB<->X-family stand-in trained on synthetic rooms ({shipped / 'README.md'}); for the "
+                           f"real RGB<->X, {rgbx_hint()}", str(shipped))
     if config.prior == "rgbx":
         raise InputError.single("flags", "--prior=rgbx", "needs weights and this installation has no shipped model "
                                 f"(jaxdistill/models/rgbx_rooms); {rgbx_hint()}")

@@ -137,7 +137,10 @@ def test_resume_refuses_a_different_config_and_needs_a_checkpoint(tiny_scene, tm
         train.run(tiny_config(tiny_scene, tmp_path / "empty", resume=True), progress=False)
     with pytest.raises(InputError, match=r"--steps: 1 is below the checkpoint's step 2"):
         train.run(tiny_config(tiny_scene, out, steps=1, resume=True), progress=False)
-    with pytest.raises(InputError, match=r"--loss_space.*views prior"):
+    from jaxdistill.models import shipped
+
+    with pytest.MonkeyPatch.context() as mp, pytest.raises(InputError, match=r"--loss_space.*views prior"):
+        mp.setattr(shipped, "SHIPPED_DIR", tmp_path / "no_shipped_model")     # auto resolves to views
         train.run(tiny_config(tiny_scene, tmp_path / "latent", prior="auto", loss_space="latent"), progress=False)
     cosine = tmp_path / "cosine"
     train.run(tiny_config(tiny_scene, cosine, steps=2, lr_schedule="cosine", renders=False), progress=False)

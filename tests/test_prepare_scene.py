@@ -473,7 +473,9 @@ def test_prepared_scene_runs_in_the_main_job_with_evaluation(source, tmp_path, m
                 "irradiance_si_psnr"):
         assert np.isfinite(doc["ours"][key]), (key, log)
     assert doc["history"]["eval_step"] == [1, 2] and np.isfinite(doc["history"]["albedo_psnr"]).all()
-    assert "ground truth files" in doc["baseline_note"]
+    # the README's command runs SDS with the default prior: the shipped model unless weights are given
+    assert doc["prior"]["kind"] == "rgbx" and doc["prior"]["model"]["source"] == "shipped", doc["prior"]
+    assert doc["baseline_source"].startswith("the model's own per-view estimates")
     # Independently: the albedo PSNR over each view's mask from the written renders (8-bit sRGB PNGs)
     psnrs = []
     for view in scene.views:
