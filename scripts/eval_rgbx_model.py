@@ -40,8 +40,14 @@ def ground_truth(z, i: int) -> dict:
 
 
 def trivial(photo_srgb: np.ndarray) -> dict:
-    h, w = photo_srgb.shape[:2]
-    linear = imageio.srgb_to_linear(photo_srgb)
+    """The trivial baseline of an sRGB photo in [0, 1] (see `trivial_linear`)."""
+    return trivial_linear(imageio.srgb_to_linear(photo_srgb))
+
+
+def trivial_linear(linear: np.ndarray) -> dict:
+    """The trivial baseline of a linear photo in [0, 1]: the photo as albedo, the mean material,
+    normals facing the camera, the photo's luminance as irradiance."""
+    h, w = linear.shape[:2]
     grey = linear @ np.array([0.2126, 0.7152, 0.0722], np.float32)
     return {"albedo": linear, "normal": np.broadcast_to(np.float32([0, 0, 1]), (h, w, 3)),
             "roughness": np.full((h, w, 1), TRIVIAL_ROUGHNESS, np.float32),

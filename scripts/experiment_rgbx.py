@@ -38,13 +38,15 @@ from jaxdistill.datasets import ImportOptions, open_scene
 from jaxdistill.models import convert
 from jaxdistill.models import prior as rgbx
 from jaxdistill.models.shipped import model_info, shipped_folder
+from jaxdistill.problem import render_shape
 from jaxdistill.render import fragments as fr
 from jaxdistill.scene import write_scene
 from jaxdistill.view_images import read_target, resize
 
+from eval_rgbx_model import trivial_linear     # scripts/: the same trivial baseline
+
 MAPS = ("albedo", "normal", "roughness", "metallic", "irradiance")
 RENDER_SIZE = 128
-TRIVIAL_ROUGHNESS, TRIVIAL_METALLIC = 0.6, 0.05      # close to the training rooms' means (make_rgbx_data.py)
 
 # main-job settings shared by the rows (configs/bedroom.cfg's, at the model's resolution)
 COMMON = dict(maps=MAPS, render_size=RENDER_SIZE, texture_size="auto", max_texture_size=512, sampler="trilinear",
@@ -73,28 +75,13 @@ def score(scene, per_view: list[dict]) -> dict:
 
 
 def trivial_maps(scene) -> list[dict]:
-    out = []
-    for v in scene.views:
-        h, w = v.camera.height, v.camera.width
-        photo = np.clip(imageio.read_image(v.photo)[..., :3] * 2.0 ** v.exposure, 0.0, 1.0)
-        grey = photo @ np.array([0.2126, 0.7152, 0.0722], np.float32)
-        out.append({"albedo": photo, "roughness": np.full((h, w, 1), TRIVIAL_ROUGHNESS, np.float32),
-                    "metallic": np.full((h, w, 1), TRIVIAL_METALLIC, np.float32),
-                    "normal": np.broadcast_to(np.float32([0, 0, 1]), (h, w, 3)).copy(),
-                    "irradiance": np.repeat(grey[..., None], 3, -1)})
-    return out
-
-
-def render_hw(scene) -> tuple[int, int]:
-    h, w = scene.views[0].camera.height, scene.views[0].camera.width
-    scale = RENDER_SIZE / max(h, w)
-    short = max(8, int(round(min(h, w) * scale / 8)) * 8)
-    return (RENDER_SIZE, short) if h >= w else (short, RENDER_SIZE)
+    return [trivial_linear(np.clip(imageio.read_image(v.photo)[..., :3] * 2.0 ** v.exposure, 0.0, 1.0))
+            for v in scene.views]
 
 
 def estimates_folder(scene, model_dir: Path) -> Path:
     model = rgbx.load_prior(convert.load_rgbx(model_dir))
-    h, w = render_hw(scene)
+    h, w = render_shape(scene, RENDER_SIZE, 8)
     return model_estimates.cached_estimates(model, [(v.name, v.photo, v.exposure) for v in scene.views], MAPS, h, w)
 
 
