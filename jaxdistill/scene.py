@@ -57,7 +57,7 @@ from jaxdistill import MAP_NAMES
 from jaxdistill import imageio
 from jaxdistill.cameras import Camera, intrinsics_problems, pose_problems
 from jaxdistill.errors import InputError, ProblemList, read_json
-from jaxdistill.exposure import MAX_STOPS
+from jaxdistill.exposure import MAX_STOPS, scene_exposure
 from jaxdistill.mesh import Mesh, load_mesh, save_mesh  # noqa: F401  (re-exported: the scene's mesh type and I/O)
 from jaxdistill.scene_config import load_objects
 from jaxdistill.scene_paths import scene_json_path_problems
@@ -71,6 +71,7 @@ UV_TOLERANCE = 1e-4
 RGB_MAPS = ("albedo", "irradiance")     # a grey image is accepted for these: used as R = G = B
 MAX_NOTES = 10                          # note lines logged; the rest are counted
 NOTE_DETAILS = 5                        # images named per note line
+EXPOSURE_NOTE_STOPS = 1.0              # HDR photos without exposure: warn when the rule is this far from 0
 NEGATIVE_NOISE = 1e-3                   # photo negatives above -this x its 99th percentile: noise (info only)
 
 
@@ -405,7 +406,30 @@ def read_scene(path, *, check_pixels: bool = True, allow_outside_paths: bool = F
         problems.add(file, "views", "the scene has no views")
     validate_scene(scene, scene_file=file, mesh_file=os.fspath(mesh_path), check_pixels=check_pixels,
                    problems=problems, view_index=view_index)
+    if check_pixels and not any(isinstance(e, dict) and "exposure" in e for e in doc["views"]):
+        log_notes(exposure_notes(scene, file))
     return scene
+
+
+def exposure_notes(scene: Scene, file: str) -> list[Note]:
+    """A warning when the scene's photos are HDR, no view gives an exposure, and Hypersim's rule
+    (what RGB<->X was trained with, and what the dataset importers apply) is a stop or more away
+    from the 0 stops the photos are then shown with: the prior would see them far too dark or
+    bright, and its estimates would be off in scale."""
+    photos = [v.photo for v in scene.views]
+    if not photos or not all(imageio.is_linear_format(p) for p in photos):
+        return []
+    try:
+        stops = scene_exposure(imageio.read_image(p)[..., :3] for p in photos)
+    except ValueError:
+        return []
+    if abs(stops) < EXPOSURE_NOTE_STOPS:
+        return []
+    return [Note(file, "views[*].exposure", "no view gives an exposure, so the prior sees these HDR photos as they "
+                 f"are (0 stops), but Hypersim's rule, which RGB<->X was trained with, gives {stops:+.2f} stops: "
+                 f"add \"exposure\": {stops:.2f} to every view (scripts/import_scene.py and the dataset loaders do), "
+                 "or \"exposure\": 0 to every view to keep them as they are",
+                 f"{len(photos)} HDR photos", logging.WARNING)]
 
 
 def _relative(path: Path, root: Path) -> str:

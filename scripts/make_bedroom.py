@@ -41,6 +41,7 @@ import numpy as np
 from tqdm import tqdm
 
 from jaxdistill import cameras, imageio
+from jaxdistill.exposure import scene_exposure
 from jaxdistill import mitsuba_bridge as mb
 from jaxdistill.evaluation import camera_normals, face_normals  # GT normals exactly as evaluation makes them
 from jaxdistill.render import fragments as fr
@@ -610,12 +611,17 @@ def generate(out: Path, *, seed: int, views: int, width: int, height: int, spp: 
         view_list.append(View(name=name, camera=cam, photo=out / "photos" / f"{name}.exr", targets=targets))
     times["render_s"], times["aov_check_s"] = t_render, t_aov
 
+    # the photos as RGB<->X sees them: one scene-wide exposure by Hypersim's rule (as every HDR
+    # import gets), measured on the EXR files as written (half float, DWAA)
+    stops = scene_exposure(imageio.read_image(v.photo)[..., :3] for v in view_list)
+    view_list = [dataclasses.replace(v, exposure=stops) for v in view_list]
     write_scene(Scene(name="bedroom", mesh=mesh, views=tuple(view_list), texture_layout="pages"), out)
     write_gt_json(out, [n for n, _, _ in objs], EMITTER_OBJECTS)
     (out / "estimates.json").write_text(json.dumps({"seed": seed, "model": ESTIMATE_MODEL, "views": estimates}, indent=1))
     write_preview(out)
     return {"objects": len(objs), "faces": mesh.num_faces, "page_sizes": dict(zip(mesh.object_names, sizes)),
-            "views": len(cams), "agreement": agreement, "baseline": metrics.aggregate(baseline), "times": times}
+            "views": len(cams), "exposure": stops, "agreement": agreement, "baseline": metrics.aggregate(baseline),
+            "times": times}
 
 
 def write_gt_json(out: Path, names, exclude_objects) -> None:
@@ -671,6 +677,8 @@ photos path traced by Mitsuba 3 (`scalar_rgb`, `path`, max depth 6, {args.spp} s
 then a Gaussian pixel filter (sigma {PIXEL_FILTER_SIGMA} px) in NumPy, like Mitsuba's default filter but
 deterministic (Mitsuba's own adds overlapping image blocks in thread order, so the last bits vary).
 Light: sun and sky through the window opening, a ceiling light panel and the bedside lamp's bulb.
+Every view's `exposure` ({summary['exposure']:+.2f} stops) is Hypersim's rule on these photos (90th-percentile
+brightness to 0.8 after gamma), as RGB<->X was trained and as every HDR import gets it.
 
     python scripts/make_bedroom.py --seed={args.seed} --views={args.views} --spp={args.spp} --width={args.width} --height={args.height}
 

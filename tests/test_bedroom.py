@@ -154,3 +154,20 @@ def test_committed_bedroom_is_complete_and_untouched():
     gt = json.loads((folder / "gt.json").read_text())
     for textures in gt["textures"].values():
         assert list(textures) == list(scene.mesh.object_names)
+
+
+def test_committed_bedroom_photos_carry_hypersims_exposure():
+    """The prior must see the bedroom's HDR photos as it was trained (and as imports are shown):
+    one scene-wide exposure that brings the 90th-percentile brightness 0.3 R + 0.59 G + 0.11 B
+    to 0.8 after a 1/2.2 gamma, written out here in NumPy."""
+    from jaxdistill import imageio
+
+    scene = read_scene(scene_path("bedroom"))
+    photos = [imageio.read_image(v.photo)[..., :3] for v in scene.views]
+    brightness = np.concatenate([(p @ np.array([0.3, 0.59, 0.11])).ravel() for p in photos])
+    stops = np.log2(0.8 ** 2.2 / np.percentile(brightness, 90))
+    assert {v.exposure for v in scene.views} == {scene.views[0].exposure}
+    assert abs(scene.views[0].exposure - stops) < 0.01
+    exposed = np.concatenate([(p * 2.0 ** scene.views[0].exposure @ np.array([0.3, 0.59, 0.11])).ravel()
+                              for p in photos])
+    assert abs(np.percentile(exposed, 90) ** (1 / 2.2) - 0.8) < 0.005

@@ -176,3 +176,36 @@ def test_cached_reads_decode_each_file_once_and_hand_out_private_copies(tmp_path
     np.testing.assert_allclose(again, imageio.srgb_to_linear(np.full((4, 5, 3), 128 / 255)), rtol=1e-6)
     imageio.read_image(path)
     assert len(calls) == 2                                          # no cache outside the block
+
+
+def hypersim_stops(photos) -> float:
+    """Hypersim's tone-map rule written out: the stops that bring the 90th percentile of the
+    brightness 0.3 R + 0.59 G + 0.11 B of all pixels to 0.8 after a 1/2.2 gamma."""
+    brightness = np.concatenate([(p[..., :3] @ np.array([0.3, 0.59, 0.11])).ravel() for p in photos])
+    return float(np.log2(0.8 ** 2.2 / np.percentile(brightness, 90)))
+
+
+def test_hdr_photos_without_an_exposure_are_warned_with_the_rules_stops(scene, caplog):
+    darker = []
+    for v in range(2):
+        photo = imageio.read_image(scene.parent / "photos" / f"v{v}.exr") * 0.05      # 4.3 stops under
+        set_image(scene, v, "photo", f"photos/v{v}_dark.exr", photo)
+        darker.append(imageio.read_image(scene.parent / "photos" / f"v{v}_dark.exr"))
+    stops = hypersim_stops(darker)
+    assert stops > 3.0
+    with caplog.at_level(logging.WARNING):
+        read_scene(scene)
+    assert [(r.levelno, r.getMessage()) for r in caplog.records] == [
+        (logging.WARNING, f"{scene}: views[*].exposure: no view gives an exposure, so the prior sees these HDR photos "
+                          f"as they are (0 stops), but Hypersim's rule, which RGB<->X was trained with, gives "
+                          f"{stops:+.2f} stops: add \"exposure\": {stops:.2f} to every view (scripts/import_scene.py "
+                          "and the dataset loaders do), or \"exposure\": 0 to every view to keep them as they are "
+                          "(2 HDR photos)")]
+    caplog.clear()
+    doc = json.loads(scene.read_text())
+    for entry in doc["views"]:
+        entry["exposure"] = 0
+    scene.write_text(json.dumps(doc))
+    with caplog.at_level(logging.WARNING):
+        read_scene(scene)
+    assert caplog.records == []
