@@ -57,6 +57,7 @@ class DistillConfig:
     latent: str = "mode"
     visibility_weighting: bool = True
     p_keep: float = 1.0
+    reuse_steps: int = 1
     render_size: int = 0
     texture_size: str = "auto"
     max_texture_size: int = 4096
@@ -115,6 +116,10 @@ def define_flags(fv: flags.FlagValues = flags.FLAGS) -> None:
     flags.DEFINE_bool("visibility_weighting", d.visibility_weighting, "weight pixels by 1 / (2 clip(V, 1, 6))",
                       flag_values=fv)
     flags.DEFINE_float("p_keep", d.p_keep, "image-space dropout: probability a pixel counts in a step", flag_values=fv)
+    flags.DEFINE_integer("reuse_steps", d.reuse_steps, "rgbx prior: take K AdamW steps on the same views towards "
+                         "one x_pred before the prior runs again (1 = a new x_pred every step, the thesis; K > 1 costs "
+                         "1/K of the prior per step, like Instruct-NeRF2NeRF's iterative dataset update)",
+                         flag_values=fv)
     flags.DEFINE_integer("render_size", d.render_size, "longer side of the renders in pixels; 0 = the photos' size",
                          flag_values=fv)
     flags.DEFINE_string("texture_size", d.texture_size, "page side (power of two) or 'auto'", flag_values=fv)
@@ -184,6 +189,11 @@ def validate(config: DistillConfig) -> DistillConfig:
             bad(name, f"must be >= 0, got {getattr(c, name)}")
     if c.log_every == 0:
         bad("log_every", "must be >= 1")
+    if c.reuse_steps < 1:
+        bad("reuse_steps", f"must be >= 1, got {c.reuse_steps}")
+    elif c.reuse_steps > 1 and c.prior == "views":
+        bad("reuse_steps", "the views prior's targets never change, so there is nothing to reuse; use --reuse_steps=1 "
+            "(or --prior=rgbx)")
     if c.loss_space == "latent" and c.prior == "views":
         bad("loss_space", "latent needs the rgbx prior (the views prior has no VAE); use --loss_space=image")
     if c.prior == "rgbx" and c.render_size and c.render_size % 8:

@@ -9,7 +9,11 @@ Per step, for a batch of B views and the M requested maps (thesis §4.2, DESIGN.
 4. loss = (1/B) Σ_b Σ_m w(t_bm) Σ_pixels W ⊙ keep ⊙ Σ_c (features − x_pred)², W the visibility
    weights (or the hit mask), keep a Bernoulli(p_keep) image-space dropout mask;
 5. the gradient reaches the texels through the transpose of the gather (a scatter-add), and
-   optax AdamW updates them. A step whose loss or gradient is not finite leaves the state as it
+   optax AdamW updates them.
+With `reuse_steps` K > 1 the prior runs only on every K-th step; the K - 1 steps after it take
+AdamW steps towards the same x_pred (and w(t)) on the same views (the caller repeats the batch),
+kept in the state: Instruct-NeRF2NeRF's "iterative dataset update" in SDS form, at 1/K of the
+prior's cost per step. A step whose loss or gradient is not finite leaves the state as it
    was, reports `finite = 0` and halts the state (later steps change nothing), so the caller can
    stop with the last good state even when it fetches metrics only every few steps.
 
@@ -45,6 +49,7 @@ class DistillState:
     step: jax.Array
     key: jax.Array
     halted: jax.Array
+    reused: Any = None      # reuse_steps > 1: {"targets", "sample_weights", "t"} of the last prior call
 
 
 @dataclasses.dataclass(frozen=True)
@@ -60,6 +65,7 @@ class StepSettings:
     anneal: str = DistillConfig.anneal
     t_weighting: str = DistillConfig.t_weighting
     p_keep: float = DistillConfig.p_keep
+    reuse_steps: int = DistillConfig.reuse_steps
     num_train_timesteps: int = 1000
     latent_factor: int = 8
 
@@ -79,7 +85,8 @@ def make_optimizer(lr: float, weight_decay: float, schedule: str = "constant",
     return optax.adamw(learning_rate=learning_rate(lr, schedule, total_steps), weight_decay=weight_decay)
 
 
-def init_state(texels: np.ndarray, optimizer: optax.GradientTransformation, seed: int) -> DistillState:
+def init_state(texels: np.ndarray, optimizer: optax.GradientTransformation, seed: int,
+               reused: Any = None) -> DistillState:
     """Step-0 state: the given initial texels (float32), fresh AdamW state, key PRNGKey(seed).
 
     Floating texels narrower than float32 (float16, bfloat16) are refused with a ValueError:
@@ -93,7 +100,7 @@ def init_state(texels: np.ndarray, optimizer: optax.GradientTransformation, seed
                          "--prior_dtype)")
     texels = jnp.asarray(texels, jnp.float32)
     return DistillState(texels=texels, opt_state=optimizer.init(texels), step=jnp.zeros((), jnp.int32),
-                        key=jax.random.PRNGKey(seed), halted=jnp.zeros((), bool))
+                        key=jax.random.PRNGKey(seed), halted=jnp.zeros((), bool), reused=reused)
 
 
 def render_maps(texels, plan: GatherPlan, normal_rotation, channels: MapChannels) -> dict:
@@ -158,24 +165,26 @@ def make_step(prior, settings: StepSettings, optimizer: optax.GradientTransforma
     def step(state: DistillState, batch: dict, frozen: dict):
         key = jax.random.fold_in(state.key, state.step)
         k_features, k_t, k_prior, k_keep = jax.random.split(key, 4)
-        plan = GatherPlan(index=batch["index"], weight=batch["weight"], hit=batch["hit"], chain=frozen["chain"],
-                          height=settings.height, width=settings.width)
-
-        def features_of(texels):
-            images = render_maps(texels, plan, batch["normal_rotation"], settings.channels)
-            return prior.features(frozen["prior"], images, k_features)
-
+        features_of = _features_fn(prior, settings, batch, frozen, k_features)
         features, pullback = jax.vjp(features_of, state.texels)
         num_views = batch["pixel_weight"].shape[0]
-        t = sample_timesteps(k_t, state.step, (num_views, len(maps)), settings)
-        targets = jax.lax.stop_gradient(
-            prior.targets(frozen["prior"], jax.lax.stop_gradient(features), batch["prior"], t, k_prior))
+
+        def fresh(_):
+            t = sample_timesteps(k_t, state.step, (num_views, len(maps)), settings)
+            targets = jax.lax.stop_gradient(
+                prior.targets(frozen["prior"], jax.lax.stop_gradient(features), batch["prior"], t, k_prior))
+            return {"targets": targets, "sample_weights": t_weights(t, frozen.get("alphas_cumprod"), settings), "t": t}
+
+        if settings.reuse_steps > 1:      # the prior runs on every reuse_steps-th step only
+            reused = jax.lax.cond(state.step % settings.reuse_steps == 0, fresh, lambda _: state.reused, None)
+        else:
+            reused = fresh(None)
+        targets, sample_weights, t = reused["targets"], reused["sample_weights"], reused["t"]
         weights = batch["pixel_weight"]
         if prior.latent_space:
             weights = pool_weights(weights, settings.latent_factor)
         if settings.p_keep < 1.0:
             weights = weights * jax.random.bernoulli(k_keep, settings.p_keep, weights.shape).astype(jnp.float32)
-        sample_weights = t_weights(t, frozen.get("alphas_cumprod"), settings)
         (loss, terms), grad_features = jax.value_and_grad(weighted_square_error, has_aux=True)(
             features, targets, weights, sample_weights, maps)
         (grad,) = pullback(grad_features)
@@ -187,13 +196,43 @@ def make_step(prior, settings: StepSettings, optimizer: optax.GradientTransforma
         new_state = DistillState(texels=keep_new(texels, state.texels),
                                  opt_state=jax.tree.map(keep_new, opt_state, state.opt_state),
                                  step=state.step + ok.astype(jnp.int32), key=state.key,
-                                 halted=state.halted | ~finite)
+                                 halted=state.halted | ~finite,
+                                 reused=(jax.tree.map(keep_new, reused, state.reused) if settings.reuse_steps > 1
+                                         else state.reused))
         per_map = {f"loss_{m}": term for m, term in terms.items()}
         metrics = {"loss": loss, "finite": ok.astype(jnp.int32), "grad_norm": optax.tree.norm(grad),
                    "t_mean": jnp.mean(t.astype(jnp.float32)), **per_map}
         return new_state, metrics
 
     return step
+
+
+def _features_fn(prior, settings: StepSettings, batch: dict, frozen: dict, key) -> Callable:
+    """texels → the prior's features (renders, or their latents) of the batch's views."""
+    plan = GatherPlan(index=batch["index"], weight=batch["weight"], hit=batch["hit"], chain=frozen["chain"],
+                      height=settings.height, width=settings.width)
+
+    def features_of(texels):
+        images = render_maps(texels, plan, batch["normal_rotation"], settings.channels)
+        return prior.features(frozen["prior"], images, key)
+
+    return features_of
+
+
+def initial_reused(prior, settings: StepSettings, texels, batch: dict, frozen: dict) -> Any:
+    """Zeros shaped like what a step keeps for `reuse_steps` > 1 (x_pred, w(t), t of a batch), or
+    None when every step calls the prior. Shapes only: nothing is computed."""
+    if settings.reuse_steps <= 1:
+        return None
+
+    def reused(texels):
+        key = jax.random.PRNGKey(0)
+        features = _features_fn(prior, settings, batch, frozen, key)(texels)
+        t = jnp.zeros((batch["pixel_weight"].shape[0], len(settings.channels.maps)), jnp.int32)
+        return {"targets": prior.targets(frozen["prior"], features, batch["prior"], t, key),
+                "sample_weights": jnp.zeros(t.shape, jnp.float32), "t": t}
+
+    return jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), jax.eval_shape(reused, jnp.asarray(texels)))
 
 
 class TraceCounter:

@@ -21,7 +21,7 @@ from tqdm.auto import tqdm
 
 from jaxdistill import MAP_NAMES, checkpoint, evaluation, export, imageio, model_estimates
 from jaxdistill.config import DistillConfig, check_views_per_step, resumable_flags
-from jaxdistill.distill import (StepSettings, data_mesh, init_state, jit_step, make_optimizer,
+from jaxdistill.distill import (StepSettings, data_mesh, init_state, initial_reused, jit_step, make_optimizer,
                                 make_step)
 from jaxdistill.errors import InputError
 from jaxdistill.maps import model_to_file
@@ -41,7 +41,14 @@ def step_settings(config: DistillConfig, problem: Problem) -> StepSettings:
         num_train = problem.prior.scheduler.num_train_timesteps
     return StepSettings(channels=problem.channels, height=problem.height, width=problem.width,
                         total_steps=config.steps, t_min=config.t_min, t_max=config.t_max, anneal=config.anneal,
-                        t_weighting=config.t_weighting, p_keep=config.p_keep, num_train_timesteps=num_train)
+                        t_weighting=config.t_weighting, p_keep=config.p_keep, num_train_timesteps=num_train,
+                        reuse_steps=config.reuse_steps)
+
+
+def batch_views(problem: Problem, config: DistillConfig, step: int) -> np.ndarray:
+    """The views of `step`: a function of (seed, step // reuse_steps), so the steps that reuse one
+    x_pred see the views it was computed for, and a resumed run samples the same."""
+    return problem.view_ids(step // config.reuse_steps, config.views_per_step, config.seed)
 
 
 def _history_path(out: Path) -> Path:
@@ -133,7 +140,10 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
     mesh = data_mesh(devices)
     optimizer = make_optimizer(config.lr, config.weight_decay, config.lr_schedule, config.steps)
     settings = step_settings(config, problem)
-    state = init_state(problem.initial_texels(), optimizer, config.seed)
+    first = problem.batch(batch_views(problem, config, 0))
+    texels = problem.initial_texels()
+    state = init_state(texels, optimizer, config.seed, initial_reused(problem.prior, settings, texels, first,
+                                                                      problem.frozen))
     history = {"step": [], "loss": [], "eval_step": [], "albedo_psnr": []}
 
     out.mkdir(parents=True, exist_ok=True)
@@ -149,7 +159,6 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
         logging.info("resumed from step %d in %s", latest, out / "checkpoints")
 
     eval_context = evaluation_context(config, problem)
-    first = problem.batch(problem.view_ids(0, config.views_per_step, config.seed))
     step_fn, traces = jit_step(make_step(problem.prior, settings, optimizer), mesh, first, state, problem.frozen)
     replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
     by_view = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("data"))
@@ -164,7 +173,7 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
                                                 dynamic_ncols=True, disable=not progress,
                                                 smoothing=0) as bar:   # steps run asynchronously: average rate
         for step in range(start_step, config.steps):
-            batch = jax.device_put(problem.batch(problem.view_ids(step, config.views_per_step, config.seed)), by_view)
+            batch = jax.device_put(problem.batch(batch_views(problem, config, step)), by_view)
             state, step_metrics = step_fn(state, batch, frozen)
             pending.append((step, step_metrics))
             done = step + 1

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from jaxdistill.config import DistillConfig
-from jaxdistill.distill import (StepSettings, TraceCounter, data_mesh, init_state, jit_step, make_optimizer, make_step,
-                                sample_timesteps, t_weights, upper_t)
+from jaxdistill.distill import (StepSettings, TraceCounter, data_mesh, init_state, initial_reused, jit_step,
+                                make_optimizer, make_step, sample_timesteps, t_weights, upper_t)
 from jaxdistill.maps import MapChannels
 from jaxdistill.problem import build_problem
 from tiny_scene import write_tiny_scene
@@ -43,16 +43,27 @@ def run_steps(problem, settings, optimizer, view_ids_per_step, seed=0, texels=No
     return state, metrics
 
 
-def numpy_loss_and_grad(problem, texels, ids):
-    """Image-space loss (1/B) Σ W Σ_c (render − target)² and its texel gradient, in float64 NumPy."""
+def numpy_render(problem, texels, ids):
+    """(B, P, C) float64 renders of the views `ids`, normals rotated into camera space."""
     batch = problem.batch(ids)
-    channels = problem.channels
     index, weight = batch["index"], batch["weight"].astype(np.float64)
     images = np.einsum("bpt,bptc->bpc", weight, texels.astype(np.float64)[index])          # (B, P, C)
     rot = batch["normal_rotation"].astype(np.float64)
-    normal = channels.slice("normal")
+    normal = problem.channels.slice("normal")
     images[..., normal] = np.einsum("bpi,bij->bpj", images[..., normal], rot)
-    target = batch["prior"]["target"].reshape(images.shape).astype(np.float64)
+    return images
+
+
+def numpy_loss_and_grad(problem, texels, ids, target=None):
+    """Image-space loss (1/B) Σ W Σ_c (render − target)² and its texel gradient, in float64 NumPy
+    (target: (B, P, C) model-space images, default the views prior's targets)."""
+    batch = problem.batch(ids)
+    index, weight = batch["index"], batch["weight"].astype(np.float64)
+    images = numpy_render(problem, texels, ids)
+    rot = batch["normal_rotation"].astype(np.float64)
+    normal = problem.channels.slice("normal")
+    if target is None:
+        target = batch["prior"]["target"].reshape(images.shape).astype(np.float64)
     w = batch["pixel_weight"].reshape(images.shape[:2]).astype(np.float64)
     b = len(ids)
     loss = np.sum(w[..., None] * (images - target) ** 2) / b
@@ -249,3 +260,88 @@ def test_rgbx_step_is_finite_and_moves_the_texels(rgbx_problems):
     assert 200 <= metrics[0]["t_mean"] <= 980
     moved = np.abs(np.asarray(state.texels) - problem.initial_texels()).max()
     assert 0.0 < moved <= 2 * 0.01 + 1e-6                                            # two Adam steps of lr 0.01
+
+
+class HalfwayPrior:
+    """A prior whose x_pred depends on the render, as a learned prior's does: x_pred = render / 2 + 0.1."""
+
+    latent_space = False
+
+    def __init__(self, channels):
+        self.channels = channels
+
+    def view_data(self, view_ids):
+        return {}
+
+    def features(self, frozen, images, key):
+        return images
+
+    def targets(self, frozen, features, data, t, key):
+        return {m: 0.5 * f + 0.1 for m, f in features.items()}
+
+
+def test_reuse_steps_takes_k_adamw_steps_towards_one_x_pred(problem):
+    """With reuse_steps = 2 the prior's x_pred of steps 0 and 2 are what steps 1 and 3 move towards
+    (the texels moved in between, so reusing differs from recomputing); against NumPy renders,
+    loss and gradient, with optax's AdamW fed the NumPy gradients."""
+    import optax
+
+    prior = HalfwayPrior(problem.channels)
+    settings = settings_for(problem, reuse_steps=2)
+    optimizer = make_optimizer(0.05, 0.0)
+    batch0 = problem.batch(np.array([0, 2]))
+    texels0 = problem.initial_texels()
+    reused = initial_reused(prior, settings, texels0, batch0, problem.frozen)
+    assert reused["targets"]["albedo"].shape == (2, problem.height, problem.width, 3)
+    state = init_state(texels0, optimizer, 0, reused)
+    step = jax.jit(make_step(prior, settings, optimizer))
+    schedule = [np.array([0, 2]), np.array([0, 2]), np.array([1, 3]), np.array([1, 3])]
+    losses = []
+    for ids in schedule:
+        state, m = step(state, problem.batch(ids), problem.frozen)
+        losses.append(float(m["loss"]))
+    # the reference: x_pred recomputed on even steps only
+    texels = texels0.astype(np.float32)
+    ref_opt = optax.adamw(0.05, weight_decay=0.0)
+    opt_state = ref_opt.init(texels)
+    ref_losses = []
+    for s, ids in enumerate(schedule):
+        if s % 2 == 0:
+            target = 0.5 * numpy_render(problem, texels, ids) + 0.1
+        loss, grad = numpy_loss_and_grad(problem, texels, ids, target)
+        ref_losses.append(loss)
+        updates, opt_state = ref_opt.update(grad.astype(np.float32), opt_state, texels)
+        texels = np.asarray(optax.apply_updates(texels, updates))
+    assert_close(np.array(losses), np.array(ref_losses), rtol=1e-4)
+    assert_close(np.asarray(state.texels), texels, rtol=1e-4, floor=1e-5)
+    # recomputing x_pred on every step is a different run (so the comparison above can fail)
+    fresh = init_state(texels0, optimizer, 0)
+    fresh_step = jax.jit(make_step(prior, settings_for(problem), optimizer))
+    for ids in schedule:
+        fresh, _ = fresh_step(fresh, problem.batch(ids), problem.frozen)
+    assert np.abs(np.asarray(fresh.texels) - np.asarray(state.texels)).max() > 1e-3
+
+
+def test_reuse_steps_with_the_rgbx_prior_keeps_t_and_runs_one_prior_pass(rgbx_problems):
+    """The rgbx step with reuse_steps = 3: the reused steps report the t of the step that ran the
+    prior, and the program still holds one prior forward pass (inside the cond's refresh branch)."""
+    problem = rgbx_problems["image"]
+    settings = settings_for(problem, reuse_steps=3)
+    optimizer = make_optimizer(0.01, 0.0)
+    batch = problem.batch(np.array([0, 1]))
+    state = init_state(problem.initial_texels(), optimizer, 0,
+                       initial_reused(problem.prior, settings, problem.initial_texels(), batch, problem.frozen))
+    step = jax.jit(make_step(problem.prior, settings, optimizer))
+    t_means = []
+    for ids in ([0, 1], [0, 1], [0, 1], [2, 3], [2, 3]):
+        state, m = step(state, problem.batch(np.array(ids)), problem.frozen)
+        assert m["finite"] == 1
+        t_means.append(float(m["t_mean"]))
+    assert t_means[0] == t_means[1] == t_means[2] and t_means[3] == t_means[4] and t_means[3] != t_means[0]
+    jaxpr = jax.make_jaxpr(make_step(problem.prior, settings, optimizer))(
+        init_state(problem.initial_texels(), optimizer, 0,
+                   initial_reused(problem.prior, settings, problem.initial_texels(), batch, problem.frozen)),
+        batch, problem.frozen)
+    plain = jax.make_jaxpr(make_step(problem.prior, settings_for(problem), optimizer))(
+        init_state(problem.initial_texels(), optimizer, 0), batch, problem.frozen)
+    assert count_primitive(jaxpr.jaxpr, "conv_general_dilated") == count_primitive(plain.jaxpr, "conv_general_dilated")
