@@ -223,6 +223,13 @@ def test_bad_flags_are_named_before_any_compute():
     text = str(err.value)
     for flag in ("--p_keep", "--maps", "--t_min/--t_max", "--texture_size", "--views_per_step"):
         assert flag in text
+    for args, message in ((["--reuse_steps=0"], "--reuse_steps: must be >= 1, got 0"),
+                          (["--reuse_steps=2", "--prior=views"], "--reuse_steps: the views prior's targets never change")):
+        fv = flags.FlagValues()
+        config_lib.define_flags(fv)
+        fv([sys.argv[0], "--scene=x", "--out_dir=y", *args])
+        with pytest.raises(InputError, match=message):
+            config_lib.config_from_flags(fv)
 
 
 def run_main(*args, env=None):
@@ -278,6 +285,24 @@ def test_auto_prior_uses_rgbx_weights_end_to_end(tiny_scene, rgbx_dir, tmp_path,
         (views_run / "metrics.json").read_text())["baseline_per_view_estimates"]["albedo_psnr"]
     assert doc["traces"] == 1 and all(np.isfinite(doc["history"]["loss"]))
     assert (out / "maps" / "albedo" / "room_wall_x0.exr").is_file()
+
+
+def test_a_run_that_reuses_x_pred_resumes_mid_cycle_to_the_same_losses(tiny_scene, rgbx_dir, tmp_path):
+    """--reuse_steps=3 with the rgbx prior: 7 steps in one run, and 4 + 3 resumed (step 4 reuses
+    the x_pred of step 3, which only the checkpointed state holds) give the same loss history, bit
+    for bit; and the reused steps cost no prior pass (one trace, finite losses)."""
+    kw = dict(prior="rgbx", rgbx_dir=str(rgbx_dir), maps=("albedo", "roughness"), reuse_steps=3, renders=False,
+              eval_every=0, log_every=1)
+    full, part = tmp_path / "full", tmp_path / "part"
+    train.run(tiny_config(tiny_scene, full, steps=7, **kw), progress=False)
+    train.run(tiny_config(tiny_scene, part, steps=4, **kw), progress=False)
+    train.run(tiny_config(tiny_scene, part, steps=7, resume=True, **kw), progress=False)
+    a, b = (json.loads((o / "metrics.json").read_text()) for o in (full, part))
+    assert b["resumed_from"] == 4 and a["traces"] == 1 and all(np.isfinite(a["history"]["loss"]))
+    assert a["history"]["loss"] == b["history"]["loss"] and len(a["history"]["loss"]) == 7
+    assert a["ours"] == b["ours"]
+    with pytest.raises(InputError, match="--reuse_steps"):
+        train.run(tiny_config(tiny_scene, part, steps=8, resume=True, **dict(kw, reuse_steps=2)), progress=False)
 
 
 def test_smaller_renders_train_at_their_size_and_evaluate_at_the_photos_size(tiny_scene, tmp_path):
