@@ -368,12 +368,19 @@ def seam_metrics(pred: Mapping[str, np.ndarray], gt: Mapping[str, np.ndarray], p
     return out
 
 
+SEAM_GT_FLOOR = 1e-6
+"""GT seam energies below this (a 0.1 % step, squared) count as none: no ratio is formed."""
+
+
 def seam_ratios(aggregated: Mapping[str, float]) -> dict[str, float]:
-    """`<map>_seam_ratio` = mean seam energy / mean GT seam energy over views, for every map of
-    an `aggregate` of `seam_metrics`: 1 is the ground truth's, above 1 seams show."""
+    """For every map of an `aggregate` of `seam_metrics`: `<map>_seam_excess` = mean seam energy
+    - mean GT seam energy (0 is the ground truth's) and `<map>_seam_ratio` = their quotient (1 is
+    the ground truth's, above 1 seams show), NaN when GT's is below SEAM_GT_FLOOR (a map that is
+    flat across the seams, where only the excess means something)."""
     out = {}
     for key, value in aggregated.items():
         if key.endswith("_seam_energy") and f"{key}_gt" in aggregated:
             gt = aggregated[f"{key}_gt"]
-            out[key.replace("_seam_energy", "_seam_ratio")] = value / gt if gt and gt > 0 else math.nan
+            out[key.replace("_seam_energy", "_seam_excess")] = value - gt
+            out[key.replace("_seam_energy", "_seam_ratio")] = value / gt if gt >= SEAM_GT_FLOOR else math.nan
     return out

@@ -29,6 +29,7 @@ from jaxdistill.models.shipped import model_info
 from jaxdistill.problem import Problem, build_problem, choose_prior, initial_file_values
 from jaxdistill.render.gather_plan import GatherPlan, build_gather_plans
 from jaxdistill.render.sampler import expand, push_pull
+from jaxdistill.summary import summary_table
 
 
 class NonFiniteLoss(RuntimeError):
@@ -173,8 +174,10 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
             traces.check(1)
             bar.update()
             if config.eval_every and done % config.eval_every == 0 and eval_context.gt_maps is not None:
+                _drain(pending, history, bar, state, store, recorded, out)     # the bar shows this step's loss
                 history["eval_step"].append(done)
                 history["albedo_psnr"].append(quick_psnr(state, problem, eval_context))
+                _show(bar, history)
             if config.ckpt_every and done % config.ckpt_every == 0 and done < config.steps:
                 _drain(pending, history, bar, state, store, recorded, out)     # history matches the checkpoint
                 _save(store, state, recorded, history, out)
@@ -210,6 +213,7 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
     })
     (out / "metrics.json").write_text(json.dumps(_json_safe(summary), indent=1))
     logging.info("wrote %s", out / "metrics.json")
+    print(summary_table(_json_safe(summary), out), flush=True)
     return summary
 
 
@@ -228,8 +232,20 @@ def _drain(pending: list, history: dict, bar, state, store, recorded: dict, out:
         history["loss"].append(float(values["loss"]))
     pending.clear()
     if fetched:
-        last = fetched[-1]
-        bar.set_postfix(loss=f"{float(last['loss']):.4g}", t=f"{float(last['t_mean']):.0f}", refresh=False)
+        bar.t_mean = float(fetched[-1]["t_mean"])
+        _show(bar, history)
+
+
+def _show(bar, history: dict) -> None:
+    """The progress bar's postfix: last loss and mean t, and the last eval's albedo PSNR (--eval_every)."""
+    shown = {}
+    if history["loss"]:
+        shown["loss"] = f"{history['loss'][-1]:.4g}"
+    if getattr(bar, "t_mean", None) is not None:
+        shown["t"] = f"{bar.t_mean:.0f}"
+    if history["albedo_psnr"] and math.isfinite(history["albedo_psnr"][-1]):
+        shown["albedo_psnr"] = f"{history['albedo_psnr'][-1]:.2f}dB@{history['eval_step'][-1]}"
+    bar.set_postfix(shown, refresh=False)
 
 
 class EvalContext:

@@ -359,8 +359,12 @@ def test_seam_energy_of_a_step_on_the_boundary_is_the_step_squared():
     assert metrics.seam_energy(off, pairs) == pytest.approx(np.sum(slopes ** 2), rel=1e-12)
     out = metrics.seam_metrics({"roughness": seamy[..., :1]}, {"roughness": smooth[..., :1]}, pairs)
     assert out["roughness_seam_energy"] == pytest.approx((step + 0.01) ** 2, rel=1e-12)
-    ratio = metrics.seam_ratios(metrics.aggregate([out]))["roughness_seam_ratio"]
-    assert ratio == pytest.approx(((step + 0.01) / 0.01) ** 2, rel=1e-9)
+    ratios = metrics.seam_ratios(metrics.aggregate([out]))
+    assert ratios["roughness_seam_ratio"] == pytest.approx(((step + 0.01) / 0.01) ** 2, rel=1e-9)
+    assert ratios["roughness_seam_excess"] == pytest.approx((step + 0.01) ** 2 - 0.01 ** 2, rel=1e-9)
+    flat = metrics.seam_ratios(metrics.aggregate([metrics.seam_metrics(
+        {"metallic": seamy[..., :1]}, {"metallic": np.zeros((h, w, 1))}, pairs)]))
+    assert np.isnan(flat["metallic_seam_ratio"]) and flat["metallic_seam_excess"] == pytest.approx((step + 0.01) ** 2)
 
 
 def test_seam_pairs_and_energy_match_a_loop_reference():
