@@ -275,6 +275,11 @@ def from_opengl(c2w_gl, K, width, height) -> Camera:
     return _from_gl(c2w_gl, K, width, height, "c2w_gl")
 
 
+def to_opengl(camera: Camera) -> np.ndarray:
+    """Returns the camera's OpenGL/glTF c2w (4, 4): x right, y up, looking along -z (from_opengl's inverse)."""
+    return camera.c2w @ _GL_TO_CV
+
+
 def from_nerf_frame(meta: dict, frame: dict, width=None, height=None) -> Camera:
     """Returns a Camera for one `frames[i]` of a NeRF/Blender/nerfstudio `transforms.json`.
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -28,7 +29,7 @@ PRIOR_DTYPES = ("float32", "bfloat16")
 RGBX_DIR_ENV = "JAXDISTILL_RGBX_DIR"
 
 # Flags that may change when a run is resumed; every other flag must match the checkpoint.
-RESUMABLE_FLAGS = ("steps", "resume", "ckpt_every", "out_dir", "log_every", "eval_every", "renders",
+RESUMABLE_FLAGS = ("steps", "resume", "ckpt_every", "keep_checkpoints", "out_dir", "log_every", "eval_every", "renders",
                    "contact_views", "rgbx_dir", "convert_cache", "allow_outside_paths")
 
 
@@ -65,6 +66,7 @@ class DistillConfig:
     views_per_step: int = 8
     seed: int = 0
     ckpt_every: int = 0
+    keep_checkpoints: int = 2
     resume: bool = False
     log_every: int = 10
     eval_every: int = 0
@@ -80,63 +82,67 @@ class DistillConfig:
 _DEFAULTS = DistillConfig(scene="", out_dir="")
 
 
-def define_flags(fv: flags.FlagValues = flags.FLAGS) -> None:
-    """Declares the run's flags on `fv` (defaults are DistillConfig's)."""
+def define_flags(fv: flags.FlagValues = flags.FLAGS, *, main_module: bool = False) -> None:
+    """Declares the run's flags on `fv` (defaults are DistillConfig's). With `main_module` they are
+    declared as the running program's own (key) flags, so `--helpshort`/`--help` list them and
+    `--helpfull` lists them before absl's."""
     d = _DEFAULTS
+    where = {"flag_values": fv, "module_name": sys.argv[0]} if main_module else {"flag_values": fv}
     flags.DEFINE_string("scene", None, "scene.json or its folder ('bedroom' = the embedded bedroom), or a dataset "
                         "read directly as FORMAT:PATH with FORMAT fipt, iris, scannetpp, nerfstudio or colmap "
-                        "(scripts/import_scene.py for its options)", flag_values=fv)
+                        "(scripts/import_scene.py for its options)", **where)
     flags.DEFINE_string("out_dir", None, "output folder (maps, scene.glb, renders, metrics.json, checkpoints)",
-                        flag_values=fv)
-    flags.DEFINE_list("maps", list(d.maps), f"maps to distil, any of {','.join(MAP_NAMES)}", flag_values=fv)
+                        **where)
+    flags.DEFINE_list("maps", list(d.maps), f"maps to distil, any of {','.join(MAP_NAMES)}", **where)
     flags.DEFINE_enum("prior", d.prior, PRIORS, "rgbx: the RGB<->X model; views: the scene's per-view target "
-                      "images; auto: rgbx when weights are found, else views", flag_values=fv)
+                      "images; auto: rgbx when weights are found, else views", **where)
     flags.DEFINE_string("rgbx_dir", None, f"RGB<->X folder (diffusers format); default ${RGBX_DIR_ENV}",
-                        flag_values=fv)
-    flags.DEFINE_string("convert_cache", None, "cache folder for converted RGB<->X weights", flag_values=fv)
+                        **where)
+    flags.DEFINE_string("convert_cache", None, "cache folder for converted RGB<->X weights", **where)
     flags.DEFINE_enum("prior_dtype", d.prior_dtype, PRIOR_DTYPES, "activation dtype of the frozen networks "
-                      "(texels, loss and optimizer are always float32)", flag_values=fv)
-    flags.DEFINE_integer("steps", d.steps, "optimisation steps", flag_values=fv)
-    flags.DEFINE_float("lr", d.lr, "AdamW learning rate", flag_values=fv)
+                      "(texels, loss and optimizer are always float32)", **where)
+    flags.DEFINE_integer("steps", d.steps, "optimisation steps", **where)
+    flags.DEFINE_float("lr", d.lr, "AdamW learning rate", **where)
     flags.DEFINE_enum("lr_schedule", d.lr_schedule, LR_SCHEDULES, "constant (thesis) or cosine decay to 0 over "
-                      "--steps", flag_values=fv)
-    flags.DEFINE_float("weight_decay", d.weight_decay, "AdamW weight decay", flag_values=fv)
-    flags.DEFINE_float("t_min", d.t_min, "smallest diffusion time, fraction of 1000 steps", flag_values=fv)
-    flags.DEFINE_float("t_max", d.t_max, "largest diffusion time, fraction of 1000 steps", flag_values=fv)
+                      "--steps", **where)
+    flags.DEFINE_float("weight_decay", d.weight_decay, "AdamW weight decay", **where)
+    flags.DEFINE_float("t_min", d.t_min, "smallest diffusion time, fraction of 1000 steps", **where)
+    flags.DEFINE_float("t_max", d.t_max, "largest diffusion time, fraction of 1000 steps", **where)
     flags.DEFINE_enum("anneal", d.anneal, ANNEALING, "shrink the upper end of the t range from t_max to t_min "
-                      "over the run (linear or sqrt in the step)", flag_values=fv)
+                      "over the run (linear or sqrt in the step)", **where)
     flags.DEFINE_enum("t_weighting", d.t_weighting, T_WEIGHTINGS, "w(t) per sample: none (1) or sds (1 - alpha_bar_t)",
-                      flag_values=fv)
-    flags.DEFINE_float("w_t", d.w_t, "text guidance weight (eq. 4.2)", flag_values=fv)
-    flags.DEFINE_float("w_i", d.w_i, "image guidance weight (eq. 4.2)", flag_values=fv)
+                      **where)
+    flags.DEFINE_float("w_t", d.w_t, "text guidance weight (eq. 4.2)", **where)
+    flags.DEFINE_float("w_i", d.w_i, "image guidance weight (eq. 4.2)", **where)
     flags.DEFINE_enum("loss_space", d.loss_space, LOSS_SPACES, "image: MSE of renders (thesis default); latent: "
-                      "MSE of VAE latents (the thesis's ablation; backpropagates through the encoder)", flag_values=fv)
+                      "MSE of VAE latents (the thesis's ablation; backpropagates through the encoder)", **where)
     flags.DEFINE_enum("latent", d.latent, LATENT_MODES, "VAE encoding of renders: the mode or a sample",
-                      flag_values=fv)
+                      **where)
     flags.DEFINE_bool("visibility_weighting", d.visibility_weighting, "weight pixels by 1 / (2 clip(V, 1, 6))",
-                      flag_values=fv)
-    flags.DEFINE_float("p_keep", d.p_keep, "image-space dropout: probability a pixel counts in a step", flag_values=fv)
+                      **where)
+    flags.DEFINE_float("p_keep", d.p_keep, "image-space dropout: probability a pixel counts in a step", **where)
     flags.DEFINE_integer("reuse_steps", d.reuse_steps, "rgbx prior: take K AdamW steps on the same views towards "
                          "one x_pred before the prior runs again (1 = a new x_pred every step, the thesis; K > 1 costs "
-                         "1/K of the prior per step, like Instruct-NeRF2NeRF's iterative dataset update)",
-                         flag_values=fv)
+                         "1/K of the prior per step, like Instruct-NeRF2NeRF's iterative dataset update)", **where)
     flags.DEFINE_integer("render_size", d.render_size, "longer side of the renders in pixels; 0 = the photos' size",
-                         flag_values=fv)
-    flags.DEFINE_string("texture_size", d.texture_size, "page side (power of two) or 'auto'", flag_values=fv)
-    flags.DEFINE_integer("max_texture_size", d.max_texture_size, "cap for --texture_size=auto", flag_values=fv)
-    flags.DEFINE_enum("sampler", d.sampler, SAMPLERS, "texture sampler", flag_values=fv)
-    flags.DEFINE_integer("views_per_step", d.views_per_step, "views per step (split over devices)", flag_values=fv)
-    flags.DEFINE_integer("seed", d.seed, "seed of everything random in the run", flag_values=fv)
-    flags.DEFINE_integer("ckpt_every", d.ckpt_every, "checkpoint every N steps (0: only at the end)", flag_values=fv)
-    flags.DEFINE_bool("resume", d.resume, "continue from the latest complete checkpoint in out_dir", flag_values=fv)
-    flags.DEFINE_integer("log_every", d.log_every, "fetch the step metrics (loss history, progress bar, NaN check) every N steps", flag_values=fv)
+                         **where)
+    flags.DEFINE_string("texture_size", d.texture_size, "page side (power of two) or 'auto'", **where)
+    flags.DEFINE_integer("max_texture_size", d.max_texture_size, "cap for --texture_size=auto", **where)
+    flags.DEFINE_enum("sampler", d.sampler, SAMPLERS, "texture sampler", **where)
+    flags.DEFINE_integer("views_per_step", d.views_per_step, "views per step (split over devices)", **where)
+    flags.DEFINE_integer("seed", d.seed, "seed of everything random in the run", **where)
+    flags.DEFINE_integer("ckpt_every", d.ckpt_every, "checkpoint every N steps (0: only at the end)", **where)
+    flags.DEFINE_integer("keep_checkpoints", d.keep_checkpoints, "keep the newest N checkpoints (0: keep all); "
+                         "a damaged newest one falls back to the one before, so keep >= 2 to resume safely", **where)
+    flags.DEFINE_bool("resume", d.resume, "continue from the latest complete checkpoint in out_dir", **where)
+    flags.DEFINE_integer("log_every", d.log_every, "fetch the step metrics (loss history, progress bar, NaN check) every N steps", **where)
     flags.DEFINE_integer("eval_every", d.eval_every, "evaluate against GT every N steps (0: only at the end)",
-                         flag_values=fv)
-    flags.DEFINE_bool("renders", d.renders, "write renders of every view for every map", flag_values=fv)
-    flags.DEFINE_integer("contact_views", d.contact_views, "views in the contact sheet", flag_values=fv)
+                         **where)
+    flags.DEFINE_bool("renders", d.renders, "write renders of every view for every map", **where)
+    flags.DEFINE_integer("contact_views", d.contact_views, "views in the contact sheet", **where)
     flags.DEFINE_bool("allow_outside_paths", d.allow_outside_paths, "let scene files (scene.json, gt.json, "
                       "scene configs) name files outside their folder (../, absolute paths); off: refused, for "
-                      "scenes from elsewhere", flag_values=fv)
+                      "scenes from elsewhere", **where)
 
 
 def config_from_flags(fv: flags.FlagValues = flags.FLAGS) -> DistillConfig:
@@ -184,7 +190,7 @@ def validate(config: DistillConfig) -> DistillConfig:
         bad("max_texture_size", f"must be a power of two >= 8, got {c.max_texture_size}")
     if c.views_per_step < 1:
         bad("views_per_step", f"must be >= 1, got {c.views_per_step}")
-    for name in ("ckpt_every", "log_every", "eval_every", "contact_views"):
+    for name in ("ckpt_every", "keep_checkpoints", "log_every", "eval_every", "contact_views"):
         if getattr(c, name) < 0:
             bad(name, f"must be >= 0, got {getattr(c, name)}")
     if c.log_every == 0:

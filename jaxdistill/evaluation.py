@@ -196,10 +196,48 @@ def render_views(texels, plan: GatherPlan, cameras: Sequence, channels: MapChann
     return out
 
 
-def evaluate(pred: Sequence[dict], gt: Sequence[dict], masks: Sequence[np.ndarray]) -> dict[str, float]:
-    """Mean metrics over views (metrics.evaluate_view per view, then metrics.aggregate)."""
-    return metrics.aggregate([metrics.evaluate_view(p, {k: g[k] for k in p if k in g}, m)
-                              for p, g, m in zip(pred, gt, masks)])
+def evaluate(pred: Sequence[dict], gt: Sequence[dict], masks: Sequence[np.ndarray],
+             seams: Sequence[tuple] | None = None) -> dict[str, float]:
+    """Mean metrics over views (metrics.evaluate_view per view, then metrics.aggregate); with
+    `seams` (per view `metrics.seam_pairs`) also the seam metrics and their ratios to GT's."""
+    per_view = []
+    for v, (p, g, m) in enumerate(zip(pred, gt, masks)):
+        shared = {k: g[k] for k in p if k in g}
+        values = metrics.evaluate_view(p, shared, m)
+        if seams is not None:
+            values.update(metrics.seam_metrics(p, shared, seams[v], m))
+        per_view.append(values)
+    out = metrics.aggregate(per_view)
+    out.update(metrics.seam_ratios(out))
+    return out
+
+
+def dominant_views(index: np.ndarray, weight: np.ndarray, size: int) -> np.ndarray:
+    """(size,) int32: per compact pyramid entry, the view whose taps read it with the largest
+    summed weight (the view that supplies most of its evidence), -1 where no view reads it.
+    index, weight: (V, P, T) gather plans of all views (ties go to the lower view)."""
+    best = np.zeros(size, np.float64)
+    owner = np.full(size, -1, np.int32)
+    for v in range(index.shape[0]):
+        w = np.bincount(np.asarray(index[v]).ravel(), weights=np.asarray(weight[v], np.float64).ravel(), minlength=size)
+        better = w > best
+        best[better], owner[better] = w[better], v
+    return owner
+
+
+def seam_regions(plan: GatherPlan, fragments: Sequence, owner: np.ndarray) -> list[np.ndarray]:
+    """Per view, (H, W) int64 region labels whose changes are seams: the triangle a pixel sees
+    (triangle and chart boundaries) and the footprint it reads, i.e. the view that supplies
+    most of the evidence (`dominant_views`) of the pyramid entry its heaviest tap reads. -1 on misses."""
+    index, weight = np.asarray(plan.index), np.asarray(plan.weight)
+    index, weight = index.reshape(-1, *index.shape[-2:]), weight.reshape(-1, *weight.shape[-2:])
+    views = int(owner.max(initial=-1)) + 2
+    out = []
+    for v, frag in enumerate(fragments):
+        heaviest = index[v][np.arange(index.shape[1]), np.argmax(weight[v], axis=1)]
+        footprint = owner[heaviest].reshape(frag.shape).astype(np.int64) + 1
+        out.append(np.where(frag.hit, frag.triangle.astype(np.int64) * views + footprint, -1))
+    return out
 
 
 def albedo_psnr(pred: Sequence[dict], gt: Sequence[dict], masks: Sequence[np.ndarray]) -> float:

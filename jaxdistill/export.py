@@ -16,8 +16,10 @@ on page 0 ("atlas" layout). matplotlib is imported only by the plotting function
 
 from __future__ import annotations
 
+import json
 import os
 import re
+import struct
 from pathlib import Path
 from typing import Mapping, Sequence
 
@@ -25,6 +27,7 @@ import numpy as np
 
 from jaxdistill import MAP_NAMES
 from jaxdistill import imageio
+from jaxdistill.cameras import Camera, to_opengl
 from jaxdistill.scene import Mesh
 
 MAP_CHANNELS = {"albedo": 3, "normal": 3, "roughness": 1, "metallic": 1, "irradiance": 3}
@@ -250,6 +253,28 @@ def _dilate_ids(ids: np.ndarray, passes: int) -> np.ndarray:
     return ids
 
 
+EVIDENCE_FULL = 1.0  # texel evidence (summed tap weight, visibility.texel_evidence) at which a texel is fully trusted
+
+
+def chart_coverage(mesh: Mesh, object_page: Sequence[int], page_sizes: Sequence[int], *,
+                   dilate: int = 1) -> list[np.ndarray]:
+    """Per page, (S, S) bool: texels whose centre some face of the page's objects covers in UV
+    space, grown by `dilate` texels (the neighbours a bilinear lookup inside a chart reads).
+    Texels outside are never seen through the mesh at level 0: only mip levels blend them in."""
+    face_page = _check_mesh_pages(mesh, object_page, len(page_sizes))
+    uv = np.asarray(mesh.uv, np.float64)
+    return [_dilate_ids(_rasterise_uv(uv, np.nonzero(face_page == p)[0], int(size)), dilate) >= 0
+            for p, size in enumerate(page_sizes)]
+
+
+def page_trust(evidence_pages: Sequence[np.ndarray], coverage: Sequence[np.ndarray]) -> list[np.ndarray]:
+    """Per page, (S, S) float32 in [0, 1]: how far a texel's distilled value is kept in the
+    exported page (`sampler.push_pull` fills the rest from its neighbours): evidence /
+    EVIDENCE_FULL clipped to 1 inside the charts (`chart_coverage`), 0 outside them."""
+    return [np.where(c, np.clip(np.asarray(e, np.float32).reshape(c.shape) / EVIDENCE_FULL, 0.0, 1.0), 0.0)
+            .astype(np.float32) for e, c in zip(evidence_pages, coverage)]
+
+
 def tangent_space_normals(world_pages: Sequence[np.ndarray], mesh: Mesh, object_page: Sequence[int], *,
                           dilate: int = SEAM_DILATION) -> list[np.ndarray]:
     """World-space normal pages -> glTF tangent-space normal pages, encoded (t + 1) / 2.
@@ -339,7 +364,8 @@ def _material_images(pages: Mapping[str, Sequence[np.ndarray]], mesh: Mesh, obje
                                    len(next(iter(pages.values()))))
 
 
-def write_gltf(path, mesh: Mesh, object_page: Sequence[int], pages: Mapping[str, Sequence[np.ndarray]]) -> Path:
+def write_gltf(path, mesh: Mesh, object_page: Sequence[int], pages: Mapping[str, Sequence[np.ndarray]],
+               cameras: Sequence[tuple[str, Camera]] = ()) -> Path:
     """Writes a binary glTF (.glb) of the textured mesh with trimesh; returns the path.
 
     One node and geometry per object, named by the object (objects without faces are left
@@ -351,16 +377,19 @@ def write_gltf(path, mesh: Mesh, object_page: Sequence[int], pages: Mapping[str,
     metallic but no roughness G is 255); with neither there is no such texture and
     metallicFactor is 0 (a rough dielectric, not glTF's default full metal). Irradiance has no
     place in a glTF material and is not written. trimesh writes TEXCOORD_0 as (u, 1 - v), so a
-    texel's row 0 (our v = 1) is the image's top row, as glTF samples it.
+    texel's row 0 (our v = 1) is the image's top row, as glTF samples it. Every primitive also
+    carries NORMAL and TANGENT (`vertex_frames`, the frames `tangent_space_normals` encodes the
+    normal pages in), and `cameras` ((name, Camera) pairs) become glTF cameras (`gltf_camera`).
     """
     if Path(path).suffix.lower() != ".glb":
         raise ValueError(f"{path}: write_gltf writes binary glTF; use a .glb file name")
     checked = _check_pages(pages, object_page)
     _check_mesh_pages(mesh, object_page, len(next(iter(checked.values()))))
-    return write_gltf_images(path, mesh, object_page, _material_images(checked, mesh, object_page))
+    return write_gltf_images(path, mesh, object_page, _material_images(checked, mesh, object_page), cameras)
 
 
-def write_gltf_images(path, mesh: Mesh, object_page: Sequence[int], material_images: Sequence[dict]) -> Path:
+def write_gltf_images(path, mesh: Mesh, object_page: Sequence[int], material_images: Sequence[dict],
+                      cameras: Sequence[tuple[str, Camera]] = ()) -> Path:
     """`write_gltf` from per-page uint8 material images (`combine_material_layers`), so the
     float pages of every map never need to be in memory at once."""
     import PIL.Image
@@ -388,12 +417,130 @@ def write_gltf_images(path, mesh: Mesh, object_page: Sequence[int], material_ima
         geom = trimesh.Trimesh(vertices=vertices, faces=np.arange(len(vertices)).reshape(-1, 3),
                                visual=visual, process=False)
         scene.add_geometry(geom, geom_name=name, node_name=name)
-    data = scene.export(file_type="glb")
+    data = complete_glb(scene.export(file_type="glb"), mesh, cameras)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_bytes(data)
     os.replace(tmp, path)
     return path
+
+
+GLB_MAGIC, GLB_JSON, GLB_BIN = 0x46546C67, 0x4E4F534A, 0x004E4942
+ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER = 34962, 34963
+ZNEAR_FRACTION = 1e-3  # a camera's znear, as a fraction of the mesh's bounding-box diagonal
+
+
+def vertex_frames(mesh: Mesh, face_ids) -> tuple[np.ndarray, np.ndarray]:
+    """(normals (3n, 3), tangents (3n, 4)) float32 of the un-welded corners of faces `face_ids`
+    (three per face, in face order, as `write_gltf_images` writes them).
+
+    A corner gets its face's frame from `_face_frames`: NORMAL = N, TANGENT = (T, w) with
+    w = +1 when B = cross(N, T) and -1 when the UVs are mirrored (glTF's bitangent is
+    cross(N, T) * w). For flat faces this is MikkTSpace's frame, the one `tangent_space_normals`
+    encodes the normal pages in. Degenerate faces (no area in space or UV) get a unit normal
+    (their own when it exists, else +Z) and any unit tangent perpendicular to it, w = +1."""
+    tangent, bitangent, normal, valid = _face_frames(mesh)
+    face_ids = np.asarray(face_ids, np.int64)
+    t, b, n, ok = tangent[face_ids], bitangent[face_ids], normal[face_ids], valid[face_ids]
+    n_ok = np.isfinite(n).all(axis=1) & (np.abs(np.linalg.norm(n, axis=1) - 1.0) < 1e-6)
+    n = np.where(n_ok[:, None], n, [0.0, 0.0, 1.0])
+    other = np.where(np.abs(n[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    fallback = np.cross(n, other)
+    fallback /= np.linalg.norm(fallback, axis=1, keepdims=True)
+    t = np.where(ok[:, None], t, fallback)
+    w = np.where(ok, np.sign(np.sum(np.cross(n, t) * b, axis=1)), 1.0)
+    tangents = np.concatenate([t, w[:, None]], axis=1)
+    return (np.repeat(n, 3, axis=0).astype(np.float32), np.repeat(tangents, 3, axis=0).astype(np.float32))
+
+
+def gltf_camera(name: str, camera: Camera, znear: float) -> tuple[dict, list[float]]:
+    """(glTF camera object, node matrix column-major (16,)) of an OpenCV camera.
+
+    glTF's perspective camera looks down its node's -Z with +Y up: the node matrix is
+    `cameras.to_opengl(camera)`. yfov = 2 atan(H / (2 fy)) and aspectRatio = (W / fx) / (H / fy),
+    so a point at the image's centre line projects as K does. glTF has no principal point: a
+    camera whose (cx, cy) is off (W/2, H/2) is shifted by that many pixels in glTF viewers; its
+    exact K, size and the shift in pixels are kept in the camera's `extras` (`jaxdistill_K`,
+    `width`, `height`, `principal_point_offset_px`)."""
+    K = np.asarray(camera.K, np.float64)
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    w, h = camera.width, camera.height
+    perspective = {"yfov": float(2.0 * np.arctan(h / (2.0 * fy))), "aspectRatio": float((w / fx) / (h / fy)),
+                   "znear": float(znear)}
+    extras = {"jaxdistill_K": K.tolist(), "width": int(w), "height": int(h),
+              "principal_point_offset_px": [float(cx - w / 2.0), float(cy - h / 2.0)]}
+    obj = {"type": "perspective", "name": name, "perspective": perspective, "extras": extras}
+    return obj, [float(x) for x in to_opengl(camera).T.reshape(-1)]
+
+
+def read_glb(data: bytes) -> tuple[dict, bytes]:
+    """(JSON document, BIN chunk) of a binary glTF; ValueError when it is not one."""
+    if len(data) < 20 or struct.unpack_from("<I", data, 0)[0] != GLB_MAGIC:
+        raise ValueError("not a binary glTF (no glTF magic)")
+    length, kind = struct.unpack_from("<II", data, 12)
+    if kind != GLB_JSON:
+        raise ValueError("binary glTF: the first chunk is not JSON")
+    doc = json.loads(data[20:20 + length])
+    offset, binary = 20 + length, b""
+    if offset + 8 <= len(data):
+        bin_length, bin_kind = struct.unpack_from("<II", data, offset)
+        if bin_kind == GLB_BIN:
+            binary = data[offset + 8:offset + 8 + bin_length]
+    return doc, binary
+
+
+def _glb_bytes(doc: dict, binary: bytes) -> bytes:
+    """A binary glTF of `doc` and its BIN chunk (chunks padded to 4 bytes: JSON with spaces)."""
+    text = json.dumps(doc, separators=(",", ":")).encode()
+    text += b" " * (-len(text) % 4)
+    binary += b"\0" * (-len(binary) % 4)
+    chunks = struct.pack("<II", len(text), GLB_JSON) + text + struct.pack("<II", len(binary), GLB_BIN) + binary
+    return struct.pack("<III", GLB_MAGIC, 2, 12 + len(chunks)) + chunks
+
+
+def complete_glb(data: bytes, mesh: Mesh, cameras: Sequence[tuple[str, Camera]] = ()) -> bytes:
+    """trimesh's glb of `write_gltf_images` with what it lacks for glTF-Validator and viewers:
+    NORMAL and TANGENT on every object's primitive (`vertex_frames`), buffer-view targets, and a
+    camera node per (name, Camera) (`gltf_camera`), added to the scene."""
+    doc, binary = read_glb(data)
+    binary = bytearray(binary)
+    views, accessors = doc.setdefault("bufferViews", []), doc.setdefault("accessors", [])
+
+    def append(array: np.ndarray, kind: str) -> int:
+        binary.extend(b"\0" * (-len(binary) % 4))
+        views.append({"buffer": 0, "byteOffset": len(binary), "byteLength": array.nbytes, "target": ARRAY_BUFFER})
+        binary.extend(np.ascontiguousarray(array, "<f4").tobytes())
+        accessors.append({"bufferView": len(views) - 1, "componentType": 5126, "count": len(array), "type": kind})
+        return len(accessors) - 1
+
+    objects = {name: i for i, name in enumerate(mesh.object_names)}
+    for node in doc.get("nodes", []):
+        if "mesh" not in node or node.get("name") not in objects:
+            continue
+        face_ids = np.nonzero(mesh.face_object == objects[node["name"]])[0]
+        normals, tangents = vertex_frames(mesh, face_ids)
+        for primitive in doc["meshes"][node["mesh"]]["primitives"]:
+            count = accessors[primitive["attributes"]["POSITION"]]["count"]
+            if count != len(normals):
+                raise AssertionError(f"glTF mesh {node['name']!r}: {count} vertices, expected {len(normals)} "
+                                     "(three per face, un-welded)")
+            primitive["attributes"]["NORMAL"] = append(normals, "VEC3")
+            primitive["attributes"]["TANGENT"] = append(tangents, "VEC4")
+    for primitive in (p for m in doc.get("meshes", []) for p in m["primitives"]):
+        for accessor, target in [(a, ARRAY_BUFFER) for a in primitive["attributes"].values()] + (
+                [(primitive["indices"], ELEMENT_ARRAY_BUFFER)] if "indices" in primitive else []):
+            views[accessors[accessor]["bufferView"]].setdefault("target", target)
+    if cameras:
+        lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
+        znear = ZNEAR_FRACTION * max(float(np.linalg.norm(hi - lo)), 1e-6)
+        nodes, scene_nodes = doc.setdefault("nodes", []), doc["scenes"][doc.get("scene", 0)].setdefault("nodes", [])
+        for name, camera in cameras:
+            obj, matrix = gltf_camera(name, camera, znear)
+            doc.setdefault("cameras", []).append(obj)
+            nodes.append({"name": name, "camera": len(doc["cameras"]) - 1, "matrix": matrix})
+            scene_nodes.append(len(nodes) - 1)
+    doc["buffers"] = [{"byteLength": len(binary) + (-len(binary) % 4)}]
+    return _glb_bytes(doc, bytes(binary))
 
 
 # ----------------------------------------------------------------------------- plots

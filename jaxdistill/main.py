@@ -45,5 +45,5 @@ def main(argv) -> None:
 
 
 if __name__ == "__main__":
-    config_lib.define_flags(FLAGS)
+    config_lib.define_flags(FLAGS, main_module=True)
     app.run(main)

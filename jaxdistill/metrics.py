@@ -301,3 +301,86 @@ def aggregate(per_view: Sequence[Mapping[str, float]]) -> dict[str, float]:
         out[key] = float(np.mean(v)) if v.size else math.nan
     out["num_views"] = len(per_view)
     return out
+
+
+# ----------------------------------------------------------------------------- seams
+
+def seam_pairs(region, object_id, mask=None) -> tuple[np.ndarray, np.ndarray]:
+    """(a, b) flat pixel indices of the 4-neighbour pairs that straddle a seam.
+
+    region: (H, W) int labels whose changes are seams (a triangle, a chart, the view that
+    supplies a texel's evidence: see `evaluation.seam_regions`); object_id: (H, W) int, the
+    object a pixel sees. A pair is a pixel and its right or lower neighbour, both in `mask`,
+    on the same object (object outlines are edges in any map, not seams), with different
+    regions. Row-major flat indices into H * W.
+    """
+    region, object_id = np.asarray(region), np.asarray(object_id)
+    if region.ndim != 2 or object_id.shape != region.shape:
+        raise ValueError(f"region and object_id must be (H, W) arrays of one shape, got {region.shape} and "
+                         f"{object_id.shape}")
+    mask = _mask(mask, region.shape)
+    index = np.arange(region.size).reshape(region.shape)
+    firsts, seconds = [], []
+    for a, b in ((np.s_[:, :-1], np.s_[:, 1:]), (np.s_[:-1, :], np.s_[1:, :])):
+        keep = (mask[a] & mask[b] & (object_id[a] == object_id[b]) & (region[a] != region[b]))
+        firsts.append(index[a][keep])
+        seconds.append(index[b][keep])
+    return np.concatenate(firsts), np.concatenate(seconds)
+
+
+def seam_energy(image, pairs: tuple[np.ndarray, np.ndarray]) -> float:
+    """Mean over the seam `pairs` of the squared difference across them, summed over channels
+    (the image's gradient energy on seams); NaN when there is no pair."""
+    image = _image(image, "image")
+    flat = image.reshape(image.shape[0] * image.shape[1], -1)
+    a, b = pairs
+    if len(a) == 0:
+        return math.nan
+    return float(np.mean(np.sum((flat[a] - flat[b]) ** 2, axis=1)))
+
+
+def _seam_values(name: str, pred: np.ndarray, gt: np.ndarray, mask) -> tuple[np.ndarray, np.ndarray]:
+    """(pred, gt) of one map as the seam metric compares them: albedo clipped and sRGB-encoded,
+    roughness/metallic channel 0, normals as vectors, irradiance scale-fitted onto gt (per
+    channel) and both divided by gt's peak (exposure-free, as `irradiance_si_psnr`)."""
+    p, g = _image(pred, "pred"), _image(gt, "gt")
+    if name == "albedo":
+        return _srgb_encode(np.clip(p, 0.0, 1.0)), _srgb_encode(np.clip(g, 0.0, 1.0))
+    if name in ("roughness", "metallic"):
+        return (p if p.ndim == 2 else p[:, :, 0]), (g if g.ndim == 2 else g[:, :, 0])
+    if name == "irradiance":
+        m = _mask(mask, g.shape[:2])
+        peak = float(np.max(g[m])) if m.any() else 1.0
+        peak = peak if peak > 0 else 1.0
+        return scale_invariant(p, g, mask)[0] / peak, g / peak
+    return p, g
+
+
+def seam_metrics(pred: Mapping[str, np.ndarray], gt: Mapping[str, np.ndarray], pairs, mask=None) -> dict[str, float]:
+    """Per map in both: `<map>_seam_energy` (`seam_energy` of pred on the seam `pairs`) and
+    `<map>_seam_energy_gt` (the same of gt, which has no seams of ours: what pred should have)."""
+    out: dict[str, float] = {}
+    for name in MAP_NAMES:
+        if name in pred and name in gt:
+            p, g = _seam_values(name, pred[name], gt[name], mask)
+            out[f"{name}_seam_energy"] = seam_energy(p, pairs)
+            out[f"{name}_seam_energy_gt"] = seam_energy(g, pairs)
+    return out
+
+
+SEAM_GT_FLOOR = 1e-6
+"""GT seam energies below this (a 0.1 % step, squared) count as none: no ratio is formed."""
+
+
+def seam_ratios(aggregated: Mapping[str, float]) -> dict[str, float]:
+    """For every map of an `aggregate` of `seam_metrics`: `<map>_seam_excess` = mean seam energy
+    - mean GT seam energy (0 is the ground truth's) and `<map>_seam_ratio` = their quotient (1 is
+    the ground truth's, above 1 seams show), NaN when GT's is below SEAM_GT_FLOOR (a map that is
+    flat across the seams, where only the excess means something)."""
+    out = {}
+    for key, value in aggregated.items():
+        if key.endswith("_seam_energy") and f"{key}_gt" in aggregated:
+            gt = aggregated[f"{key}_gt"]
+            out[key.replace("_seam_energy", "_seam_excess")] = value - gt
+            out[key.replace("_seam_energy", "_seam_ratio")] = value / gt if gt >= SEAM_GT_FLOOR else math.nan
+    return out

@@ -28,7 +28,8 @@ from jaxdistill.maps import INITIAL_VALUE, MapChannels, file_to_model
 from jaxdistill.render import fragments as fr
 from jaxdistill.render.gather_plan import TexelSpace, build_gather_plans, build_texel_space
 from jaxdistill.render.layout import make_layout
-from jaxdistill.render.visibility import check_coverage, hit_fractions, pixel_weights, view_counts
+from jaxdistill.render.visibility import (check_coverage, hit_fractions, pixel_weights, texel_evidence,
+                                         view_counts)
 from jaxdistill.scene import Scene
 from jaxdistill.scene_paths import resolve_scene_path  # noqa: F401  (--scene as a path; scripts use it from here)
 from jaxdistill.view_images import read_mask, read_target, resize
@@ -118,7 +119,8 @@ class Problem:
 
     plan_index (V, P, T) int32 / plan_weight (V, P, T) float32 / plan_hit (V, P) bool: gather
     plans of all views at (height, width); pixel_weight (V, H, W) float32 loss weights;
-    counts (N,) int32 view counts per texel; normal_rotation (V, 3, 3) float32.
+    counts (N,) int32 view counts per texel; evidence (N,) float32 summed tap weights per texel
+    (`visibility.texel_evidence`); normal_rotation (V, 3, 3) float32.
     """
 
     scene: Scene
@@ -136,6 +138,7 @@ class Problem:
     plan_hit: np.ndarray
     pixel_weight: np.ndarray
     counts: np.ndarray
+    evidence: np.ndarray
     normal_rotation: np.ndarray
     timings: dict
     rgbx_model: Any = None            # the loaded RgbxPrior (rgbx prior only): per-view estimates use it
@@ -282,6 +285,7 @@ def _build_problem(config: DistillConfig, *, cache_dir=None, check_scene=None) -
     check_state_fits(space.num_texels, channels.num_channels, config, layout.full_size())
     plan = build_gather_plans(frags, space, config.sampler)
     counts = view_counts(plan, space.num_texels)
+    evidence = texel_evidence(plan, space.num_texels)
     if config.visibility_weighting:
         weights = np.asarray(pixel_weights(plan, counts), np.float32)
     else:
@@ -309,7 +313,7 @@ def _build_problem(config: DistillConfig, *, cache_dir=None, check_scene=None) -
     return Problem(scene=scene, channels=channels, choice=choice, prior=prior, frozen=frozen, space=space,
                    fragments=frags, native_fragments=native_frags, height=height, width=width, plan_index=np.asarray(plan.index),
                    plan_weight=np.asarray(plan.weight), plan_hit=np.asarray(plan.hit), pixel_weight=weights,
-                   counts=counts, normal_rotation=rotations, timings=timings,
+                   counts=counts, evidence=evidence, normal_rotation=rotations, timings=timings,
                    rgbx_model=model)
 
 

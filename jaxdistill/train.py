@@ -19,7 +19,7 @@ import numpy as np
 from absl import logging
 from tqdm.auto import tqdm
 
-from jaxdistill import MAP_NAMES, checkpoint, evaluation, export, imageio, model_estimates
+from jaxdistill import MAP_NAMES, checkpoint, evaluation, export, imageio, metrics, model_estimates
 from jaxdistill.config import DistillConfig, check_views_per_step, resumable_flags
 from jaxdistill.distill import (StepSettings, data_mesh, init_state, initial_reused, jit_step, make_optimizer,
                                 make_step)
@@ -28,7 +28,8 @@ from jaxdistill.maps import model_to_file
 from jaxdistill.models.shipped import model_info
 from jaxdistill.problem import Problem, build_problem, choose_prior, initial_file_values
 from jaxdistill.render.gather_plan import GatherPlan, build_gather_plans
-from jaxdistill.render.sampler import expand
+from jaxdistill.render.sampler import expand, push_pull
+from jaxdistill.summary import summary_table
 
 
 class NonFiniteLoss(RuntimeError):
@@ -147,7 +148,7 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
     history = {"step": [], "loss": [], "eval_step": [], "albedo_psnr": []}
 
     out.mkdir(parents=True, exist_ok=True)
-    store = checkpoint.CheckpointStore(out / "checkpoints")
+    store = checkpoint.CheckpointStore(out / "checkpoints", max_to_keep=config.keep_checkpoints or None)
     if latest is not None:
         state, _ = store.restore(latest, state)
         if _history_path(out).is_file():
@@ -182,8 +183,10 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
             traces.check(1)
             bar.update()
             if config.eval_every and done % config.eval_every == 0 and eval_context.gt_maps is not None:
+                _drain(pending, history, bar, state, store, recorded, out)     # the bar shows this step's loss
                 history["eval_step"].append(done)
                 history["albedo_psnr"].append(quick_psnr(state, problem, eval_context))
+                _show(bar, history)
             if config.ckpt_every and done % config.ckpt_every == 0 and done < config.steps:
                 _drain(pending, history, bar, state, store, recorded, out)     # history matches the checkpoint
                 _save(store, state, recorded, history, out)
@@ -219,6 +222,7 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
     })
     (out / "metrics.json").write_text(json.dumps(_json_safe(summary), indent=1))
     logging.info("wrote %s", out / "metrics.json")
+    print(summary_table(_json_safe(summary), out), flush=True)
     return summary
 
 
@@ -237,16 +241,28 @@ def _drain(pending: list, history: dict, bar, state, store, recorded: dict, out:
         history["loss"].append(float(values["loss"]))
     pending.clear()
     if fetched:
-        last = fetched[-1]
-        bar.set_postfix(loss=f"{float(last['loss']):.4g}", t=f"{float(last['t_mean']):.0f}", refresh=False)
+        bar.t_mean = float(fetched[-1]["t_mean"])
+        _show(bar, history)
+
+
+def _show(bar, history: dict) -> None:
+    """The progress bar's postfix: last loss and mean t, and the last eval's albedo PSNR (--eval_every)."""
+    shown = {}
+    if history["loss"]:
+        shown["loss"] = f"{history['loss'][-1]:.4g}"
+    if getattr(bar, "t_mean", None) is not None:
+        shown["t"] = f"{bar.t_mean:.0f}"
+    if history["albedo_psnr"] and math.isfinite(history["albedo_psnr"][-1]):
+        shown["albedo_psnr"] = f"{history['albedo_psnr'][-1]:.2f}dB@{history['eval_step'][-1]}"
+    bar.set_postfix(shown, refresh=False)
 
 
 class EvalContext:
     """Native-resolution fragments, cameras, GT maps and masks, built once for evaluation."""
 
-    def __init__(self, gt, fragments, cameras, gt_maps, masks, plan):
+    def __init__(self, gt, fragments, cameras, gt_maps, masks, plan, seams):
         self.gt, self.fragments, self.cameras, self.gt_maps, self.masks = gt, fragments, cameras, gt_maps, masks
-        self.plan = plan
+        self.plan, self.seams = plan, seams
 
 
 def evaluation_context(config: DistillConfig, problem: Problem) -> EvalContext:
@@ -262,7 +278,11 @@ def evaluation_context(config: DistillConfig, problem: Problem) -> EvalContext:
     else:
         plan = build_gather_plans(frags, problem.space, config.sampler)
     gt, gt_maps = evaluation.view_ground_truth(scene, frags)
-    return EvalContext(gt, frags, cameras, gt_maps, evaluation.evaluation_masks(gt, scene, frags), plan)
+    masks = evaluation.evaluation_masks(gt, scene, frags)
+    owner = evaluation.dominant_views(problem.plan_index, problem.plan_weight, problem.space.pyramid_size)
+    seams = [metrics.seam_pairs(region, f.object_id, m)
+             for region, f, m in zip(evaluation.seam_regions(plan, frags, owner), frags, masks)]
+    return EvalContext(gt, frags, cameras, gt_maps, masks, plan, seams)
 
 
 def quick_psnr(state, problem: Problem, ctx: EvalContext) -> float:
@@ -280,19 +300,22 @@ def write_outputs(config: DistillConfig, problem: Problem, texels: np.ndarray, h
     """maps/, scene.glb, renders/, contact sheets, loss.png; returns the metrics part of metrics.json."""
     out = Path(config.out_dir)
     scene, channels, space = problem.scene, problem.channels, problem.space
-    observed = problem.counts > 0
     fills = initial_file_values(channels.maps)
+    trust = export.page_trust(expand(problem.evidence[:, None], space, 0.0, dilation=0),
+                              export.chart_coverage(scene.mesh, space.layout.object_page, space.layout.page_sizes))
     # one map at a time: full float pages of all maps at once would be 20 GiB at 30 pages of 4096²
     written, layers = [], {}
     for m in [m for m in MAP_NAMES if m in channels.maps]:
-        pages = expand(model_to_file(m, texels[:, channels.slice(m)]), space, fills[m], observed=observed)
+        pages = [push_pull(page, t) for page, t in zip(expand(model_to_file(m, texels[:, channels.slice(m)]), space,
+                                                              fills[m], dilation=0), trust)]
         written += export.write_maps(out, {m: pages}, scene.mesh.object_names, space.layout.object_page)
         layer = export.material_layers(m, pages, scene.mesh, space.layout.object_page)
         if layer is not None:
             layers[m] = layer
         del pages
     export.write_gltf_images(out / "scene.glb", scene.mesh, space.layout.object_page,
-                             export.combine_material_layers(layers, space.layout.num_pages))
+                             export.combine_material_layers(layers, space.layout.num_pages),
+                             [(v.name, v.camera) for v in scene.views])
 
     pred = evaluation.render_views(texels, ctx.plan, ctx.cameras, channels)
     names = [v.name for v in scene.views]
@@ -315,8 +338,8 @@ def write_outputs(config: DistillConfig, problem: Problem, texels: np.ndarray, h
             result["note"] = (f"the scene's ground truth covers none of the distilled maps ({', '.join(channels.maps)})"
                               ": no metrics against GT")
         with ThreadPoolExecutor(2) as pool:          # the metrics are NumPy: two threads, two cores
-            ours = pool.submit(evaluation.evaluate, pred, ctx.gt_maps, ctx.masks)
-            base = pool.submit(evaluation.evaluate, baseline, ctx.gt_maps, ctx.masks) if baseline else None
+            ours = pool.submit(evaluation.evaluate, pred, ctx.gt_maps, ctx.masks, ctx.seams)
+            base = pool.submit(evaluation.evaluate, baseline, ctx.gt_maps, ctx.masks, ctx.seams) if baseline else None
             result["ours"] = ours.result()
             if base is not None:
                 result["baseline_per_view_estimates"] = base.result()
@@ -356,7 +379,7 @@ def write_outputs(config: DistillConfig, problem: Problem, texels: np.ndarray, h
 
 def _improvement(ours: dict, baseline: dict) -> dict:
     """ours - baseline for every metric both have (positive is better for PSNR/SSIM, worse for errors)."""
-    return {k: ours[k] - baseline[k] for k in ours if k in baseline and k != "num_views"}
+    return {k: ours[k] - baseline[k] for k in ours if k in baseline and k != "num_views" and not k.endswith("_gt")}
 
 
 def _peak_device_memory_mb(devices) -> float | None:

@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 
 from jaxdistill import export, imageio
+from jaxdistill.cameras import Camera, look_at
 from jaxdistill.scene import Mesh
+from tolerance import assert_close
 
 
 def srgb_encode(x):
@@ -205,7 +207,7 @@ def read_glb(path):
 def accessor(doc, blob, index):
     acc = doc["accessors"][index]
     view = doc["bufferViews"][acc["bufferView"]]
-    width = {"SCALAR": 1, "VEC2": 2, "VEC3": 3}[acc["type"]]
+    width = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4}[acc["type"]]
     dtype = {5126: np.float32, 5125: np.uint32, 5123: np.uint16}[acc["componentType"]]
     start = view.get("byteOffset", 0) + acc.get("byteOffset", 0)
     assert view.get("byteStride", np.dtype(dtype).itemsize * width) == np.dtype(dtype).itemsize * width
@@ -305,6 +307,100 @@ def test_gltf_albedo_only_and_atlas(tmp_path):
     assert sorted(loaded.geometry) == ["lamp", "wall"]
     with pytest.raises(ValueError, match=".glb"):
         export.write_gltf(tmp_path / "atlas.obj", mesh, [0, 0], atlas)
+
+def mirrored_scene():
+    """gltf_scene plus object 'mirror': a triangle whose u runs against dP/dx x (mirrored UVs)."""
+    mesh, pages = gltf_scene()
+    v = np.array([[0.0, 0.0, 2.0], [1.0, 0.0, 2.0], [0.0, 1.0, 2.5]])
+    mesh = Mesh(vertices=np.concatenate([mesh.vertices, v]), faces=np.concatenate([mesh.faces, [[7, 8, 9]]]),
+                uv=np.concatenate([mesh.uv, [[[1.0, 0.0], [0.0, 0.0], [1.0, 1.0]]]]),
+                face_object=np.array([0, 0, 1, 2], np.int32), object_names=("wall", "lamp", "mirror"))
+    extra = random_pages([4], seed=5)
+    return mesh, {m: pages[m] + extra[m] for m in pages}
+
+
+def test_gltf_normals_and_tangents_decode_the_normal_pages(tmp_path):
+    """NORMAL/TANGENT are unit, orthogonal, w = +-1, T along dP/du (solved independently by least
+    squares) and w the UVs' handedness; a glTF renderer's decode of the normal texture with them,
+    T x + cross(N, T) w y + N z, gives back the world normal pages (to 8-bit precision)."""
+    mesh, pages = mirrored_scene()
+    path = export.write_gltf(tmp_path / "room.glb", mesh, [0, 1, 2], pages)
+    doc, blob = read_glb(path)
+    signs = {}
+    for object_id, name in enumerate(mesh.object_names):
+        prim = next(m for m in doc["meshes"] if m["name"] == name)["primitives"][0]
+        normal = accessor(doc, blob, prim["attributes"]["NORMAL"]).astype(np.float64)
+        tangent = accessor(doc, blob, prim["attributes"]["TANGENT"]).astype(np.float64)
+        assert_close(np.linalg.norm(normal, axis=1), np.ones(len(normal)))
+        assert_close(np.linalg.norm(tangent[:, :3], axis=1), np.ones(len(normal)))
+        assert np.abs(np.sum(normal * tangent[:, :3], axis=1)).max() < 1e-6
+        assert set(np.unique(tangent[:, 3])) <= {-1.0, 1.0}
+        texture = decode_png(doc, blob, doc["materials"][prim["material"]]["normalTexture"]["index"]) / 255.0
+        size = texture.shape[0]
+        for k, f in enumerate(np.nonzero(mesh.face_object == object_id)[0]):
+            p, uv = mesh.triangles()[f], mesh.uv[f]
+            duv = np.stack([uv[1] - uv[0], uv[2] - uv[0]])                  # (2 edges, (du, dv))
+            dp = np.stack([p[1] - p[0], p[2] - p[0]])
+            dpduv = np.linalg.lstsq(duv, dp, rcond=None)[0]                   # rows dP/du, dP/dv
+            n = np.cross(dp[0], dp[1])
+            n /= np.linalg.norm(n)
+            t = dpduv[0] - n * (n @ dpduv[0])
+            for c in range(3):
+                assert_close(normal[3 * k + c], n)
+                assert_close(tangent[3 * k + c, :3], t / np.linalg.norm(t))
+                assert tangent[3 * k + c, 3] == np.sign(np.cross(n, t) @ dpduv[1])
+            signs[name] = tangent[3 * k, 3]
+            centre = uv.mean(axis=0)                                          # a texel inside the face
+            row, col = int((1.0 - centre[1]) * size), int(centre[0] * size)
+            ts = 2.0 * texture[row, col] - 1.0
+            t_f, w = tangent[3 * k, :3], tangent[3 * k, 3]
+            decoded_world = ts[0] * t_f + ts[1] * np.cross(normal[3 * k], t_f) * w + ts[2] * normal[3 * k]
+            world = pages["normal"][object_id][row, col].astype(np.float64)
+            np.testing.assert_allclose(decoded_world, world / np.linalg.norm(world), atol=3 * 2 / 255)
+    assert signs["mirror"] == -1.0 and signs["wall"] == 1.0
+
+
+def gltf_projection(doc, node) -> tuple:
+    """(pixel function of world points, camera) from a glTF camera node, per the glTF spec:
+    view = inverse(node matrix), infinite perspective matrix, NDC -> pixels of the extras' size."""
+    cam = doc["cameras"][node["camera"]]
+    persp = cam["perspective"]
+    matrix = np.asarray(node["matrix"], np.float64).reshape(4, 4).T        # column-major
+    tan = np.tan(persp["yfov"] / 2.0)
+    a, zn = persp["aspectRatio"], persp["znear"]
+    proj = np.array([[1 / (a * tan), 0, 0, 0], [0, 1 / tan, 0, 0], [0, 0, -1, -2 * zn], [0, 0, -1, 0]])
+    w, h = cam["extras"]["width"], cam["extras"]["height"]
+    shift = np.asarray(cam["extras"]["principal_point_offset_px"])
+
+    def pixels(points):
+        clip = (proj @ np.linalg.inv(matrix) @ np.c_[points, np.ones(len(points))].T).T
+        ndc = clip[:, :2] / clip[:, 3:4]
+        return np.stack([(ndc[:, 0] + 1) / 2 * w, (1 - ndc[:, 1]) / 2 * h], axis=1) + shift
+    return pixels, cam
+
+
+@pytest.mark.parametrize("K", [[[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]],          # centred
+                               [[224.5, 0, 169.4], [0, 251.0, 113.5], [0, 0, 1]]])       # off-centre, fx != fy
+def test_gltf_cameras_project_like_K_and_c2w(tmp_path, K):
+    mesh, pages = gltf_scene()
+    cameras = [("view_a", look_at([3.0, -2.0, 1.5], [0.5, 0.5, 0.0], [0.0, 0.0, 1.0], K, 320, 240)),
+               ("view_b", look_at([-1.0, 2.0, 2.0], [0.5, 0.5, 0.2], [0.0, 0.0, 1.0], K, 320, 240))]
+    path = export.write_gltf(tmp_path / "room.glb", mesh, [0, 1], pages, cameras)
+    doc, _ = read_glb(path)
+    points = np.random.default_rng(0).uniform([0, 0, 0], [1, 1, 0.5], (20, 3))
+    nodes = {n["name"]: n for n in doc["nodes"] if "camera" in n}
+    assert sorted(nodes) == ["view_a", "view_b"]
+    assert all(doc["nodes"].index(n) in doc["scenes"][doc["scene"]]["nodes"] for n in nodes.values())
+    for name, camera in cameras:
+        pixels, cam = gltf_projection(doc, nodes[name])
+        assert cam["name"] == name and cam["type"] == "perspective"
+        expected, depth = camera.project(points)
+        assert (depth > 0).all()
+        assert_close(pixels(points), expected, rtol=1e-9)
+        centred = np.allclose(cam["extras"]["principal_point_offset_px"], 0.0)
+        assert centred == (K[0][2] == 160 and K[1][2] == 120)
+        if K[0][0] == K[1][1]:
+            assert_close(cam["perspective"]["aspectRatio"], 320 / 240, rtol=1e-12)
 
 
 # ----------------------------------------------------------------------------- plots

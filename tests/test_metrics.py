@@ -321,3 +321,74 @@ def test_aggregate_means_caps_psnr_and_skips_nan():
     assert got["num_views"] == 4
     assert set(got) == {"albedo_psnr", "roughness_mse", "metallic_mse", "normal_angular_deg",
                         "irradiance_si_psnr", "num_views"}
+
+
+# ----------------------------------------------------------------------------- seams
+
+
+def loop_seam_energy(image, region, object_id, mask):
+    """Independent reference: walk every pixel, look right and down."""
+    image = np.asarray(image, np.float64).reshape(region.shape[0], region.shape[1], -1)
+    total, count = 0.0, 0
+    h, w = region.shape
+    for r in range(h):
+        for c in range(w):
+            for rr, cc in ((r, c + 1), (r + 1, c)):
+                if rr >= h or cc >= w or not (mask[r, c] and mask[rr, cc]):
+                    continue
+                if object_id[r, c] != object_id[rr, cc] or region[r, c] == region[rr, cc]:
+                    continue
+                total += float(np.sum((image[r, c] - image[rr, cc]) ** 2))
+                count += 1
+    return total / count if count else float("nan"), count
+
+
+def test_seam_energy_of_a_step_on_the_boundary_is_the_step_squared():
+    h, w, step = 6, 9, 0.3
+    col = np.arange(w)[None, :].repeat(h, 0)
+    region = (col >= 4).astype(int)                      # a chart boundary between columns 3 and 4
+    smooth = np.stack([0.1 + 0.01 * col, 0.5 + 0.0 * col, 0.2 + 0.02 * col], -1)
+    seamy = smooth + step * (col >= 4)[..., None]        # a step exactly on that boundary
+    pairs = metrics.seam_pairs(region, np.zeros((h, w), int))
+    assert len(pairs[0]) == h                             # one pair per row, across the boundary
+    slopes = np.array([0.01, 0.0, 0.02])                 # per channel, across one column
+    assert metrics.seam_energy(seamy, pairs) == pytest.approx(np.sum((step + slopes) ** 2), rel=1e-12)
+    assert metrics.seam_energy(smooth, pairs) == pytest.approx(np.sum(slopes ** 2), rel=1e-12)
+    # the same step off the boundary is not a seam: nothing of it is measured
+    off = smooth + step * (col >= 6)[..., None]
+    assert metrics.seam_energy(off, pairs) == pytest.approx(np.sum(slopes ** 2), rel=1e-12)
+    out = metrics.seam_metrics({"roughness": seamy[..., :1]}, {"roughness": smooth[..., :1]}, pairs)
+    assert out["roughness_seam_energy"] == pytest.approx((step + 0.01) ** 2, rel=1e-12)
+    ratios = metrics.seam_ratios(metrics.aggregate([out]))
+    assert ratios["roughness_seam_ratio"] == pytest.approx(((step + 0.01) / 0.01) ** 2, rel=1e-9)
+    assert ratios["roughness_seam_excess"] == pytest.approx((step + 0.01) ** 2 - 0.01 ** 2, rel=1e-9)
+    flat = metrics.seam_ratios(metrics.aggregate([metrics.seam_metrics(
+        {"metallic": seamy[..., :1]}, {"metallic": np.zeros((h, w, 1))}, pairs)]))
+    assert np.isnan(flat["metallic_seam_ratio"]) and flat["metallic_seam_excess"] == pytest.approx((step + 0.01) ** 2)
+
+
+def test_seam_pairs_and_energy_match_a_loop_reference():
+    rng = np.random.default_rng(0)
+    region = rng.integers(0, 3, (11, 13))
+    object_id = rng.integers(0, 2, (11, 13))
+    mask = rng.random((11, 13)) > 0.2
+    image = rng.normal(size=(11, 13, 3))
+    pairs = metrics.seam_pairs(region, object_id, mask)
+    expected, count = loop_seam_energy(image, region, object_id, mask)
+    assert len(pairs[0]) == count > 0
+    assert metrics.seam_energy(image, pairs) == pytest.approx(expected, rel=1e-12)
+    none = metrics.seam_pairs(np.zeros((4, 4), int), np.zeros((4, 4), int))
+    assert len(none[0]) == 0 and np.isnan(metrics.seam_energy(np.ones((4, 4)), none))
+    with pytest.raises(ValueError, match="one shape"):
+        metrics.seam_pairs(region, object_id[:5])
+
+
+def test_irradiance_seam_energy_is_exposure_free():
+    rng = np.random.default_rng(1)
+    gt = rng.uniform(0.5, 2.0, (8, 8, 3))
+    pred = gt * rng.uniform(0.9, 1.1, (8, 8, 1))
+    pairs = metrics.seam_pairs(rng.integers(0, 2, (8, 8)), np.zeros((8, 8), int))
+    a = metrics.seam_metrics({"irradiance": pred}, {"irradiance": gt}, pairs)
+    b = metrics.seam_metrics({"irradiance": 7.0 * pred}, {"irradiance": 3.0 * gt}, pairs)
+    for key in a:
+        assert b[key] == pytest.approx(a[key], rel=1e-9)

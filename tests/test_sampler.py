@@ -13,7 +13,7 @@ from jaxdistill import synthetic
 from jaxdistill.render import fragments as fr
 from jaxdistill.render.gather_plan import build_gather_plans, build_texel_space
 from jaxdistill.render.layout import TextureLayout, make_layout
-from jaxdistill.render.sampler import compact, coverage, expand, render
+from jaxdistill.render.sampler import compact, coverage, expand, push_pull, render
 
 
 def reference_sample(page, uv):
@@ -204,3 +204,37 @@ def test_auto_texture_size_follows_closest_view():
         frags = fr.compute_fragments(mesh, [camera], cache_dir=False, progress=False)
         layout = make_layout(1, "pages", "auto", frags, max_size=1024)
         assert layout.page_sizes == (expected,), (distance, fx, layout.page_sizes)
+
+
+def ramp(size):
+    """(S, S, 2) page of a linear ramp in row and column (analytic values at texel centres)."""
+    r, c = np.mgrid[0:size, 0:size].astype(np.float64)
+    return np.stack([0.3 + 0.01 * c - 0.005 * r, 0.1 + 0.002 * r], -1).astype(np.float32)
+
+
+def test_push_pull_fills_a_hole_in_a_ramp_with_the_ramp_and_keeps_observed_texels():
+    page = ramp(64)
+    weight = np.ones((64, 64), np.float32)
+    weight[20:40, 10:35] = 0.0
+    weight[50:53, 50:60] = 0.0
+    holed = np.where(weight[..., None] > 0, page, 0.5)            # what the unobserved texels held
+    filled = push_pull(holed, weight)
+    np.testing.assert_array_equal(filled[weight == 1], page[weight == 1])       # observed: unchanged
+    span = float(page.max() - page.min())
+    assert np.abs(filled - page)[weight == 0].max() <= 0.01 * span                 # the ramp, within 1 %
+    grey = np.abs(holed - page)[weight == 0].max()
+    assert grey > 20 * np.abs(filled - page)[weight == 0].max()    # far from the flat fill it replaces
+
+
+def test_push_pull_weights_blend_and_extremes():
+    rng = np.random.default_rng(0)
+    const = np.full((16, 16, 3), [0.2, 0.4, 0.6], np.float32)
+    weight = (rng.random((16, 16)) > 0.7).astype(np.float32)
+    noisy = np.where(weight[..., None] > 0, const, rng.random((16, 16, 3)).astype(np.float32))
+    np.testing.assert_allclose(push_pull(noisy, weight), const, rtol=1e-6)      # a constant fills with itself
+    half = np.where(weight > 0, 1.0, 0.5).astype(np.float32)       # half trusted: kept more than untrusted ones
+    kept, filled = (np.abs(push_pull(noisy, w) - noisy)[weight == 0].mean() for w in (half, weight))
+    assert 0 < kept < 0.75 * filled
+    np.testing.assert_array_equal(push_pull(noisy, np.zeros((16, 16))), noisy)  # nothing observed: as it was
+    np.testing.assert_array_equal(push_pull(noisy, np.ones((16, 16))), noisy)
+    assert push_pull(noisy[..., 0], weight).shape == (16, 16)

@@ -8,7 +8,8 @@ import numpy as np
 from jaxdistill import imageio
 from jaxdistill.render.gather_plan import build_gather_plans, build_texel_space, view_taps
 from jaxdistill.render.layout import make_layout
-from jaxdistill.render.visibility import pixel_weights, view_counts, visibility_weights, write_visibility_pages
+from jaxdistill.render.visibility import (pixel_weights, texel_evidence, view_counts, visibility_weights,
+                                         write_visibility_pages)
 from test_sampler import scene_views
 
 
@@ -19,6 +20,16 @@ def test_weight_formula_and_extremes():
     assert np.isfinite(np.asarray(visibility_weights(jnp.array([0.0, 1e30])))).all()
 
 
+def level0_taps(frags, layout, space):
+    """(texel index, weight) of every level-0 bilinear tap with positive weight, per view."""
+    out = []
+    for frag in frags:
+        page, _, row, col, weight = view_taps(frag, layout, "bilinear")
+        used = weight > 0
+        out.append((space.texel_index(page[used], row[used], col[used]), weight[used]))
+    return out
+
+
 def test_counts_match_brute_force_bilinear(tmp_path):
     mesh, frags = scene_views()
     layout = make_layout(len(mesh.object_names), "pages", 32, frags)
@@ -26,10 +37,8 @@ def test_counts_match_brute_force_bilinear(tmp_path):
     plan = build_gather_plans(frags, space, "bilinear")
     counts = view_counts(plan, space.num_texels)
     brute = np.zeros(space.num_texels, np.int32)
-    for frag in frags:  # level-0 taps with positive weight, one vote per view
-        page, _, row, col, weight = view_taps(frag, layout, "bilinear")
-        used = weight > 0
-        seen = np.unique(space.texel_index(page[used], row[used], col[used]))
+    for index, _ in level0_taps(frags, layout, space):  # one vote per view
+        seen = np.unique(index)
         assert seen.min() >= 0
         brute[seen] += 1
     np.testing.assert_array_equal(counts, brute)
@@ -53,3 +62,27 @@ def test_trilinear_counts_cover_coarse_taps():
     plan = build_gather_plans(frags, space, "trilinear")
     counts = view_counts(plan, space.num_texels)
     assert counts.max() <= len(frags) and (counts > 0).mean() > 0.5
+
+
+def test_evidence_is_the_summed_level0_tap_weight_and_spreads_coarse_reads():
+    """Bilinear: a texel's evidence is the sum of its taps' weights over all pixels and views
+    (brute force), so the total is the number of hit pixels. Trilinear: the total is still the
+    hit pixel count (a mip mean passes a read's weight on, 1/4 to each child), and evidence > 0
+    exactly where the view counts are."""
+    mesh, frags = scene_views()
+    layout = make_layout(len(mesh.object_names), "pages", 32, frags)
+    space = build_texel_space(frags, layout, "bilinear")
+    evidence = texel_evidence(build_gather_plans(frags, space, "bilinear"), space.num_texels)
+    brute = np.zeros(space.num_texels, np.float64)
+    for index, weight in level0_taps(frags, layout, space):
+        np.add.at(brute, index, weight)
+    np.testing.assert_allclose(evidence, brute, rtol=1e-5, atol=1e-6 * brute.max())
+    hits = sum(int(f.hit.sum()) for f in frags)
+    assert evidence.sum() == np.float32(evidence.sum()) and abs(evidence.sum() - hits) <= 1e-4 * hits
+
+    layout = make_layout(len(mesh.object_names), "pages", 64, frags, mipmaps=True)
+    space = build_texel_space(frags, layout, "trilinear")
+    plan = build_gather_plans(frags, space, "trilinear")
+    evidence = texel_evidence(plan, space.num_texels)
+    assert abs(float(evidence.astype(np.float64).sum()) - hits) <= 1e-4 * hits
+    np.testing.assert_array_equal(evidence > 0, view_counts(plan, space.num_texels) > 0)

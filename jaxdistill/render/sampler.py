@@ -127,6 +127,65 @@ def expand(texels, space: TexelSpace, fill, *, observed=None, dilation: int = 8)
     return pages
 
 
+def _mean4(x: np.ndarray) -> np.ndarray:
+    """Mean of the 4 neighbours of every texel of (S, S, C) x, edges clamped (a Neumann border)."""
+    p = np.pad(x, ((1, 1), (1, 1), (0, 0)), mode="edge")
+    return 0.25 * (p[:-2, 1:-1] + p[2:, 1:-1] + p[1:-1, :-2] + p[1:-1, 2:])
+
+
+def _upsample_bilinear(x: np.ndarray) -> np.ndarray:
+    """(2S, 2S, C) bilinear upsampling of (S, S, C) with texel centres aligned (taps 3/4, 1/4)."""
+    p = np.pad(x, ((1, 1), (1, 1), (0, 0)), mode="edge")
+    rows = np.empty((2 * x.shape[0], x.shape[1] + 2, x.shape[2]), x.dtype)
+    rows[0::2] = 0.75 * p[1:-1] + 0.25 * p[:-2]
+    rows[1::2] = 0.75 * p[1:-1] + 0.25 * p[2:]
+    out = np.empty((2 * x.shape[0], 2 * x.shape[1], x.shape[2]), x.dtype)
+    out[:, 0::2] = 0.75 * rows[:, 1:-1] + 0.25 * rows[:, :-2]
+    out[:, 1::2] = 0.75 * rows[:, 1:-1] + 0.25 * rows[:, 2:]
+    return out
+
+
+PUSH_PULL_SMOOTHING = 8     # relaxation sweeps at the finest level after the push; x2 per coarser level (<= 64)
+
+
+def push_pull(page, weight, *, smoothing: int = PUSH_PULL_SMOOTHING) -> np.ndarray:
+    """(S, S, C) float32 page whose low-evidence texels are filled from the others (pull-push).
+
+    weight (S, S) in [0, 1] is how far each texel's own value is to be trusted (1: kept exactly,
+    0: unobserved, replaced). Pull: level l+1 holds the weight-averaged value of each 2x2 block
+    and the weight min(1, sum of the 4 weights). Push, coarse to fine: every texel gets
+    w x + (1 - w) u, u the bilinear upsampling of the filled level above; then `smoothing` sweeps
+    of x <- w x_own + (1 - w) mean4(x) relax the filled texels towards the harmonic fill (the
+    discrete Laplace equation with the trusted texels fixed), which a linear ramp solves: a hole
+    inside a ramp is filled with the ramp. A page with no weight anywhere is returned as it is.
+    """
+    page = np.asarray(page, np.float64)
+    weight = np.clip(np.nan_to_num(np.asarray(weight, np.float64)), 0.0, 1.0)
+    if page.ndim == 2:
+        return push_pull(page[..., None], weight, smoothing=smoothing)[..., 0]
+    if not weight.any() or weight.all() and (weight == 1.0).all():
+        return page.astype(np.float32)
+    page = np.where(weight[..., None] > 0, np.nan_to_num(page), 0.0)
+    levels = [(page, weight)]
+    while levels[-1][0].shape[0] > 1 and levels[-1][0].shape[0] % 2 == 0:
+        x, w = levels[-1]
+        s = x.shape[0] // 2
+        wx = (x * w[..., None]).reshape(s, 2, s, 2, -1).sum(axis=(1, 3))
+        total = w.reshape(s, 2, s, 2).sum(axis=(1, 3))
+        levels.append((np.where(total[..., None] > 0, wx / np.maximum(total, 1e-30)[..., None], 0.0),
+                       np.minimum(total, 1.0)))
+    filled = levels[-1][0]
+    if not (levels[-1][1] > 0).all():       # a coarsest level that is not one texel: its weighted mean
+        x, w = levels[-1]
+        filled = np.where(w[..., None] > 0, x, np.sum(x * w[..., None], axis=(0, 1)) / w.sum())
+    for level, (x, w) in reversed(list(enumerate(levels[:-1]))):
+        w3 = w[..., None]
+        filled = w3 * x + (1.0 - w3) * _upsample_bilinear(filled)
+        for _ in range(smoothing * 2 ** min(level, 3) if (w < 1.0).any() else 0):
+            filled = w3 * x + (1.0 - w3) * _mean4(filled)
+    return filled.astype(np.float32)
+
+
 def sample_pages(pages, fragments, object_page, *, sampler: str = "bilinear") -> list[np.ndarray]:
     """Per view, (H, W, C) float32 images of full texture pages seen through `fragments`.
 

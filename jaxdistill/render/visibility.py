@@ -40,21 +40,33 @@ def visibility_weights(counts):
     return jnp.clip(1.0 / (2.0 * jnp.clip(counts, 1.0, 6.0)), 0.1, 10.0)
 
 
-@jax.jit
-def _touched(plan: GatherPlan, num_texels_like: jnp.ndarray) -> jnp.ndarray:
-    """(N,) bool: texels that the single-view `plan` reads with positive weight."""
-    _, transpose = jax.vjp(lambda t: render(t, plan), num_texels_like)
-    (grad,) = transpose(plan.hit.reshape(plan.height, plan.width, 1).astype(jnp.float32))
-    return grad[:, 0] > 0
-
-
 def view_counts(plan: GatherPlan, num_texels: int) -> np.ndarray:
     """(N,) int32: number of views whose plan touches each compact texel."""
     zeros = jnp.zeros((num_texels, 1), jnp.float32)
     counts = np.zeros(num_texels, np.int32)
     for v in range(plan.num_views):
-        counts += np.asarray(_touched(plan.select(v), zeros))
+        counts += np.asarray(_evidence(plan.select(v), zeros) > 0)
     return counts
+
+
+@jax.jit
+def _evidence(plan: GatherPlan, num_texels_like: jnp.ndarray) -> jnp.ndarray:
+    """(N,) float32: the transpose of the single-view `plan` applied to its hit mask."""
+    _, transpose = jax.vjp(lambda t: render(t, plan), num_texels_like)
+    (grad,) = transpose(plan.hit.reshape(plan.height, plan.width, 1).astype(jnp.float32))
+    return grad[:, 0]
+
+
+def texel_evidence(plan: GatherPlan, num_texels: int) -> np.ndarray:
+    """(N,) float32: per compact texel, the summed weight with which all views' pixels read it
+    (the transpose of `render` applied to every view's hit mask). A texel that one pixel reads
+    alone at level 0 gets 1; a read through mip level l spreads over 4^l texels, 4^-l each, so
+    texels seen only at grazing angles or through coarse levels get little evidence."""
+    zeros = jnp.zeros((num_texels, 1), jnp.float32)
+    total = np.zeros(num_texels, np.float64)
+    for v in range(plan.num_views):
+        total += np.asarray(_evidence(plan.select(v), zeros), np.float64)
+    return total.astype(np.float32)
 
 
 def pixel_weights(plan: GatherPlan, counts: np.ndarray) -> jnp.ndarray:
