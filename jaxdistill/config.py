@@ -21,6 +21,7 @@ from jaxdistill.render.gather_plan import SAMPLERS
 
 PRIORS = ("auto", "rgbx", "views")
 LOSS_SPACES = ("image", "latent")
+ALIGN_MODES = ("none", "gain")
 ANNEALING = ("none", "linear", "sqrt")
 T_WEIGHTINGS = ("none", "sds")
 LATENT_MODES = ("mode", "sample")
@@ -59,6 +60,8 @@ class DistillConfig:
     visibility_weighting: bool = True
     p_keep: float = 1.0
     reuse_steps: int = 1
+    align: str = "none"
+    align_strength: float = 0.01
     render_size: int = 0
     texture_size: str = "auto"
     max_texture_size: int = 4096
@@ -121,6 +124,11 @@ def define_flags(fv: flags.FlagValues = flags.FLAGS, *, main_module: bool = Fals
     flags.DEFINE_bool("visibility_weighting", d.visibility_weighting, "weight pixels by 1 / (2 clip(V, 1, 6))",
                       **where)
     flags.DEFINE_float("p_keep", d.p_keep, "image-space dropout: probability a pixel counts in a step", **where)
+    flags.DEFINE_enum("align", d.align, ALIGN_MODES, "photometric alignment across views: none, or gain (a "
+                      "per-view, per-channel gain on the albedo and irradiance targets, learned with the texels, "
+                      "geometric mean 1)", **where)
+    flags.DEFINE_float("align_strength", d.align_strength, "ridge on the per-view log-gains, per unit of pixel "
+                       "weight (--align=gain)", **where)
     flags.DEFINE_integer("reuse_steps", d.reuse_steps, "rgbx prior: take K AdamW steps on the same views towards "
                          "one x_pred before the prior runs again (1 = a new x_pred every step, the thesis; K > 1 costs "
                          "1/K of the prior per step, like Instruct-NeRF2NeRF's iterative dataset update)", **where)
@@ -195,6 +203,12 @@ def validate(config: DistillConfig) -> DistillConfig:
             bad(name, f"must be >= 0, got {getattr(c, name)}")
     if c.log_every == 0:
         bad("log_every", "must be >= 1")
+    if c.align_strength < 0:
+        bad("align_strength", f"must be >= 0, got {c.align_strength}")
+    if c.align != "none" and c.loss_space == "latent":
+        bad("align", "per-view gains scale images, but --loss_space=latent compares latents; use --loss_space=image")
+    if c.align != "none" and not {"albedo", "irradiance"} & set(c.maps):
+        bad("align", "aligns the albedo and irradiance maps, and --maps has neither; use --align=none")
     if c.reuse_steps < 1:
         bad("reuse_steps", f"must be >= 1, got {c.reuse_steps}")
     elif c.reuse_steps > 1 and c.prior == "views":

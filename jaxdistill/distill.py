@@ -33,6 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from jaxdistill import align as align_lib
 from jaxdistill.config import DistillConfig
 from jaxdistill.maps import MapChannels
 from jaxdistill.render.gather_plan import GatherPlan
@@ -50,6 +51,7 @@ class DistillState:
     key: jax.Array
     halted: jax.Array
     reused: Any = None      # reuse_steps > 1: {"targets", "sample_weights", "t"} of the last prior call
+    align: Any = None       # align = "gain": {"log_gains": (V, G) float32, "opt": their Adam state} (align.py)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -66,6 +68,8 @@ class StepSettings:
     t_weighting: str = DistillConfig.t_weighting
     p_keep: float = DistillConfig.p_keep
     reuse_steps: int = DistillConfig.reuse_steps
+    align: str = DistillConfig.align
+    align_strength: float = DistillConfig.align_strength
     num_train_timesteps: int = 1000
     latent_factor: int = 8
 
@@ -86,7 +90,7 @@ def make_optimizer(lr: float, weight_decay: float, schedule: str = "constant",
 
 
 def init_state(texels: np.ndarray, optimizer: optax.GradientTransformation, seed: int,
-               reused: Any = None) -> DistillState:
+               reused: Any = None, align: Any = None) -> DistillState:
     """Step-0 state: the given initial texels (float32), fresh AdamW state, key PRNGKey(seed).
 
     Floating texels narrower than float32 (float16, bfloat16) are refused with a ValueError:
@@ -100,7 +104,15 @@ def init_state(texels: np.ndarray, optimizer: optax.GradientTransformation, seed
                          "--prior_dtype)")
     texels = jnp.asarray(texels, jnp.float32)
     return DistillState(texels=texels, opt_state=optimizer.init(texels), step=jnp.zeros((), jnp.int32),
-                        key=jax.random.PRNGKey(seed), halted=jnp.zeros((), bool), reused=reused)
+                        key=jax.random.PRNGKey(seed), halted=jnp.zeros((), bool), reused=reused, align=align)
+
+
+def initial_align(num_views: int, channels: MapChannels, align_optimizer: optax.GradientTransformation | None):
+    """The per-view log-gains (all 0: gains 1) and their optimizer state, or None without alignment."""
+    if align_optimizer is None:
+        return None
+    log_gains = jnp.asarray(align_lib.initial_log_gains(num_views, channels))
+    return {"log_gains": log_gains, "opt": align_optimizer.init(log_gains)}
 
 
 def render_maps(texels, plan: GatherPlan, normal_rotation, channels: MapChannels) -> dict:
@@ -152,12 +164,14 @@ def weighted_square_error(features: dict, targets: dict, weights, sample_weights
     return sum(terms.values()), terms
 
 
-def make_step(prior, settings: StepSettings, optimizer: optax.GradientTransformation) -> Callable:
+def make_step(prior, settings: StepSettings, optimizer: optax.GradientTransformation,
+              align_optimizer: optax.GradientTransformation | None = None) -> Callable:
     """The pure step: (state, batch, frozen) → (state, metrics). Not jitted (see `jit_step`).
 
     batch: index (B, P, T) int32, weight (B, P, T) float32, hit (B, P) bool (the views' gather
-    plans), pixel_weight (B, H, W) float32, normal_rotation (B, 3, 3) float32, prior: the
-    prior's per-view data. frozen: {"chain": MipChain, "prior": the prior's constants,
+    plans), pixel_weight (B, H, W) float32, normal_rotation (B, 3, 3) float32, view (B,) int32
+    the views' indices (per-view gains, `align.py`), prior: the prior's per-view data.
+    `align_optimizer` updates the per-view log-gains when settings.align == "gain". frozen: {"chain": MipChain, "prior": the prior's constants,
     "alphas_cumprod": (T,) float32 or None}.
     """
     maps = settings.channels.maps
@@ -185,23 +199,41 @@ def make_step(prior, settings: StepSettings, optimizer: optax.GradientTransforma
             weights = pool_weights(weights, settings.latent_factor)
         if settings.p_keep < 1.0:
             weights = weights * jax.random.bernoulli(k_keep, settings.p_keep, weights.shape).astype(jnp.float32)
-        (loss, terms), grad_features = jax.value_and_grad(weighted_square_error, has_aux=True)(
-            features, targets, weights, sample_weights, maps)
+        aligned = settings.align == "gain"
+        log_gains = state.align["log_gains"] if aligned else jnp.zeros((), jnp.float32)
+
+        def objective(features, log_gains):
+            compared, ridge = targets, 0.0
+            if aligned:
+                compared = align_lib.apply_gains(targets, log_gains, batch["view"], settings.channels)
+                ridge = align_lib.ridge(log_gains, batch["view"], weights, settings.align_strength)
+            loss, terms = weighted_square_error(features, compared, weights, sample_weights, maps)
+            return loss + ridge, terms
+
+        (loss, terms), (grad_features, grad_gains) = jax.value_and_grad(objective, argnums=(0, 1), has_aux=True)(
+            features, log_gains)
         (grad,) = pullback(grad_features)
         updates, opt_state = optimizer.update(grad, state.opt_state, state.texels)
         texels = optax.apply_updates(state.texels, updates)
-        finite = jnp.isfinite(loss) & jnp.all(jnp.isfinite(grad))
+        finite = jnp.isfinite(loss) & jnp.all(jnp.isfinite(grad)) & jnp.all(jnp.isfinite(grad_gains))
         ok = finite & ~state.halted            # after a non-finite step, nothing moves any more
         keep_new = functools.partial(jnp.where, ok)
+        new_align = state.align
+        if aligned:
+            gain_updates, gain_opt = align_optimizer.update(grad_gains, state.align["opt"], log_gains)
+            new_align = jax.tree.map(keep_new, {"log_gains": optax.apply_updates(log_gains, gain_updates),
+                                                "opt": gain_opt}, state.align)
         new_state = DistillState(texels=keep_new(texels, state.texels),
                                  opt_state=jax.tree.map(keep_new, opt_state, state.opt_state),
                                  step=state.step + ok.astype(jnp.int32), key=state.key,
                                  halted=state.halted | ~finite,
                                  reused=(jax.tree.map(keep_new, reused, state.reused) if settings.reuse_steps > 1
-                                         else state.reused))
+                                         else state.reused), align=new_align)
         per_map = {f"loss_{m}": term for m, term in terms.items()}
         metrics = {"loss": loss, "finite": ok.astype(jnp.int32), "grad_norm": optax.tree.norm(grad),
                    "t_mean": jnp.mean(t.astype(jnp.float32)), **per_map}
+        if aligned:
+            metrics["gain_spread"] = jnp.std(align_lib.centred(new_align["log_gains"]))
         return new_state, metrics
 
     return step

@@ -155,7 +155,7 @@ class Problem:
         ids = np.asarray(view_ids)
         return {"index": self.plan_index[ids], "weight": self.plan_weight[ids], "hit": self.plan_hit[ids],
                 "pixel_weight": self.pixel_weight[ids], "normal_rotation": self.normal_rotation[ids],
-                "prior": self.prior.view_data(ids)}
+                "view": ids.astype(np.int32), "prior": self.prior.view_data(ids)}
 
     def view_ids(self, step: int, batch_size: int, seed: int) -> np.ndarray:
         """The views of `step`: a function of (seed, step) only, so a resumed run samples the same."""

@@ -19,10 +19,10 @@ import numpy as np
 from absl import logging
 from tqdm.auto import tqdm
 
-from jaxdistill import MAP_NAMES, checkpoint, evaluation, export, imageio, metrics, model_estimates
+from jaxdistill import MAP_NAMES, align as align_lib, checkpoint, evaluation, export, imageio, metrics, model_estimates
 from jaxdistill.config import DistillConfig, check_views_per_step, resumable_flags
-from jaxdistill.distill import (StepSettings, data_mesh, init_state, initial_reused, jit_step, make_optimizer,
-                                make_step)
+from jaxdistill.distill import (StepSettings, data_mesh, init_state, initial_align, initial_reused, jit_step,
+                                make_optimizer, make_step)
 from jaxdistill.errors import InputError
 from jaxdistill.maps import model_to_file
 from jaxdistill.models.shipped import model_info
@@ -43,7 +43,7 @@ def step_settings(config: DistillConfig, problem: Problem) -> StepSettings:
     return StepSettings(channels=problem.channels, height=problem.height, width=problem.width,
                         total_steps=config.steps, t_min=config.t_min, t_max=config.t_max, anneal=config.anneal,
                         t_weighting=config.t_weighting, p_keep=config.p_keep, num_train_timesteps=num_train,
-                        reuse_steps=config.reuse_steps)
+                        reuse_steps=config.reuse_steps, align=config.align, align_strength=config.align_strength)
 
 
 def batch_views(problem: Problem, config: DistillConfig, step: int) -> np.ndarray:
@@ -143,8 +143,11 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
     settings = step_settings(config, problem)
     first = problem.batch(batch_views(problem, config, 0))
     texels = problem.initial_texels()
-    state = init_state(texels, optimizer, config.seed, initial_reused(problem.prior, settings, texels, first,
-                                                                      problem.frozen))
+    align_optimizer = (make_optimizer(config.lr, 0.0, config.lr_schedule, config.steps) if config.align == "gain"
+                       else None)
+    state = init_state(texels, optimizer, config.seed,
+                       initial_reused(problem.prior, settings, texels, first, problem.frozen),
+                       initial_align(problem.num_views, problem.channels, align_optimizer))
     history = {"step": [], "loss": [], "eval_step": [], "albedo_psnr": []}
 
     out.mkdir(parents=True, exist_ok=True)
@@ -160,7 +163,7 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
         logging.info("resumed from step %d in %s", latest, out / "checkpoints")
 
     eval_context = evaluation_context(config, problem)
-    step_fn, traces = jit_step(make_step(problem.prior, settings, optimizer), mesh, first, state, problem.frozen)
+    step_fn, traces = jit_step(make_step(problem.prior, settings, optimizer, align_optimizer), mesh, first, state, problem.frozen)
     replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
     by_view = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("data"))
     state = jax.device_put(state, replicated)
@@ -220,6 +223,10 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
                        "page_sizes": list(problem.space.layout.page_sizes)},
         "traces": traces.traces, "config": recorded,
     })
+    if state.align is not None:          # the learned per-view gains (geometric mean 1 per channel)
+        gains = np.exp(np.asarray(jax.device_get(align_lib.centred(state.align["log_gains"]))))
+        summary["align"] = {"maps": list(align_lib.aligned_maps(problem.channels)),
+                            "gains": {v.name: g.round(4).tolist() for v, g in zip(problem.scene.views, gains)}}
     (out / "metrics.json").write_text(json.dumps(_json_safe(summary), indent=1))
     logging.info("wrote %s", out / "metrics.json")
     print(summary_table(_json_safe(summary), out), flush=True)
