@@ -122,6 +122,34 @@ def png_pixels(name: str, page: np.ndarray) -> tuple[np.ndarray, bool]:
     return np.clip(page, 0.0, 1.0), False  # roughness / metallic: grey values as they are
 
 
+def page_file(root, name: str, stems: Sequence[str], page: int, suffix: str) -> Path:
+    """Where page `page` of map `name` lies under `root`: `root/<name><suffix>` with one page,
+    else `root/<name>/<stem><suffix>` (`stems` from `page_names`)."""
+    base = Path(root) / name if len(stems) == 1 else Path(root) / name / stems[page]
+    return base.with_name(base.name + suffix)
+
+
+EVIDENCE_DIR = "evidence"
+
+
+def write_evidence(out_dir, pages: Mapping[str, Sequence[np.ndarray]], object_names: Sequence[str],
+                   object_page: Sequence[int]) -> list[Path]:
+    """Writes per-texel evidence pages, one float32 channel each, as EXR under
+    `out_dir/evidence/` in the maps' page naming (`page_file`): e.g. `visibility` (view
+    counts) and `disagreement_<map>` (the views' spread, NaN where fewer than two views)."""
+    stems = page_names(object_names, object_page)
+    root = Path(out_dir) / EVIDENCE_DIR
+    written = []
+    for name, per_page in pages.items():
+        if len(per_page) != len(stems):
+            raise ValueError(f"evidence {name!r}: {len(per_page)} pages, but object_page uses {len(stems)}")
+        for p, page in enumerate(per_page):
+            path = page_file(root, name, stems, p, ".exr")
+            imageio.write_image(path, np.asarray(page, np.float32))
+            written.append(path)
+    return written
+
+
 def write_maps(out_dir, pages: Mapping[str, Sequence[np.ndarray]], object_names: Sequence[str],
                object_page: Sequence[int]) -> list[Path]:
     """Writes every map as float32 EXR (linear, HDR kept) and 8-bit PNG; returns the paths.
@@ -136,8 +164,7 @@ def write_maps(out_dir, pages: Mapping[str, Sequence[np.ndarray]], object_names:
     written = []
     for name in [m for m in MAP_NAMES if m in pages]:
         for p, page in enumerate(pages[name]):
-            base = root / name if len(stems) == 1 else root / name / stems[p]
-            exr, png = base.with_name(base.name + ".exr"), base.with_name(base.name + ".png")
+            exr, png = page_file(root, name, stems, p, ".exr"), page_file(root, name, stems, p, ".png")
             imageio.write_image(exr, page)
             pixels, encode = png_pixels(name, page)
             imageio.write_image(png, pixels, encode_srgb=encode)
@@ -363,12 +390,22 @@ def write_gltf(path, mesh: Mesh, object_page: Sequence[int], pages: Mapping[str,
 def write_gltf_images(path, mesh: Mesh, object_page: Sequence[int], material_images: Sequence[dict]) -> Path:
     """`write_gltf` from per-page uint8 material images (`combine_material_layers`), so the
     float pages of every map never need to be in memory at once."""
-    import PIL.Image
-    import trimesh
-
     path = Path(path)
     if path.suffix.lower() != ".glb":
         raise ValueError(f"{path}: write_gltf writes binary glTF; use a .glb file name")
+    data = gltf_bytes(mesh, object_page, material_images)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_bytes(data)
+    os.replace(tmp, path)
+    return path
+
+
+def gltf_bytes(mesh: Mesh, object_page: Sequence[int], material_images: Sequence[dict]) -> bytes:
+    """The binary glTF that `write_gltf_images` writes."""
+    import PIL.Image
+    import trimesh
+
     _check_mesh_pages(mesh, object_page, len(material_images))
     stems = page_names(mesh.object_names, object_page)
     materials = []
@@ -388,12 +425,7 @@ def write_gltf_images(path, mesh: Mesh, object_page: Sequence[int], material_ima
         geom = trimesh.Trimesh(vertices=vertices, faces=np.arange(len(vertices)).reshape(-1, 3),
                                visual=visual, process=False)
         scene.add_geometry(geom, geom_name=name, node_name=name)
-    data = scene.export(file_type="glb")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
-    return path
+    return scene.export(file_type="glb")
 
 
 # ----------------------------------------------------------------------------- plots
