@@ -81,9 +81,27 @@ def test_unlit_glb_marks_every_material_and_keeps_geometry_and_textures():
     assert doc["extensionsUsed"] == ["KHR_materials_unlit"] and int.from_bytes(glb[8:12], "little") == len(glb)
     scene = trimesh.load(trimesh.util.wrap_as_stream(glb), file_type="glb", force="scene")
     assert sorted(scene.geometry) == ["left", "right"]
-    for name, value in (("left", 200), ("right", 30)):
-        texture = np.asarray(scene.geometry[name].visual.material.baseColorTexture)[..., :3]
-        assert (texture == value).all()
+    factor = doc["materials"][0]["pbrMetallicRoughness"]["baseColorFactor"]
+    assert factor == [display.TONE_HEADROOM] * 3 + [1.0]
+    for name, value in (("left", 200), ("right", 30)):     # what the browser shows: factor x texture, tone-mapped
+        texture = np.asarray(scene.geometry[name].visual.material.baseColorTexture)[..., :3] / 255.0
+        shown = imageio.linear_to_srgb(display.tone_mapped(imageio.srgb_to_linear(texture) * factor[0])) * 255
+        np.testing.assert_allclose(shown, value, atol=1.5)
+
+
+# grey textures sRGB 0, 17, ..., 255 on an unlit quad, as viser 1.1.1 showed them in Chromium (get_render)
+BROWSER_GREYS = [0, 3, 16, 34, 56, 81, 105, 129, 150, 169, 184, 197, 207, 215, 221, 226]
+
+
+def test_tone_mapping_model_matches_the_browser_and_its_inverse_gives_the_colours_back():
+    greys = np.repeat(np.linspace(0.0, 1.0, 16)[:, None], 3, axis=1)
+    shown = imageio.linear_to_srgb(display.tone_mapped(imageio.srgb_to_linear(greys)))[:, 0] * 255
+    np.testing.assert_allclose(shown, BROWSER_GREYS, atol=0.6)
+    rng = np.random.default_rng(0)
+    reachable = imageio.linear_to_srgb(display.tone_mapped(rng.uniform(0, display.TONE_HEADROOM, (500, 3))))
+    back = imageio.linear_to_srgb(display.tone_mapped(display.untone_mapped(reachable)))
+    np.testing.assert_allclose(back, reachable, atol=1e-5)
+    assert display.untone_mapped(np.ones(3)).max() == display.TONE_HEADROOM       # white: as bright as it gets
 
 
 def test_comparison_grid_places_cells_and_greys_missing_ones():
@@ -188,10 +206,12 @@ def test_the_browser_shows_the_textured_mesh_the_views_and_a_view_comparison(smo
         frag = compute_fragments(viewer.run.scene.mesh, [camera], progress=False)[0]
         pages = [imageio.read_image(export.page_file(smoke_run / "maps", "albedo", viewer.run.stems, p, ".exr"))
                  for p in range(len(viewer.run.stems))]
-        reference = evaluation.display_image("albedo", sample_pages(pages, [frag], viewer.run.object_page)[0])
+        reference = 255 * evaluation.display_image("albedo", sample_pages(pages, [frag], viewer.run.object_page)[0])
         shown, expected = blocks(grey(albedo), 16), blocks(grey(reference), 16)
         correlation = np.corrcoef(shown.ravel(), expected.ravel())[0, 1]
         assert correlation > 0.8, f"the browser's view {index} does not look like the albedo map there ({correlation:.3f})"
+        print(f"browser vs reference: correlation {correlation:.3f}, mean |difference| "
+              f"{np.abs(shown - expected).mean():.1f}, means {shown.mean():.1f} {expected.mean():.1f} (of 255)")
 
         viewer.map_choice.value = "metallic"
         metallic = render()

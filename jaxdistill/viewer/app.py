@@ -52,7 +52,7 @@ class Viewer:
         self.light = self.server.scene.add_light_point("/light/point", intensity=2.0 * self.extent ** 2, decay=2.0)
         side = np.cross(up, np.eye(3)[int(np.argmin(np.abs(up)))])
         side /= np.linalg.norm(side)
-        self.server.initial_camera.position = tuple(self.centre + 0.8 * self.extent * up + 0.5 * self.extent * side)
+        self.server.initial_camera.position = tuple(self.centre + 1.0 * self.extent * up + 0.6 * self.extent * side)
         self.server.initial_camera.look_at = tuple(self.centre)
         self._build_gui()
         self.frusta = self._add_frusta()

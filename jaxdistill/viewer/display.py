@@ -20,7 +20,7 @@ from typing import Sequence
 
 import numpy as np
 
-from jaxdistill import evaluation, export
+from jaxdistill import evaluation, export, imageio
 from jaxdistill.cameras import Camera
 from jaxdistill.scene import Mesh
 
@@ -101,12 +101,42 @@ def to_uint8(values: np.ndarray) -> np.ndarray:
     return np.round(np.clip(np.nan_to_num(values), 0.0, 1.0) * 255.0).astype(np.uint8)
 
 
+# ----------------------------------------------------------------------------- tone mapping
+
+# The browser draws through three.js with ACES filmic tone mapping (viser's renderer sets it; no
+# option turns it off), unlit materials included: a texture of sRGB 17/255 would show as 3/255 and
+# white as 226/255. Unlit textures are therefore pre-distorted by the curve's inverse, and stored
+# divided by TONE_HEADROOM with that as the material's baseColorFactor (three.js multiplies it in),
+# so that display values up to `tone_mapped(TONE_HEADROOM)` (sRGB 0.98) come out as they are.
+ACES_IN = np.array([[0.59719, 0.35458, 0.04823], [0.07600, 0.90834, 0.01566], [0.02840, 0.13383, 0.83777]])
+ACES_OUT = np.array([[1.60475, -0.53108, -0.07367], [-0.10208, 1.10813, -0.00605], [-0.00327, -0.07276, 1.07602]])
+TONE_EXPOSURE = 1.0 / 0.6          # three.js: color *= toneMappingExposure / 0.6, exposure 1
+TONE_HEADROOM = 4.0
+
+
+def tone_mapped(linear: np.ndarray) -> np.ndarray:
+    """three.js's ACESFilmicToneMapping of linear RGB (..., 3) (what the browser shows, linear)."""
+    v = (np.asarray(linear, np.float64) * TONE_EXPOSURE) @ ACES_IN.T
+    v = (v * (v + 0.0245786) - 0.000090537) / (v * (0.983729 * v + 0.4329510) + 0.238081)
+    return np.clip(v @ ACES_OUT.T, 0.0, 1.0)
+
+
+def untone_mapped(display: np.ndarray) -> np.ndarray:
+    """Linear RGB (..., 3) that `tone_mapped` turns into `display` (sRGB-encoded values in [0, 1]),
+    clipped to what [0, TONE_HEADROOM] can reach."""
+    target = imageio.srgb_to_linear(np.clip(np.asarray(display, np.float64), 0.0, 1.0))
+    t = np.clip(target @ np.linalg.inv(ACES_OUT).T, 0.0, 0.999 / 0.983729)
+    a, b, c = 1.0 - 0.983729 * t, 0.0245786 - 0.4329510 * t, -(0.000090537 + 0.238081 * t)
+    v = (-b + np.sqrt(b * b - 4.0 * a * c)) / (2.0 * a)
+    return np.clip((v @ np.linalg.inv(ACES_IN).T) / TONE_EXPOSURE, 0.0, TONE_HEADROOM)
+
+
 # ----------------------------------------------------------------------------- glTF
 
 
-def mark_unlit(glb: bytes) -> bytes:
-    """The binary glTF with every material made KHR_materials_unlit: the browser shows the base
-    colour texture as it is, without lights or shading."""
+def mark_unlit(glb: bytes, factor: float = 1.0) -> bytes:
+    """The binary glTF with every material made KHR_materials_unlit, its base colour texture
+    multiplied by `factor` (beyond glTF's [0, 1]; three.js applies it): no lights, no shading."""
     magic, version, _ = struct.unpack_from("<III", glb, 0)
     json_length, json_type = struct.unpack_from("<II", glb, 12)
     if magic != 0x46546C67 or json_type != 0x4E4F534A:
@@ -114,6 +144,7 @@ def mark_unlit(glb: bytes) -> bytes:
     doc = json.loads(glb[20:20 + json_length])
     for material in doc.get("materials", []):
         material.setdefault("extensions", {})["KHR_materials_unlit"] = {}
+        material.setdefault("pbrMetallicRoughness", {})["baseColorFactor"] = [factor, factor, factor, 1.0]
     used = doc.setdefault("extensionsUsed", [])
     if "KHR_materials_unlit" not in used:
         used.append("KHR_materials_unlit")
@@ -125,8 +156,12 @@ def mark_unlit(glb: bytes) -> bytes:
 
 
 def unlit_glb(mesh: Mesh, object_page: Sequence[int], images: Sequence[np.ndarray]) -> bytes:
-    """The mesh as binary glTF whose page p shows `images[p]` (uint8 (S, S, 3) display values) unlit."""
-    return mark_unlit(export.gltf_bytes(mesh, object_page, [{"baseColorTexture": img} for img in images]))
+    """The mesh as binary glTF whose page p shows `images[p]` (uint8 (S, S, 3) display values)
+    unlit, pre-distorted so that the browser's tone mapping gives them back (`untone_mapped`)."""
+    textures = [to_uint8(imageio.linear_to_srgb(untone_mapped(np.asarray(img) / 255.0) / TONE_HEADROOM))
+                for img in images]
+    return mark_unlit(export.gltf_bytes(mesh, object_page, [{"baseColorTexture": t} for t in textures]),
+                      TONE_HEADROOM)
 
 
 def pbr_glb(mesh: Mesh, object_page: Sequence[int], pages: dict[str, Sequence[np.ndarray]]) -> bytes:
