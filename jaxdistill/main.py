@@ -47,8 +47,9 @@ def main(argv) -> None:
         if follower is not None and sys.exc_info()[0] is not None:
             follower.stop()
     if follower is not None:
-        logging.warning("the run has ended; the viewer keeps serving it at %s until Ctrl-C", follower.url)
-        follower.wait()
+        if not summary.get("stopped_by"):
+            logging.warning("the run has ended; the viewer keeps serving it at %s until Ctrl-C", follower.url)
+            follower.wait()
         follower.stop()
     if summary.get("stopped_by"):          # SIGINT/SIGTERM: checkpoint saved, but not finished
         sys.exit(summary["exit_status"])

@@ -106,6 +106,8 @@ class Follower:
 
 
 def main(argv=None) -> int:
+    """The command line: `argv` is the arguments after the command (`OUT_DIR --port=...`;
+    sys.argv[1:] when None). Returns the exit status: 0, or 2 for a user error."""
     args = parse_args(sys.argv[1:] if argv is None else argv)
     try:
         viewer = start(args.out_dir, host=args.host, port=args.port, scene=args.scene)

@@ -168,6 +168,33 @@ def test_a_running_out_dir_shows_its_newest_checkpoint_and_refreshes(smoke_run, 
     assert run.version() != before and run.snapshot().finished
 
 
+def test_a_views_comparison_and_metrics_are_those_of_that_view(smoke_run):
+    """The per-view panel's GT, estimate and metrics for view k equal what the run's evaluation
+    (all views' fragments at once) has for view k."""
+    from jaxdistill import metrics, model_estimates
+
+    run = RunDir(smoke_run)
+    k = 7
+    images = run.view_images(k, run.snapshot().pages)
+    scene = run.scene
+    frags = compute_fragments(scene.mesh, [v.camera for v in scene.views], progress=False)
+    gt_doc, gt = evaluation.view_ground_truth(scene, frags)
+    folder = Path(json.loads((smoke_run / "metrics.json").read_text())["estimates_folder"])
+    estimates = model_estimates.read_estimates(folder, [v.name for v in scene.views], run.maps,
+                                               [f.shape for f in frags])
+    assert set(gt[k]) == {"albedo", "normal", "roughness", "metallic"}       # the bedroom has no irradiance GT
+    for m in run.maps:
+        if m in gt[k]:
+            np.testing.assert_array_equal(images[m]["gt"], gt[k][m])
+        else:
+            assert images[m]["gt"] is None
+        np.testing.assert_array_equal(images[m]["estimate"], estimates[k][m])
+    mask = evaluation.evaluation_masks(gt_doc, scene, frags)[k]
+    expected = metrics.evaluate_view({m: images[m]["ours"] for m in run.maps}, gt[k], mask)
+    assert run.view_metrics(k, images)["ours"] == expected
+    assert run.view_metrics(k, images)["estimate"] == metrics.evaluate_view(estimates[k], gt[k], mask)
+
+
 # ----------------------------------------------------------------------------- in the browser
 
 
@@ -209,9 +236,11 @@ def test_the_browser_shows_the_textured_mesh_the_views_and_a_view_comparison(smo
         reference = 255 * evaluation.display_image("albedo", sample_pages(pages, [frag], viewer.run.object_page)[0])
         shown, expected = blocks(grey(albedo), 16), blocks(grey(reference), 16)
         correlation = np.corrcoef(shown.ravel(), expected.ravel())[0, 1]
-        assert correlation > 0.8, f"the browser's view {index} does not look like the albedo map there ({correlation:.3f})"
-        print(f"browser vs reference: correlation {correlation:.3f}, mean |difference| "
-              f"{np.abs(shown - expected).mean():.1f}, means {shown.mean():.1f} {expected.mean():.1f} (of 255)")
+        difference = np.abs(shown - expected).mean()
+        print(f"browser vs reference: correlation {correlation:.3f}, mean |difference| {difference:.1f} of 255")
+        assert correlation > 0.7, f"the browser's view {index} does not look like the albedo map there ({correlation:.3f})"
+        # the colours themselves: the browser's tone mapping left uncompensated shifts them by 10-16 of 255
+        assert difference < 6, f"the browser shows other colours than the albedo map ({difference:.1f} of 255)"
 
         viewer.map_choice.value = "metallic"
         metallic = render()

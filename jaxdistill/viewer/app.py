@@ -25,11 +25,23 @@ METRIC_LABELS = {"albedo_psnr": "albedo PSNR (dB)", "albedo_ssim": "albedo SSIM"
 PANEL_WIDTH = 200          # pixels across each image of the per-view comparison
 
 
+class QuietHandshakes(logging.Filter):
+    """Drops websockets' "opening handshake failed" tracebacks: browsers open speculative
+    connections to a page's host and close them unused, which is harmless."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return record.getMessage() != "opening handshake failed"
+
+
+QUIET_HANDSHAKES = QuietHandshakes()
+
+
 class Viewer:
     """Serves `run` on host:port until `close()`; `refresh()` reloads what changed on disk."""
 
     def __init__(self, run: RunDir, host: str = "127.0.0.1", port: int = 8080):
         self.run = run
+        logging.getLogger("websockets.server").addFilter(QUIET_HANDSHAKES)     # once: the same filter object
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
         self.server.gui.configure_theme(titlebar_content=None, control_width="large", dark_mode=False)
         self.url = f"http://{host}:{self.server.get_port()}"

@@ -156,6 +156,10 @@ class RunDir:
 
     # -- one view ----------------------------------------------------------------------------
 
+    def one_view(self, index: int) -> Scene:
+        """The scene with view `index` alone (evaluation pairs a scene's views with fragments)."""
+        return dataclasses.replace(self.scene, views=(self.scene.views[index],))
+
     def fragments(self, index: int):
         if index not in self._fragments:
             from jaxdistill.render.fragments import compute_fragments
@@ -178,7 +182,7 @@ class RunDir:
         if "normal" in ours:
             ours["normal"] = ours["normal"] @ rgbx_camera_rotation(view.camera.c2w).astype(np.float32)
         ours = {m: np.where(frag.hit[..., None], x, 0.0) for m, x in ours.items()}
-        _, gt = evaluation.view_ground_truth(self.scene, [frag])
+        _, gt = evaluation.view_ground_truth(self.one_view(index), [frag])
         estimates = self._estimates(index, frag.shape)
         return {m: {"estimate": None if estimates is None else estimates.get(m), "ours": ours[m],
                     "gt": None if gt is None else gt[0].get(m)} for m in self.maps}
@@ -195,8 +199,7 @@ class RunDir:
             return None
         if self.config.get("prior_kind") == "rgbx":
             return None                       # the model's estimates are made at the end of the run
-        baseline = evaluation.read_baseline(dataclasses.replace(self.scene, views=(self.scene.views[index],)),
-                                            self.maps, [shape])
+        baseline = evaluation.read_baseline(self.one_view(index), self.maps, [shape])
         return None if baseline is None else baseline[0]
 
     def view_metrics(self, index: int, images: dict) -> dict[str, dict[str, float]]:
@@ -205,7 +208,7 @@ class RunDir:
         if not gt:
             return {}
         scene_gt = evaluation.read_ground_truth(self.scene)
-        mask = evaluation.evaluation_masks(scene_gt, self.scene, [self.fragments(index)])[0]
+        mask = evaluation.evaluation_masks(scene_gt, self.one_view(index), [self.fragments(index)])[0]
         out = {"ours": metrics.evaluate_view({m: v["ours"] for m, v in images.items()}, gt, mask)}
         if all(v["estimate"] is not None for v in images.values()):
             out["estimate"] = metrics.evaluate_view({m: v["estimate"] for m, v in images.items()}, gt, mask)
