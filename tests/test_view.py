@@ -308,3 +308,26 @@ def test_the_follower_serves_once_the_run_has_written_its_texel_space(smoke_run,
         assert follower.viewer.snapshot.finished            # refreshed to the finished run's maps
     finally:
         follower.stop()
+
+
+def test_python_m_jaxdistill_view_prints_the_url_serves_it_and_stops_on_ctrl_c(smoke_run):
+    import signal
+    import subprocess
+    import urllib.request
+
+    port = free_port()
+    process = subprocess.Popen([sys.executable, "-m", "jaxdistill.view", str(smoke_run), f"--port={port}"],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO)
+    try:
+        lines = [process.stdout.readline() for _ in range(1)]
+        while "jaxdistill view:" not in lines[-1] and lines[-1] and len(lines) < 30:     # after viser's banner
+            lines.append(process.stdout.readline())
+        assert f"jaxdistill view: serving {smoke_run} at http://127.0.0.1:{port} (open it in a browser" in lines[-1], lines
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}", timeout=30) as response:
+            assert response.status == 200
+        process.send_signal(signal.SIGINT)
+        assert process.wait(30) == 0
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
