@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import errno
+import signal
 import importlib.util
 import socket
 import sys
@@ -79,14 +80,18 @@ class Follower:
     def _serve(self) -> None:
         from jaxdistill.run_files import TEXEL_SPACE_FILE
 
-        while not (self.out_dir / TEXEL_SPACE_FILE).is_file():
+        while self.viewer is None:
             if self.stopping.wait(0.5):
                 return
-        try:
-            self.viewer = start(self.out_dir, host=self.host, port=self.port)
-        except InputError as err:
-            print(f"jaxdistill view: {err}", file=sys.stderr)
-            return
+            if not (self.out_dir / TEXEL_SPACE_FILE).is_file():
+                continue
+            try:
+                self.viewer = start(self.out_dir, host=self.host, port=self.port)
+            except InputError as err:
+                print(f"jaxdistill view: {err}", file=sys.stderr)
+                return
+            except (OSError, EOFError, ValueError, KeyError) as err:      # a file caught mid-write: try again
+                print(f"jaxdistill view: not ready yet ({err}); retrying", file=sys.stderr)
         print(f"jaxdistill view: following the run at {self.url}", file=sys.stderr, flush=True)
         self.viewer.follow(self.stopping, self.interval)
 
@@ -114,14 +119,13 @@ def main(argv=None) -> int:
     except InputError as err:
         print(f"jaxdistill view: {err}", file=sys.stderr)
         return 2
-    print(f"jaxdistill view: serving {args.out_dir} at {viewer.url} (open it in a browser; Ctrl-C stops)", flush=True)
     stop = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):        # stop between refreshes, never inside one
+        signal.signal(signum, lambda *_: stop.set())
+    print(f"jaxdistill view: serving {args.out_dir} at {viewer.url} (open it in a browser; Ctrl-C stops)", flush=True)
     try:
         viewer.follow(stop, args.refresh)
-    except KeyboardInterrupt:
-        pass
     finally:
-        stop.set()
         viewer.close()
     return 0
 

@@ -296,7 +296,8 @@ def test_the_follower_serves_once_the_run_has_written_its_texel_space(smoke_run,
         assert follower.viewer is None and follower.thread.is_alive()          # waits for the run's set-up
         shutil.copytree(smoke_run, out, dirs_exist_ok=True, ignore=shutil.ignore_patterns("metrics.json"))
         end = time.monotonic() + 60
-        while follower.viewer is None and time.monotonic() < end:
+        while (follower.viewer is None or follower.viewer.snapshot.source != "checkpoint of step 20") and \
+                time.monotonic() < end:
             time.sleep(0.2)
         assert follower.viewer is not None and follower.viewer.snapshot.source == "checkpoint of step 20"
         with urllib.request.urlopen(follower.url, timeout=30) as response:
@@ -310,14 +311,15 @@ def test_the_follower_serves_once_the_run_has_written_its_texel_space(smoke_run,
         follower.stop()
 
 
-def test_python_m_jaxdistill_view_prints_the_url_serves_it_and_stops_on_ctrl_c(smoke_run):
+def test_python_m_jaxdistill_view_prints_the_url_serves_it_and_stops_on_ctrl_c(smoke_run, tmp_path):
     import signal
     import subprocess
     import urllib.request
 
     port = free_port()
+    log = (tmp_path / "stderr.txt").open("w")
     process = subprocess.Popen([sys.executable, "-m", "jaxdistill.view", str(smoke_run), f"--port={port}"],
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO)
+                               stdout=subprocess.PIPE, stderr=log, text=True, cwd=REPO)
     try:
         lines = [process.stdout.readline() for _ in range(1)]
         while "jaxdistill view:" not in lines[-1] and lines[-1] and len(lines) < 30:     # after viser's banner
@@ -326,8 +328,13 @@ def test_python_m_jaxdistill_view_prints_the_url_serves_it_and_stops_on_ctrl_c(s
         with urllib.request.urlopen(f"http://127.0.0.1:{port}", timeout=30) as response:
             assert response.status == 200
         process.send_signal(signal.SIGINT)
-        assert process.wait(30) == 0
+        try:
+            status = process.wait(30)
+        except subprocess.TimeoutExpired:
+            status = None
+        assert status == 0, (status, (tmp_path / "stderr.txt").read_text()[-3000:])
     finally:
         if process.poll() is None:
             process.kill()
             process.wait()
+        log.close()
