@@ -8,7 +8,7 @@ Completeness: orbax writes a step into `<step>.orbax-checkpoint-tmp`, then final
 stamping `commit_timestamp_nsecs` into `_CHECKPOINT_METADATA`, writing `commit_success.txt`
 and renaming the directory to `<step>`. On a local disk orbax itself trusts the rename alone,
 so a `<step>` directory left by an interrupted copy would count as a checkpoint; this module
-also requires the commit marker inside it (`_committed`), and never lists, restores or
+also requires the commit marker inside it (`is_committed`), and never lists, restores or
 counts (for `max_to_keep`) a directory without it.
 """
 
@@ -38,7 +38,7 @@ _ADVICE = "use the same flags, or a new --out_dir, or drop --resume to start ove
 _COMMIT_FILE = atomicity_types.COMMIT_SUCCESS_FILE  # "commit_success.txt"
 
 
-def _committed(path) -> bool:
+def is_committed(path) -> bool:
     """Whether the step directory `path` was finalised by orbax (not a partial write)."""
     path = Path(path)
     if atomicity_types.TMP_DIR_SUFFIX in path.name or not path.is_dir():
@@ -73,11 +73,11 @@ class _CommittedNameFormat:
         return self._inner.build_name(step)
 
     def find_all(self, base_path) -> Iterator[step_lib.Metadata]:
-        return (m for m in self._inner.find_all(base_path) if _committed(m.path))
+        return (m for m in self._inner.find_all(base_path) if is_committed(m.path))
 
     def find_step(self, base_path, step: int) -> step_lib.Metadata:
         meta = self._inner.find_step(base_path, step)
-        if not _committed(meta.path):
+        if not is_committed(meta.path):
             raise ValueError(f"checkpoint {meta.path} is incomplete (no {_COMMIT_FILE})")
         return meta
 
@@ -175,7 +175,7 @@ class CheckpointStore:
         config = _jsonable(config, "config")
         self._mngr.wait_until_finished()
         final = self._step_dir(step)
-        if _committed(final):
+        if is_committed(final):
             return False
         if final.exists():  # left by an interrupted write or copy: never a checkpoint, replace it
             shutil.rmtree(final)
@@ -206,7 +206,7 @@ class CheckpointStore:
 
     def all_steps(self) -> list[int]:
         """The steps of all complete checkpoints, ascending."""
-        return sorted(s for s in self._mngr.all_steps() if _committed(self._step_dir(s)))
+        return sorted(s for s in self._mngr.all_steps() if is_committed(self._step_dir(s)))
 
     def latest_step(self) -> int | None:
         """The latest complete checkpoint's step, or None."""
@@ -245,6 +245,13 @@ class CheckpointStore:
             like, restored.state,
         )
         return state, dict(restored.config)
+
+    def read_texels(self, step: int | None = None) -> np.ndarray:
+        """The texels of `step` (None: the latest complete one) as a NumPy array, without knowing
+        the state's structure (a viewer following a run)."""
+        step = self._complete_step(step)
+        restored = self._mngr.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore()))
+        return np.asarray(restored.state["texels"])
 
     def _complete_step(self, step: int | None) -> int:
         self._mngr.wait_until_finished()

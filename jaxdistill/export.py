@@ -28,6 +28,7 @@ import numpy as np
 from jaxdistill import MAP_NAMES
 from jaxdistill import imageio
 from jaxdistill.cameras import Camera, to_opengl
+from jaxdistill.render.sampler import compact
 from jaxdistill.scene import Mesh
 
 MAP_CHANNELS = {"albedo": 3, "normal": 3, "roughness": 1, "metallic": 1, "irradiance": 3}
@@ -125,6 +126,34 @@ def png_pixels(name: str, page: np.ndarray) -> tuple[np.ndarray, bool]:
     return np.clip(page, 0.0, 1.0), False  # roughness / metallic: grey values as they are
 
 
+def page_file(root, name: str, stems: Sequence[str], page: int, suffix: str) -> Path:
+    """Where page `page` of map `name` lies under `root`: `root/<name><suffix>` with one page,
+    else `root/<name>/<stem><suffix>` (`stems` from `page_names`)."""
+    base = Path(root) / name if len(stems) == 1 else Path(root) / name / stems[page]
+    return base.with_name(base.name + suffix)
+
+
+EVIDENCE_DIR = "evidence"
+
+
+def write_evidence(out_dir, pages: Mapping[str, Sequence[np.ndarray]], object_names: Sequence[str],
+                   object_page: Sequence[int]) -> list[Path]:
+    """Writes per-texel evidence pages, one float32 channel each, as EXR under
+    `out_dir/evidence/` in the maps' page naming (`page_file`): e.g. `visibility` (view
+    counts) and `disagreement_<map>` (the views' spread, NaN where fewer than two views)."""
+    stems = page_names(object_names, object_page)
+    root = Path(out_dir) / EVIDENCE_DIR
+    written = []
+    for name, per_page in pages.items():
+        if len(per_page) != len(stems):
+            raise ValueError(f"evidence {name!r}: {len(per_page)} pages, but object_page uses {len(stems)}")
+        for p, page in enumerate(per_page):
+            path = page_file(root, name, stems, p, ".exr")
+            imageio.write_image(path, np.asarray(page, np.float32))
+            written.append(path)
+    return written
+
+
 def write_maps(out_dir, pages: Mapping[str, Sequence[np.ndarray]], object_names: Sequence[str],
                object_page: Sequence[int]) -> list[Path]:
     """Writes every map as float32 EXR (linear, HDR kept) and 8-bit PNG; returns the paths.
@@ -139,8 +168,7 @@ def write_maps(out_dir, pages: Mapping[str, Sequence[np.ndarray]], object_names:
     written = []
     for name in [m for m in MAP_NAMES if m in pages]:
         for p, page in enumerate(pages[name]):
-            base = root / name if len(stems) == 1 else root / name / stems[p]
-            exr, png = base.with_name(base.name + ".exr"), base.with_name(base.name + ".png")
+            exr, png = page_file(root, name, stems, p, ".exr"), page_file(root, name, stems, p, ".png")
             imageio.write_image(exr, page)
             pixels, encode = png_pixels(name, page)
             imageio.write_image(png, pixels, encode_srgb=encode)
@@ -275,6 +303,14 @@ def page_trust(evidence_pages: Sequence[np.ndarray], coverage: Sequence[np.ndarr
             .astype(np.float32) for e, c in zip(evidence_pages, coverage)]
 
 
+def texel_trust(evidence: np.ndarray, coverage: Sequence[np.ndarray], space) -> np.ndarray:
+    """`page_trust` per compact texel (N,) float32: evidence (N,) / EVIDENCE_FULL clipped to 1,
+    0 where the texel lies outside its page's charts (`chart_coverage` pages). Expanded to pages
+    (fill 0, no dilation) it equals `page_trust` of the expanded evidence."""
+    inside = compact([c[..., None].astype(np.float32) for c in coverage], space)[:, 0] > 0
+    return np.where(inside, np.clip(np.asarray(evidence, np.float32) / EVIDENCE_FULL, 0.0, 1.0), 0.0).astype(np.float32)
+
+
 def tangent_space_normals(world_pages: Sequence[np.ndarray], mesh: Mesh, object_page: Sequence[int], *,
                           dilate: int = SEAM_DILATION) -> list[np.ndarray]:
     """World-space normal pages -> glTF tangent-space normal pages, encoded (t + 1) / 2.
@@ -392,12 +428,23 @@ def write_gltf_images(path, mesh: Mesh, object_page: Sequence[int], material_ima
                       cameras: Sequence[tuple[str, Camera]] = ()) -> Path:
     """`write_gltf` from per-page uint8 material images (`combine_material_layers`), so the
     float pages of every map never need to be in memory at once."""
-    import PIL.Image
-    import trimesh
-
     path = Path(path)
     if path.suffix.lower() != ".glb":
         raise ValueError(f"{path}: write_gltf writes binary glTF; use a .glb file name")
+    data = gltf_bytes(mesh, object_page, material_images, cameras)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_bytes(data)
+    os.replace(tmp, path)
+    return path
+
+
+def gltf_bytes(mesh: Mesh, object_page: Sequence[int], material_images: Sequence[dict],
+               cameras: Sequence[tuple[str, Camera]] = ()) -> bytes:
+    """The binary glTF that `write_gltf_images` writes (vertex normals, tangents, cameras: `complete_glb`)."""
+    import PIL.Image
+    import trimesh
+
     _check_mesh_pages(mesh, object_page, len(material_images))
     stems = page_names(mesh.object_names, object_page)
     materials = []
@@ -417,12 +464,7 @@ def write_gltf_images(path, mesh: Mesh, object_page: Sequence[int], material_ima
         geom = trimesh.Trimesh(vertices=vertices, faces=np.arange(len(vertices)).reshape(-1, 3),
                                visual=visual, process=False)
         scene.add_geometry(geom, geom_name=name, node_name=name)
-    data = complete_glb(scene.export(file_type="glb"), mesh, cameras)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
-    return path
+    return complete_glb(scene.export(file_type="glb"), mesh, cameras)
 
 
 GLB_MAGIC, GLB_JSON, GLB_BIN = 0x46546C67, 0x4E4F534A, 0x004E4942

@@ -32,18 +32,49 @@ def main(argv) -> None:
         raise app.UsageError(f"unexpected arguments {argv[1:]}; every setting is a --flag")
     from jaxdistill import train
 
+    follower = None
     try:
         config = config_lib.config_from_flags(FLAGS)
+        if "view" in FLAGS and FLAGS.view:
+            follower = start_viewer(config)
         summary = train.run(config)
     except InputError as err:
         raise app.UsageError(str(err)) from None
     except train.NonFiniteLoss as err:
         logging.error("%s", err)
         sys.exit(3)
+    finally:
+        if follower is not None and sys.exc_info()[0] is not None:
+            follower.stop()
+    if follower is not None:
+        if not summary.get("stopped_by"):
+            logging.warning("the run has ended; the viewer keeps serving it at %s until Ctrl-C", follower.url)
+            follower.wait()
+        follower.stop()
     if summary.get("stopped_by"):          # SIGINT/SIGTERM: checkpoint saved, but not finished
         sys.exit(summary["exit_status"])
 
 
+def define_view_flags(fv) -> None:
+    flags.DEFINE_bool("view", False, "serve the browser viewer of this run (needs the view extra) and keep "
+                      "serving after it ends, until Ctrl-C; maps refresh at each checkpoint (--ckpt_every)",
+                      flag_values=fv)
+    flags.DEFINE_integer("view_port", 8080, "port of --view's viewer (on 127.0.0.1)", flag_values=fv)
+
+
+def start_viewer(config):
+    """The viewer following this run (--view), its port and installation checked before any compute."""
+    from jaxdistill import view
+
+    follower = view.Follower(config.out_dir, port=FLAGS.view_port)
+    if not config.ckpt_every:
+        logging.warning("--view: with --ckpt_every=0 the viewer shows the initial texels until the run ends; set "
+                        "--ckpt_every to see the maps as they are distilled")
+    logging.warning("--view: open %s in a browser (the viewer starts once the run's set-up is done)", follower.url)
+    return follower
+
+
 if __name__ == "__main__":
     config_lib.define_flags(FLAGS, main_module=True)
+    define_view_flags(FLAGS)
     app.run(main)

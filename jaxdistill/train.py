@@ -19,17 +19,19 @@ import numpy as np
 from absl import logging
 from tqdm.auto import tqdm
 
-from jaxdistill import MAP_NAMES, align as align_lib, checkpoint, evaluation, export, imageio, metrics, model_estimates
+from jaxdistill import MAP_NAMES, align as align_lib, checkpoint, evaluation, export, imageio, metrics, model_estimates, run_files
 from jaxdistill.config import DistillConfig, check_views_per_step, resumable_flags
 from jaxdistill.distill import (StepSettings, data_mesh, init_state, initial_align, initial_reused, jit_step,
                                 make_optimizer, make_step)
 from jaxdistill.errors import InputError
-from jaxdistill.maps import model_to_file
 from jaxdistill.models.shipped import model_info
-from jaxdistill.problem import Problem, build_problem, choose_prior, initial_file_values
+from jaxdistill.problem import Problem, build_problem, choose_prior
 from jaxdistill.render.gather_plan import GatherPlan, build_gather_plans
-from jaxdistill.render.sampler import expand, push_pull
+from jaxdistill.cameras import rgbx_camera_rotation
+from jaxdistill.render.sampler import expand
+from jaxdistill.render.visibility import texel_view_statistics
 from jaxdistill.summary import summary_table
+from jaxdistill.view_images import resize
 
 
 class NonFiniteLoss(RuntimeError):
@@ -151,6 +153,8 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
     history = {"step": [], "loss": [], "eval_step": [], "albedo_psnr": []}
 
     out.mkdir(parents=True, exist_ok=True)
+    run_files.write_texel_space(out, problem.space, texel_trust(problem), problem.channels.maps,
+                                _json_safe(recorded))
     store = checkpoint.CheckpointStore(out / "checkpoints", max_to_keep=config.keep_checkpoints or None)
     if latest is not None:
         state, _ = store.restore(latest, state)
@@ -280,8 +284,7 @@ def evaluation_context(config: DistillConfig, problem: Problem) -> EvalContext:
     native = all((c.height, c.width) == (problem.height, problem.width) for c in cameras)
     frags = problem.native_fragments
     if native:
-        plan = GatherPlan(index=problem.plan_index, weight=problem.plan_weight, hit=problem.plan_hit,
-                          chain=problem.frozen["chain"], height=problem.height, width=problem.width)
+        plan = training_plan(problem)
     else:
         plan = build_gather_plans(frags, problem.space, config.sampler)
     gt, gt_maps = evaluation.view_ground_truth(scene, frags)
@@ -307,14 +310,11 @@ def write_outputs(config: DistillConfig, problem: Problem, texels: np.ndarray, h
     """maps/, scene.glb, renders/, contact sheets, loss.png; returns the metrics part of metrics.json."""
     out = Path(config.out_dir)
     scene, channels, space = problem.scene, problem.channels, problem.space
-    fills = initial_file_values(channels.maps)
-    trust = export.page_trust(expand(problem.evidence[:, None], space, 0.0, dilation=0),
-                              export.chart_coverage(scene.mesh, space.layout.object_page, space.layout.page_sizes))
+    trust = texel_trust(problem)
     # one map at a time: full float pages of all maps at once would be 20 GiB at 30 pages of 4096²
     written, layers = [], {}
     for m in [m for m in MAP_NAMES if m in channels.maps]:
-        pages = [push_pull(page, t) for page, t in zip(expand(model_to_file(m, texels[:, channels.slice(m)]), space,
-                                                              fills[m], dilation=0), trust)]
+        pages = run_files.map_pages(m, texels, channels, space, trust)
         written += export.write_maps(out, {m: pages}, scene.mesh.object_names, space.layout.object_page)
         layer = export.material_layers(m, pages, scene.mesh, space.layout.object_page)
         if layer is not None:
@@ -329,16 +329,19 @@ def write_outputs(config: DistillConfig, problem: Problem, texels: np.ndarray, h
     if config.renders:
         evaluation.write_renders(out / "renders", names, pred)
     shapes = [f.shape for f in ctx.fragments]
+    result = {}
     if problem.rgbx_model is not None:     # the rgbx prior is scored against its own per-view estimates
         folder = model_estimates.cached_estimates(
             problem.rgbx_model, [(v.name, v.photo, v.exposure) for v in scene.views], channels.maps, problem.height,
             problem.width, dtype=config.prior_dtype, seed=config.seed)
         baseline = model_estimates.read_estimates(folder, [v.name for v in scene.views], channels.maps, shapes)
         baseline_source = f"the model's own per-view estimates ({model_estimates.ESTIMATE_STEPS} DDIM steps, {folder})"
+        result["estimates_folder"] = str(folder)
     else:
         baseline = evaluation.read_baseline(scene, channels.maps, shapes)
         baseline_source = "the scene's per-view target images"
-    result = {"maps_written": [str(p.relative_to(out)) for p in written]}
+    written += write_evidence(out, problem, ctx, baseline)
+    result["maps_written"] = [str(p.relative_to(out)) for p in written]
     if ctx.gt_maps is not None:
         covered = sorted({m for per_view in ctx.gt_maps for m in per_view} & set(channels.maps))
         if not covered:
@@ -382,6 +385,44 @@ def write_outputs(config: DistillConfig, problem: Problem, texels: np.ndarray, h
                                        [names[i] for i in picks])
     result["history"] = history
     return result
+
+
+def texel_trust(problem: Problem) -> np.ndarray:
+    """(N,) float32 in [0, 1]: how far each texel's distilled value is kept in the exported pages
+    (`export.texel_trust`: its evidence, inside its object's UV charts)."""
+    coverage = export.chart_coverage(problem.scene.mesh, problem.space.layout.object_page,
+                                     problem.space.layout.page_sizes)
+    return export.texel_trust(problem.evidence, coverage, problem.space)
+
+
+def training_plan(problem: Problem) -> GatherPlan:
+    """The gather plans of all views at the render size the run trains at."""
+    return GatherPlan(index=problem.plan_index, weight=problem.plan_weight, hit=problem.plan_hit,
+                      chain=problem.frozen["chain"], height=problem.height, width=problem.width)
+
+
+def write_evidence(out: Path, problem: Problem, ctx: EvalContext, baseline: list[dict] | None) -> list[Path]:
+    """evidence/: per texel the view count V of the training plans (`visibility`) and, for each
+    map with per-view estimates, how much they disagree (`disagreement_<map>`: RMS deviation of
+    the views' values from their mean, in file space, normals in world space; NaN where fewer
+    than two views see the texel), both as the fusion sees them: through the training plans, the
+    estimates at the render size. Where the fusion had little or conflicting evidence."""
+    space, channels = problem.space, problem.channels
+    pages = {"visibility": expand(problem.counts.astype(np.float32)[:, None], space, 0.0, dilation=0)}
+    if baseline:
+        maps = list(channels.maps)
+        images = []
+        for camera, per_view in zip(ctx.cameras, baseline):
+            parts = {m: resize(per_view[m], problem.height, problem.width) for m in maps}
+            if "normal" in parts:           # estimates are in RGB<->X camera space; texels are world space
+                parts["normal"] = parts["normal"] @ rgbx_camera_rotation(camera.c2w).T.astype(np.float32)
+            images.append(np.concatenate([parts[m] for m in maps], axis=-1))
+        count, _, variance = texel_view_statistics(training_plan(problem), images, space.num_texels)
+        for m in maps:
+            spread = np.sqrt(variance[:, channels.slice(m)].sum(axis=1))
+            spread = np.where(count >= 2, spread, np.nan).astype(np.float32)
+            pages[f"disagreement_{m}"] = expand(spread[:, None], space, np.nan, dilation=0)
+    return export.write_evidence(out, pages, problem.scene.mesh.object_names, space.layout.object_page)
 
 
 def _improvement(ours: dict, baseline: dict) -> dict:

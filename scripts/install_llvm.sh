@@ -7,12 +7,6 @@ lib=/usr/lib/x86_64-linux-gnu/libLLVM-19.so
 if [ -e "$lib" ] || [ -n "${DRJIT_LIBLLVM_PATH:-}" ]; then
   exit 0
 fi
-if ! command -v apt-get >/dev/null; then
-  echo "install LLVM 19 with your package manager and set DRJIT_LIBLLVM_PATH to its libLLVM .so" >&2
-  exit 1
-fi
-sudo=""
-[ "$(id -u)" -eq 0 ] || sudo="sudo"
-$sudo apt-get update -qq
-$sudo apt-get install -y -qq libllvm19 >/dev/null
+bash "$(dirname "$0")/apt_install.sh" libllvm19 \
+  "install LLVM 19 with your package manager and set DRJIT_LIBLLVM_PATH to its libLLVM .so"
 echo "installed libllvm19 ($lib)"

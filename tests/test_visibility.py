@@ -8,8 +8,8 @@ import numpy as np
 from jaxdistill import imageio
 from jaxdistill.render.gather_plan import build_gather_plans, build_texel_space, view_taps
 from jaxdistill.render.layout import make_layout
-from jaxdistill.render.visibility import (pixel_weights, texel_evidence, view_counts, visibility_weights,
-                                         write_visibility_pages)
+from jaxdistill.render.visibility import (pixel_weights, texel_evidence, texel_view_statistics, view_counts,
+                                          visibility_weights, write_visibility_pages)
 from test_sampler import scene_views
 
 
@@ -86,3 +86,48 @@ def test_evidence_is_the_summed_level0_tap_weight_and_spreads_coarse_reads():
     evidence = texel_evidence(plan, space.num_texels)
     assert abs(float(evidence.astype(np.float64).sum()) - hits) <= 1e-4 * hits
     np.testing.assert_array_equal(evidence > 0, view_counts(plan, space.num_texels) > 0)
+
+
+def test_texel_view_statistics_match_brute_force_per_view_values():
+    """Each view paints its pixels one constant (2 channels): at a texel, the views that read it
+    (brute force from the taps) give mean and population variance of their constants."""
+    mesh, frags = scene_views()
+    layout = make_layout(len(mesh.object_names), "pages", 32, frags)
+    space = build_texel_space(frags, layout, "bilinear")
+    plan = build_gather_plans(frags, space, "bilinear")
+    values = np.array([[0.2, 3.0], [0.5, -1.0], [0.9, 2.0]], np.float32)
+    images = [np.broadcast_to(values[v], (*frags[v].shape, 2)) for v in range(len(frags))]
+    count, mean, variance = texel_view_statistics(plan, images, space.num_texels)
+    readers = [[] for _ in range(space.num_texels)]
+    for v, frag in enumerate(frags):
+        page, _, row, col, weight = view_taps(frag, layout, "bilinear")
+        used = weight > 0
+        for texel in np.unique(space.texel_index(page[used], row[used], col[used])):
+            readers[texel].append(v)
+    np.testing.assert_array_equal(count, [len(r) for r in readers])
+    assert (count >= 2).sum() > 100 and (count == 1).sum() > 100          # both cases really occur
+    for texel in range(space.num_texels):
+        if readers[texel]:
+            np.testing.assert_allclose(mean[texel], values[readers[texel]].mean(axis=0), atol=1e-5)
+            np.testing.assert_allclose(variance[texel], values[readers[texel]].var(axis=0), atol=1e-5)
+        else:
+            assert not mean[texel].any() and not variance[texel].any()
+
+
+def test_texel_trust_expands_to_the_page_trust_of_the_expanded_evidence():
+    """What texel_space.npz stores per texel (export.texel_trust) gives, expanded to pages, the
+    very trust pages the export weights its push-pull fill with (export.page_trust)."""
+    from jaxdistill import export
+    from jaxdistill.render.sampler import expand
+
+    mesh, frags = scene_views()
+    layout = make_layout(len(mesh.object_names), "pages", 32, frags)
+    space = build_texel_space(frags, layout, "bilinear")
+    evidence = texel_evidence(build_gather_plans(frags, space, "bilinear"), space.num_texels)
+    rng = np.random.default_rng(0)
+    coverage = [rng.uniform(size=(s, s)) < 0.7 for s in layout.page_sizes]
+    expected = export.page_trust(expand(evidence[:, None], space, 0.0, dilation=0), coverage)
+    got = expand(export.texel_trust(evidence, coverage, space)[:, None], space, 0.0, dilation=0)
+    assert any((e > 0).any() and (e < 1).any() for e in expected)                 # partial trust really occurs
+    for e, g in zip(expected, got):
+        np.testing.assert_array_equal(g[..., 0], e)

@@ -285,3 +285,29 @@ def build_gather_plans(fragments: Sequence[Fragments], space: TexelSpace, sample
                      in_tile_levels=space.in_tile_levels)
     return GatherPlan(index=jnp.asarray(np.stack(index)), weight=jnp.asarray(np.stack(weight)),
                       hit=jnp.asarray(np.stack(hit)), chain=chain, height=height, width=width)
+
+
+def tile_set_arrays(space: TexelSpace) -> dict[str, np.ndarray]:
+    """The level-0 tile set of `space` as plain arrays (for np.savez): enough to expand and
+    compact texels (`sampler.expand` / `compact`) without the scene, e.g. in a viewer."""
+    return {"page_sizes": np.asarray(space.layout.page_sizes, np.int64),
+            "object_page": np.asarray(space.layout.object_page, np.int64),
+            "tile": np.asarray(space.tile, np.int64), "tile_page": space.tile_page,
+            "tile_row": space.tile_row, "tile_col": space.tile_col}
+
+
+def space_from_tile_set(arrays) -> TexelSpace:
+    """The TexelSpace of `tile_set_arrays`' output: level 0 only (no mip levels)."""
+    page_sizes = tuple(int(s) for s in arrays["page_sizes"])
+    tile = int(arrays["tile"])
+    layout = TextureLayout(page_sizes=page_sizes, object_page=tuple(int(p) for p in arrays["object_page"]),
+                           mipmaps=False, tile_size=tile)
+    tile_page, tile_row, tile_col = (np.asarray(arrays[k], np.int64) for k in ("tile_page", "tile_row", "tile_col"))
+    tile_map = []
+    for p, size in enumerate(page_sizes):
+        grid = np.full((size // tile, size // tile), -1, np.int32)
+        ids = np.nonzero(tile_page == p)[0]
+        grid[tile_row[ids], tile_col[ids]] = ids
+        tile_map.append(grid)
+    return TexelSpace(layout=layout, tile_page=tile_page, tile_row=tile_row, tile_col=tile_col,
+                      tile_map=tuple(tile_map), coarse_maps=tuple(() for _ in page_sizes), children=())

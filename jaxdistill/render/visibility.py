@@ -69,6 +69,41 @@ def texel_evidence(plan: GatherPlan, num_texels: int) -> np.ndarray:
     return total.astype(np.float32)
 
 
+@jax.jit
+def _splat(plan: GatherPlan, images: jnp.ndarray, num_texels_like: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """Transpose of the single-view `plan`'s render: per texel (sum of gather weights over the
+    pixels that read it, (N,); the same sum of `images` (H, W, C) values, (N, C))."""
+    _, transpose = jax.vjp(lambda t: render(t, plan), num_texels_like)
+    hit = plan.hit.reshape(plan.height, plan.width, 1).astype(jnp.float32)
+    (weight,) = transpose(jnp.broadcast_to(hit, (plan.height, plan.width, num_texels_like.shape[1])))
+    (value,) = transpose(images * hit)
+    return weight[:, 0], value
+
+
+def texel_view_statistics(plan: GatherPlan, images: Sequence[np.ndarray],
+                          num_texels: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What the views say about each texel: (count (N,) int32 of views that read it, mean (N, C)
+    and variance (N, C) float32 of their values across those views; 0 where none reads it).
+    A view's value at a texel is the gather-weighted mean of the pixels of its image (H, W, C)
+    that read the texel (through the transpose of `render`), so every view counts once."""
+    channels = np.asarray(images[0]).shape[-1]
+    zeros = jnp.zeros((num_texels, channels), jnp.float32)
+    count = np.zeros(num_texels, np.int32)
+    first = np.zeros((num_texels, channels), np.float64)
+    second = np.zeros((num_texels, channels), np.float64)
+    for v, image in enumerate(images):
+        weight, value = (np.asarray(x, np.float64) for x in _splat(plan.select(v), jnp.asarray(image, jnp.float32),
+                                                                   zeros))
+        seen = weight > 0
+        mean = np.where(seen[:, None], value / np.where(seen, weight, 1.0)[:, None], 0.0)
+        count += seen
+        first += mean
+        second += mean ** 2
+    views = np.maximum(count, 1)[:, None]
+    mean = first / views
+    return count, mean.astype(np.float32), np.maximum(second / views - mean ** 2, 0.0).astype(np.float32)
+
+
 def pixel_weights(plan: GatherPlan, counts: np.ndarray) -> jnp.ndarray:
     """(V, H, W) float32 loss weights per view and pixel (0 on missed pixels)."""
     sampled = render(jnp.asarray(counts, jnp.float32)[:, None], plan)[..., 0]

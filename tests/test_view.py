@@ -1,0 +1,340 @@
+"""The browser viewer (`jaxdistill view OUT_DIR`) on the smoke run's output, in headless Chromium.
+
+The smoke config runs once per module (about 2 minutes on 2 cores, its caches in a temporary
+folder); the browser test needs Debian's chromium (scripts/install_chromium.sh) and is skipped
+with that reason where it is missing. WebGL runs on SwiftShader.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import socket
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+from absl import flags
+
+pytest.importorskip("viser", reason="the viewer needs the view extra: pip install -e \".[view]\"")
+
+from jaxdistill import checkpoint, config as config_lib, evaluation, export, imageio, run_files, train, view  # noqa: E402
+from jaxdistill.mesh import Mesh  # noqa: E402
+from jaxdistill.render.fragments import compute_fragments  # noqa: E402
+from jaxdistill.render.sampler import expand, sample_pages  # noqa: E402
+from jaxdistill.viewer import display  # noqa: E402
+from jaxdistill.viewer.run import RunDir  # noqa: E402
+from browser import Browser, chromium_path  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def smoke_run(tmp_path_factory):
+    """The out_dir of `python -m jaxdistill.main --flagfile=configs/smoke.cfg`."""
+    out = tmp_path_factory.mktemp("view") / "smoke"
+    fv = flags.FlagValues()
+    config_lib.define_flags(fv)
+    fv([sys.argv[0], f"--flagfile={REPO / 'configs' / 'smoke.cfg'}", f"--out_dir={out}"])
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("JAXDISTILL_CACHE", str(tmp_path_factory.mktemp("view_cache")))
+        train.run(config_lib.config_from_flags(fv), progress=False)
+        yield out
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+# ----------------------------------------------------------------------------- pure parts
+
+
+def test_rotation_to_wxyz_matches_viser():
+    from viser.transforms import SO3
+
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        q = rng.normal(size=4)
+        rotation = SO3(q / np.linalg.norm(q)).as_matrix()
+        expected = SO3.from_matrix(rotation).wxyz
+        got = display.rotation_to_wxyz(rotation)
+        assert np.allclose(got, expected, atol=1e-9) or np.allclose(got, -expected, atol=1e-9)
+        np.testing.assert_allclose(SO3(got).as_matrix(), rotation, atol=1e-9)
+    np.testing.assert_allclose(display.rotation_to_wxyz(np.diag([1.0, -1.0, -1.0])), [0, 1, 0, 0], atol=1e-12)
+
+
+def test_unlit_glb_marks_every_material_and_keeps_geometry_and_textures():
+    box = trimesh.creation.box()
+    faces = np.asarray(box.faces)
+    mesh = Mesh(vertices=np.asarray(box.vertices), faces=faces,
+                uv=np.random.default_rng(0).uniform(size=(len(faces), 3, 2)),
+                face_object=(np.arange(len(faces)) >= 6).astype(np.int32), object_names=("left", "right"))
+    images = [np.full((8, 8, 3), 200, np.uint8), np.full((8, 8, 3), 30, np.uint8)]
+    glb = display.unlit_glb(mesh, [0, 1], images)
+    doc = json.loads(glb[20:20 + int.from_bytes(glb[12:16], "little")])
+    assert len(doc["materials"]) == 2 and all("KHR_materials_unlit" in m["extensions"] for m in doc["materials"])
+    assert doc["extensionsUsed"] == ["KHR_materials_unlit"] and int.from_bytes(glb[8:12], "little") == len(glb)
+    scene = trimesh.load(trimesh.util.wrap_as_stream(glb), file_type="glb", force="scene")
+    assert sorted(scene.geometry) == ["left", "right"]
+    factor = doc["materials"][0]["pbrMetallicRoughness"]["baseColorFactor"]
+    assert factor == [display.TONE_HEADROOM] * 3 + [1.0]
+    for name, value in (("left", 200), ("right", 30)):     # what the browser shows: factor x texture, tone-mapped
+        texture = np.asarray(scene.geometry[name].visual.material.baseColorTexture)[..., :3] / 255.0
+        shown = imageio.linear_to_srgb(display.tone_mapped(imageio.srgb_to_linear(texture) * factor[0])) * 255
+        np.testing.assert_allclose(shown, value, atol=1.5)
+
+
+# grey textures sRGB 0, 17, ..., 255 on an unlit quad, as viser 1.1.1 showed them in Chromium (get_render)
+BROWSER_GREYS = [0, 3, 16, 34, 56, 81, 105, 129, 150, 169, 184, 197, 207, 215, 221, 226]
+
+
+def test_tone_mapping_model_matches_the_browser_and_its_inverse_gives_the_colours_back():
+    greys = np.repeat(np.linspace(0.0, 1.0, 16)[:, None], 3, axis=1)
+    shown = imageio.linear_to_srgb(display.tone_mapped(imageio.srgb_to_linear(greys)))[:, 0] * 255
+    np.testing.assert_allclose(shown, BROWSER_GREYS, atol=0.6)
+    rng = np.random.default_rng(0)
+    reachable = imageio.linear_to_srgb(display.tone_mapped(rng.uniform(0, display.TONE_HEADROOM, (500, 3))))
+    back = imageio.linear_to_srgb(display.tone_mapped(display.untone_mapped(reachable)))
+    np.testing.assert_allclose(back, reachable, atol=1e-5)
+    assert display.untone_mapped(np.ones(3)).max() == display.TONE_HEADROOM       # white: as bright as it gets
+
+
+def test_comparison_grid_places_cells_and_greys_missing_ones():
+    red, blue = np.zeros((30, 40, 3)), np.zeros((30, 40, 3))
+    red[..., 0], blue[..., 2] = 1.0, 1.0
+    grid = display.comparison_grid([red, None, None, blue], width=20, gap=2)
+    assert grid.shape == (15 + 2 + 15, 20 + 2 + 20, 3)
+    assert (grid[:15, :20] == [1, 0, 0]).all() and (grid[:15, 22:] == 0.5).all()
+    assert (grid[17:, 22:] == [0, 0, 1]).all() and (grid[15:17] == 1.0).all()
+
+
+def test_cli_names_a_missing_out_dir_a_folder_that_is_no_run_and_a_busy_port(tmp_path, capsys):
+    assert view.main([str(tmp_path / "nowhere"), f"--port={free_port()}"]) == 2
+    assert "nowhere: OUT_DIR: no such folder; give the --out_dir of a run" in capsys.readouterr().err
+    assert view.main([str(tmp_path), f"--port={free_port()}"]) == 2
+    err = capsys.readouterr().err
+    assert "not a run's out_dir yet" in err and "metrics.json" in err
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        assert view.main([str(tmp_path), f"--port={port}"]) == 2
+    assert f"--port: 127.0.0.1:{port} is in use; choose another --port" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------- the smoke run's outputs
+
+
+def test_smoke_run_writes_evidence_and_a_texel_space_that_reproduces_its_maps(smoke_run):
+    live = run_files.read_texel_space(smoke_run)
+    assert live.config["scene"] == "bedroom" and list(live.channels.maps) == live.config["maps"]
+    stems = export.page_names(RunDir(smoke_run).scene.mesh.object_names, live.space.layout.object_page)
+    with checkpoint.CheckpointStore(smoke_run / "checkpoints") as store:
+        texels = store.read_texels()
+    trusted = expand(live.trust[:, None], live.space, 0.0, dilation=0)
+    for m in live.channels.maps:        # the checkpoint's texels through texel_space.npz == maps/ of the run
+        pages = run_files.map_pages(m, texels, live.channels, live.space, live.trust)
+        for p, page in enumerate(pages):
+            np.testing.assert_array_equal(page, imageio.read_image(export.page_file(smoke_run / "maps", m, stems, p,
+                                                                                    ".exr")))
+    for p, stem in enumerate(stems):
+        counts = imageio.read_image(smoke_run / "evidence" / "visibility" / f"{stem}.exr")[..., 0]
+        assert counts.max() <= 48 and not (trusted[p][..., 0] > 0)[counts == 0].any()  # trust needs a view
+        spread = imageio.read_image(smoke_run / "evidence" / "disagreement_albedo" / f"{stem}.exr")[..., 0]
+        assert np.isfinite(spread[counts >= 2]).all() and (spread[counts >= 2] >= 0).all()
+        assert np.isnan(spread[counts == 1]).all()
+    every = np.concatenate([imageio.read_image(smoke_run / "evidence" / "disagreement_albedo" / f"{s}.exr").ravel()
+                            for s in stems])
+    assert np.nanmax(every) > 0.01                      # the views' estimates really disagree somewhere
+
+
+def test_a_running_out_dir_shows_its_newest_checkpoint_and_refreshes(smoke_run, tmp_path):
+    running = tmp_path / "running"
+    shutil.copytree(smoke_run, running, ignore=shutil.ignore_patterns("metrics.json", "evidence"))
+    run = RunDir(running)
+    snapshot = run.snapshot()
+    assert not snapshot.finished and snapshot.source == "checkpoint of step 20" and snapshot.step == 20
+    stems = run.stems
+    np.testing.assert_array_equal(snapshot.pages["roughness"][3],
+                                  imageio.read_image(export.page_file(smoke_run / "maps", "roughness", stems, 3, ".exr")))
+    assert run.evidence("visibility", "albedo") is None and run.history()["step"][-1] == 20
+    before = run.version()
+    shutil.copy(smoke_run / "metrics.json", running / "metrics.json")
+    assert run.version() != before and run.snapshot().finished
+
+
+def test_a_views_comparison_and_metrics_are_those_of_that_view(smoke_run):
+    """The per-view panel's GT, estimate and metrics for view k equal what the run's evaluation
+    (all views' fragments at once) has for view k."""
+    from jaxdistill import metrics, model_estimates
+
+    run = RunDir(smoke_run)
+    k = 7
+    images = run.view_images(k, run.snapshot().pages)
+    scene = run.scene
+    frags = compute_fragments(scene.mesh, [v.camera for v in scene.views], progress=False)
+    gt_doc, gt = evaluation.view_ground_truth(scene, frags)
+    folder = Path(json.loads((smoke_run / "metrics.json").read_text())["estimates_folder"])
+    estimates = model_estimates.read_estimates(folder, [v.name for v in scene.views], run.maps,
+                                               [f.shape for f in frags])
+    assert set(gt[k]) == {"albedo", "normal", "roughness", "metallic"}       # the bedroom has no irradiance GT
+    for m in run.maps:
+        if m in gt[k]:
+            np.testing.assert_array_equal(images[m]["gt"], gt[k][m])
+        else:
+            assert images[m]["gt"] is None
+        np.testing.assert_array_equal(images[m]["estimate"], estimates[k][m])
+    mask = evaluation.evaluation_masks(gt_doc, scene, frags)[k]
+    expected = metrics.evaluate_view({m: images[m]["ours"] for m in run.maps}, gt[k], mask)
+    assert run.view_metrics(k, images)["ours"] == expected
+    assert run.view_metrics(k, images)["estimate"] == metrics.evaluate_view(estimates[k], gt[k], mask)
+
+
+# ----------------------------------------------------------------------------- in the browser
+
+
+def grey(image: np.ndarray) -> np.ndarray:
+    return np.asarray(image, np.float64)[..., :3].mean(axis=-1)
+
+
+def blocks(image: np.ndarray, size: int) -> np.ndarray:
+    h, w = image.shape[0] // size * size, image.shape[1] // size * size
+    return image[:h, :w].reshape(h // size, size, w // size, size).mean(axis=(1, 3))
+
+
+@pytest.mark.skipif(chromium_path() is None, reason="Debian's chromium is not installed (bash scripts/install_chromium.sh)")
+def test_the_browser_shows_the_textured_mesh_the_views_and_a_view_comparison(smoke_run):
+    started = time.monotonic()
+    viewer = view.start(smoke_run, port=free_port())
+    browser = None
+    try:
+        browser = Browser(viewer.url, 1280, 800)
+        end = time.monotonic() + 60
+        while not viewer.server.get_clients() and time.monotonic() < end:
+            time.sleep(0.1)
+        assert viewer.server.get_clients(), "the page never connected to the viewer"
+        client = next(iter(viewer.server.get_clients().values()))
+        assert len(viewer.frusta) == 48 and viewer.mesh is not None
+
+        def render(height=240, width=320):
+            time.sleep(2.0)                   # the new glTF is parsed and drawn
+            return client.get_render(height, width, transport_format="png", timeout=60)[..., :3]
+
+        index = 12
+        viewer.select_view(index)
+        camera = viewer.run.scene.views[index].camera
+        albedo = render()
+        # an independent reference: the run's albedo pages sampled through the view by our gather
+        frag = compute_fragments(viewer.run.scene.mesh, [camera], progress=False)[0]
+        pages = [imageio.read_image(export.page_file(smoke_run / "maps", "albedo", viewer.run.stems, p, ".exr"))
+                 for p in range(len(viewer.run.stems))]
+        reference = 255 * evaluation.display_image("albedo", sample_pages(pages, [frag], viewer.run.object_page)[0])
+        shown, expected = blocks(grey(albedo), 16), blocks(grey(reference), 16)
+        correlation = np.corrcoef(shown.ravel(), expected.ravel())[0, 1]
+        difference = np.abs(shown - expected).mean()
+        print(f"browser vs reference: correlation {correlation:.3f}, mean |difference| {difference:.1f} of 255")
+        assert correlation > 0.7, f"the browser's view {index} does not look like the albedo map there ({correlation:.3f})"
+        # the colours themselves: the browser's tone mapping left uncompensated shifts them by 10-16 of 255
+        assert difference < 6, f"the browser shows other colours than the albedo map ({difference:.1f} of 255)"
+
+        viewer.map_choice.value = "metallic"
+        metallic = render()
+        assert np.abs(grey(metallic) - grey(albedo)).mean() > 10, "switching the map did not change the texture"
+        viewer.map_choice.value = "albedo"
+        viewer.colour_choice.value = "visibility (views per texel)"
+        visibility = render()
+        assert np.abs(grey(visibility) - grey(albedo)).mean() > 10
+        viewer.colour_choice.value = "the map"
+        render()
+        page_with_mesh = browser.screenshot()
+        viewer.mesh.visible = False
+        empty = render()
+        page_without_mesh = browser.screenshot()
+        assert grey(empty).std() < 0.25 * grey(albedo).std(), "without the mesh the canvas should be plain"
+        changed = np.abs(page_with_mesh.astype(int) - page_without_mesh.astype(int)).max(axis=-1) > 30
+        assert changed.mean() > 0.3, "the page looks the same with and without the mesh"
+
+        text = browser.evaluate("document.body.innerText")
+        for expected_text in ("Map", "Colour by", "finished", "albedo PSNR (dB)", camera and viewer.run.scene.views[index].name,
+                              "loss and albedo PSNR"):
+            assert expected_text in text, expected_text
+        assert viewer.view_image.visible and "albedo PSNR (dB)" in viewer.view_metrics.content
+        np.testing.assert_allclose(client.camera.position, camera.center, atol=1e-6)
+        print(f"viewer test: {time.monotonic() - started:.1f} s from start to the last check")
+    finally:
+        if browser is not None:
+            browser.close()
+        viewer.close()
+
+
+def test_the_main_jobs_view_flag_refuses_a_busy_port_before_any_compute(tmp_path):
+    import subprocess
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        done = subprocess.run([sys.executable, "-m", "jaxdistill.main", "--scene=bedroom", f"--out_dir={tmp_path / 'r'}",
+                               "--view", f"--view_port={port}"], capture_output=True, text=True, cwd=REPO, timeout=120)
+    assert done.returncode != 0 and f"--port: 127.0.0.1:{port} is in use" in done.stderr
+    assert not (tmp_path / "r").exists()                 # nothing computed, nothing written
+
+
+def test_the_follower_serves_once_the_run_has_written_its_texel_space(smoke_run, tmp_path):
+    import urllib.request
+
+    out = tmp_path / "starting"
+    out.mkdir()
+    follower = view.Follower(out, port=free_port(), interval=0.5)
+    try:
+        time.sleep(1.0)
+        assert follower.viewer is None and follower.thread.is_alive()          # waits for the run's set-up
+        shutil.copytree(smoke_run, out, dirs_exist_ok=True, ignore=shutil.ignore_patterns("metrics.json"))
+        end = time.monotonic() + 60
+        while (follower.viewer is None or follower.viewer.snapshot.source != "checkpoint of step 20") and \
+                time.monotonic() < end:
+            time.sleep(0.2)
+        assert follower.viewer is not None and follower.viewer.snapshot.source == "checkpoint of step 20"
+        with urllib.request.urlopen(follower.url, timeout=30) as response:
+            assert response.status == 200 and b"<html" in response.read().lower()
+        shutil.copy(smoke_run / "metrics.json", out / "metrics.json")
+        end = time.monotonic() + 30
+        while not follower.viewer.snapshot.finished and time.monotonic() < end:
+            time.sleep(0.2)
+        assert follower.viewer.snapshot.finished            # refreshed to the finished run's maps
+    finally:
+        follower.stop()
+
+
+def test_python_m_jaxdistill_view_prints_the_url_serves_it_and_stops_on_ctrl_c(smoke_run, tmp_path):
+    import signal
+    import subprocess
+    import urllib.request
+
+    port = free_port()
+    log = (tmp_path / "stderr.txt").open("w")
+    process = subprocess.Popen([sys.executable, "-m", "jaxdistill.view", str(smoke_run), f"--port={port}"],
+                               stdout=subprocess.PIPE, stderr=log, text=True, cwd=REPO)
+    try:
+        lines = [process.stdout.readline() for _ in range(1)]
+        while "jaxdistill view:" not in lines[-1] and lines[-1] and len(lines) < 30:     # after viser's banner
+            lines.append(process.stdout.readline())
+        assert f"jaxdistill view: serving {smoke_run} at http://127.0.0.1:{port} (open it in a browser" in lines[-1], lines
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}", timeout=30) as response:
+            assert response.status == 200
+        process.send_signal(signal.SIGINT)
+        try:
+            status = process.wait(30)
+        except subprocess.TimeoutExpired:
+            status = None
+        assert status == 0, (status, (tmp_path / "stderr.txt").read_text()[-3000:])
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+        log.close()
