@@ -1,6 +1,7 @@
 """Where the prior's SDS targets pull a *perfect* texture: x̂0 of ground-truth renders, per t.
 
     python scripts/sds_bias.py --scenes=bedroom,data/heldout_scenes/room_0 [--out=docs/data/sds_bias.json]
+        [--plot=docs/img/sds_bias.png]
 
 SDS moves each render towards x_pred = decode(x̂0(noise_t(encode(render)), photo)). At the
 ground truth, an unbiased prior would return the ground truth on average; what it returns
@@ -76,6 +77,7 @@ def main(argv=None) -> int:
     parser.add_argument("--w_i", type=float, default=1.0)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=None)
+    parser.add_argument("--plot", type=Path, default=None, help="PNG of scale and PSNR over t")
     args = parser.parse_args(argv)
     folder = args.rgbx_dir or shipped_folder()
     model = rgbx.load_prior(convert.load_rgbx(folder))
@@ -114,7 +116,36 @@ def main(argv=None) -> int:
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps(doc, indent=1))
+    if args.plot:
+        plot(doc, args.plot)
     return 0
+
+
+def plot(doc: dict, path: Path) -> None:
+    """Two panels over t: x_pred's mean scale against GT, and its albedo PSNR; the estimates as
+    dashed lines (drawn at t = 1000, where sampling starts)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (a, b) = plt.subplots(1, 2, figsize=(10, 4))
+    for name, entry in doc["scenes"].items():
+        ts = [int(t) for t in entry["x_pred_at_gt"]]
+        line, = a.plot(ts, [r["scale"] for r in entry["x_pred_at_gt"].values()], marker="o", label=name)
+        b.plot(ts, [r["psnr"] for r in entry["x_pred_at_gt"].values()], marker="o", color=line.get_color())
+        a.axhline(entry["estimates"]["scale"], ls="--", lw=0.8, color=line.get_color())
+        b.axhline(entry["estimates"]["psnr"], ls="--", lw=0.8, color=line.get_color())
+    a.axhline(1.0, color="k", lw=0.6)
+    a.set(xlabel="t (x_pred of the noised GT render)", ylabel="mean x_pred / mean GT (linear albedo)",
+          title="scale SDS pulls a correct texture to")
+    b.set(xlabel="t", ylabel="albedo PSNR of x_pred vs GT (dB)", title="x_pred's error (dashed: 50-step estimates)")
+    a.legend(fontsize=8)
+    for ax in (a, b):
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 if __name__ == "__main__":
