@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxdistill import evaluation, imageio, model_estimates, train
+from jaxdistill import checkpoint, evaluation, imageio, model_estimates, train
 from jaxdistill.config import DistillConfig, validate
 from jaxdistill.datasets import ImportOptions, open_scene
 from jaxdistill.models import convert
@@ -110,8 +110,10 @@ def fusion_scene(scene, folder: Path, out: Path) -> Path:
 
 
 def run_main(scene_path: Path, out: Path, model_dir: Path, settings: dict) -> dict:
+    """One main-job row; a row an earlier sitting stopped (SIGINT/SIGTERM: checkpoint saved) resumes."""
+    resume = (out / "checkpoints").is_dir() and checkpoint.CheckpointStore(out / "checkpoints").latest_step() is not None
     config = validate(DistillConfig(scene=str(scene_path), out_dir=str(out), rgbx_dir=str(model_dir),
-                                    allow_outside_paths=True, **{**COMMON, **settings}))
+                                    allow_outside_paths=True, resume=resume, **{**COMMON, **settings}))
     start = time.perf_counter()
     result = train.run(config)
     result["experiment_wall_seconds"] = time.perf_counter() - start
@@ -169,6 +171,9 @@ def main(argv=None) -> int:
                         scene_path = fusion_scene(scene, estimates_folder(scene, model_dir), folder / "fusion_scene")
                     settings = dict(runs[run], views_per_step=min(runs[run]["views_per_step"], len(scene.views)))
                     result = run_main(scene_path, folder / run, model_dir, settings)
+                    if result.get("stopped_by"):       # SIGINT/SIGTERM: checkpoint saved, the row is not done
+                        print(f"== {name}: {run} stopped by {result['stopped_by']}; rerun to resume it", flush=True)
+                        return result["exit_status"]
                 else:
                     raise SystemExit(f"--runs: unknown run {run!r}")
                 result["seconds"] = time.perf_counter() - start
