@@ -77,6 +77,7 @@ from typing import Callable, Sequence
 import numpy as np
 from tqdm.auto import tqdm
 
+from jaxdistill import exposure as exposure_rule
 from jaxdistill import imageio
 from jaxdistill import mitsuba_bridge as mb
 from jaxdistill.cameras import Camera, look_at, rgbx_camera_normals
@@ -1083,8 +1084,13 @@ def prepare_scene(xml_path, out_dir, *, num_views: int, width: int, height: int,
     timings["render_s"] = time.perf_counter() - t
     log.info("rendered %d views at %dx%d, spp %d in %.1f s", len(cams), width, height, spp, timings["render_s"])
 
+    # the photos as RGB<->X sees them: one scene-wide exposure by Hypersim's rule over the valid
+    # pixels, measured on the EXR files as written (half float), as the dataset loaders do
+    stops = exposure_rule.scene_exposure((imageio.read_image(out / "photos" / f"{n}.exr")[..., :3] for n in names),
+                                         masks)
+    log.info("exposure: %+.2f stops (Hypersim's rule: 90th-percentile brightness to 0.8 after gamma)", stops)
     exact = ("albedo", "normal", "roughness", "metallic")     # the targets of these maps ARE the ground truth
-    views = tuple(View(name=name, camera=cam, photo=out / "photos" / f"{name}.exr",
+    views = tuple(View(name=name, camera=cam, photo=out / "photos" / f"{name}.exr", exposure=stops,
                        targets={m: out / "targets" / m / f"{name}.exr" for m in exact + ("irradiance",)},
                        mask=out / "masks" / f"{name}.png",
                        ground_truth={**{m: out / "targets" / m / f"{name}.exr" for m in exact},

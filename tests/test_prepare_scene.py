@@ -465,6 +465,12 @@ def test_prepared_scene_runs_in_the_main_job_with_evaluation(source, tmp_path, m
     scene = read_scene(scene_dir)
     maps = {"albedo", "normal", "roughness", "metallic", "irradiance"}
     assert all(set(v.targets) == maps == set(v.ground_truth) and v.mask is not None for v in scene.views)
+    # the photos carry Hypersim's exposure over the valid pixels (as the dataset loaders give it), written out:
+    # 90th percentile of 0.3 R + 0.59 G + 0.11 B to 0.8 after a 1/2.2 gamma
+    brightness = np.concatenate([(imageio.read_image(v.photo)[..., :3] @ np.array([0.3, 0.59, 0.11]))[
+        imageio.read_image(v.mask, linear=False)[..., 0] > 0.5] for v in scene.views])
+    stops = np.log2(0.8 ** 2.2 / np.percentile(brightness, 90))
+    assert all(abs(v.exposure - stops) < 0.01 for v in scene.views), ([v.exposure for v in scene.views], stops)
     log = run_command(["-m", "jaxdistill.main", "--flagfile=configs/bedroom.cfg", f"--scene={scene_dir}",
                        f"--out_dir={run_dir}", "--steps=2", "--views_per_step=3", "--eval_every=1",
                        "--max_texture_size=64"], REPO, cache=tmp_path / "cache")
