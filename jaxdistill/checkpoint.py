@@ -356,18 +356,24 @@ class CheckpointStore:
         self.close()
 
 
-def compatible(saved: dict, current: dict, *, ignore: Iterable[str] = DEFAULT_IGNORE) -> list[str]:
+def compatible(saved: dict, current: dict, *, ignore: Iterable[str] = DEFAULT_IGNORE,
+               defaults: dict | None = None) -> list[str]:
     """Sorted names of the flags whose values differ between `saved` and `current` (after a JSON
-    round trip; a flag present in only one differs), leaving out `ignore`."""
+    round trip; a flag present in only one differs), leaving out `ignore`. A flag the checkpoint
+    does not record (a newer jaxdistill added it) counts as its value in `defaults`, the value
+    that keeps the old behaviour, so an upgrade does not strand a run that uses neither."""
     saved, current = _jsonable(saved, "saved config"), _jsonable(current, "current config")
+    if defaults:
+        saved = {**{k: v for k, v in _jsonable(defaults, "defaults").items() if k in current}, **saved}
     skip = set(ignore)
     names = (saved.keys() | current.keys()) - skip
     return sorted(n for n in names if n not in saved or n not in current or saved[n] != current[n])
 
 
-def check_compatible(saved: dict, current: dict, directory, ignore: Iterable[str] = DEFAULT_IGNORE) -> None:
-    """InputError naming `directory` and each differing flag (saved vs current value)."""
-    differ = compatible(saved, current, ignore=ignore)
+def check_compatible(saved: dict, current: dict, directory, ignore: Iterable[str] = DEFAULT_IGNORE,
+                     defaults: dict | None = None) -> None:
+    """InputError naming `directory` and each differing flag (saved vs current value); see `compatible`."""
+    differ = compatible(saved, current, ignore=ignore, defaults=defaults)
     if not differ:
         return
     saved, current = _jsonable(saved, "saved config"), _jsonable(current, "current config")

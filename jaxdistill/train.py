@@ -58,6 +58,11 @@ def _history_path(out: Path) -> Path:
     return out / "checkpoints" / "history.json"
 
 
+# flags added after checkpoints were first written, at the values that keep the earlier
+# behaviour: a checkpoint that does not record them resumes when the run leaves them so
+ADDED_FLAG_DEFAULTS = {"reuse_steps": 1, "align": "none", "align_strength": DistillConfig.align_strength}
+
+
 def _recorded_config(config: DistillConfig, prior_kind: str) -> dict:
     """The flags saved with a checkpoint, plus the prior --prior=auto resolved to."""
     return {**config.as_dict(), "prior_kind": prior_kind}
@@ -98,7 +103,7 @@ def _check_before_compute(config: DistillConfig, out: Path, choice) -> int | Non
             raise InputError.single("flags", "--resume", f"no complete checkpoint in {directory}; "
                                     "run without --resume to start")
         checkpoint.check_compatible(store.read_config(latest), _recorded_config(config, choice.kind), directory,
-                                    ignore=resumable_flags(config))
+                                    ignore=resumable_flags(config), defaults=ADDED_FLAG_DEFAULTS)
     if latest > config.steps:
         raise InputError.single("flags", "--steps", f"{config.steps} is below the checkpoint's step {latest} in "
                                 f"{directory}; give --steps >= {latest}")

@@ -148,6 +148,22 @@ def test_resume_refuses_a_different_config_and_needs_a_checkpoint(tiny_scene, tm
         train.run(tiny_config(tiny_scene, cosine, steps=4, lr_schedule="cosine", resume=True), progress=False)
 
 
+def test_a_checkpoint_from_before_added_flags_resumes_when_they_keep_their_old_behaviour(tiny_scene, tmp_path,
+                                                                                         monkeypatch):
+    """A run checkpointed by a jaxdistill without --reuse_steps/--align (its recorded flags lack
+    them) resumes with those flags at the values that reproduce it, and is refused otherwise."""
+    original = train._recorded_config
+    monkeypatch.setattr(train, "_recorded_config", lambda config, kind: {
+        k: v for k, v in original(config, kind).items() if k not in train.ADDED_FLAG_DEFAULTS})
+    out = tmp_path / "old"
+    train.run(tiny_config(tiny_scene, out, steps=2, renders=False), progress=False)
+    monkeypatch.setattr(train, "_recorded_config", original)
+    with pytest.raises(InputError, match=r"--align: checkpoint has \(not set\), current run has \"gain\""):
+        train.run(tiny_config(tiny_scene, out, steps=3, renders=False, resume=True, align="gain"), progress=False)
+    done = train.run(tiny_config(tiny_scene, out, steps=3, renders=False, resume=True), progress=False)
+    assert done["resumed_from"] == 2 and done["steps"] == 3
+
+
 def test_sigterm_saves_a_checkpoint_and_the_run_resumes_to_the_same_result(tiny_scene, tmp_path, monkeypatch):
     reference = tmp_path / "reference"
     train.run(tiny_config(tiny_scene, reference, steps=6, renders=False), progress=False)
