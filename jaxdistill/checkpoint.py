@@ -15,6 +15,7 @@ counts (for `max_to_keep`) a directory without it.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import gc
 import json
 import logging
@@ -181,7 +182,7 @@ class CheckpointStore:
             shutil.rmtree(final)
         self._remove_temporary()
         self.directory.mkdir(parents=True, exist_ok=True)
-        state = jax.tree.map(lambda x: jax.random.key_data(x) if _is_typed_key(x) else x, state)
+        state = jax.tree.map(lambda x: jax.random.key_data(x) if _is_typed_key(x) else x, stored_tree(state))
         saved = self._mngr.save(
             step,
             args=ocp.args.Composite(state=ocp.args.StandardSave(state), config=ocp.args.JsonSave(config)),
@@ -227,6 +228,7 @@ class CheckpointStore:
         default device; InputError naming each leaf whose shape or dtype differs."""
         step = self._complete_step(step)
         self._check_like(step, like)
+        full_like, like = like, stored_tree(like)
         device = jax.local_devices()[0]
         sharding = jax.sharding.SingleDeviceSharding(device)
 
@@ -244,6 +246,8 @@ class CheckpointStore:
             lambda x, data: jax.random.wrap_key_data(data, impl=_key_impl(x)) if _is_typed_key(x) else data,
             like, restored.state,
         )
+        if dataclasses.is_dataclass(full_like):
+            state = full_like.replace(**state)
         return state, dict(restored.config)
 
     def read_texels(self, step: int | None = None) -> np.ndarray:
@@ -318,7 +322,7 @@ class CheckpointStore:
         """InputError for each leaf of `like` missing from, or shaped/typed unlike, the checkpoint."""
         tree = self._mngr.metadata(step).item_metadata["state"].tree
         saved = {_path_name(p): m for p, m in jax.tree_util.tree_flatten_with_path(tree)[0]}
-        wanted = {_path_name(p): x for p, x in jax.tree_util.tree_flatten_with_path(like)[0]}
+        wanted = {_path_name(p): x for p, x in jax.tree_util.tree_flatten_with_path(stored_tree(like))[0]}
         where = self._step_dir(step)
         problems = ProblemList()
         for name, x in wanted.items():
@@ -354,6 +358,15 @@ class CheckpointStore:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def stored_tree(state):
+    """The pytree a checkpoint stores for `state`: a dataclass state as {field: value} without
+    the fields that are None (optional parts such as --reuse_steps' kept x_pred, absent when
+    unused), so checkpoints written before such a field existed keep the same layout and read back."""
+    if dataclasses.is_dataclass(state) and not isinstance(state, type):
+        return {f.name: getattr(state, f.name) for f in dataclasses.fields(state) if getattr(state, f.name) is not None}
+    return state
 
 
 def compatible(saved: dict, current: dict, *, ignore: Iterable[str] = DEFAULT_IGNORE,
