@@ -70,14 +70,13 @@ def texel_evidence(plan: GatherPlan, num_texels: int) -> np.ndarray:
 
 
 @jax.jit
-def _splat(plan: GatherPlan, images: jnp.ndarray, num_texels_like: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
-    """Transpose of the single-view `plan`'s render: per texel (sum of gather weights over the
-    pixels that read it, (N,); the same sum of `images` (H, W, C) values, (N, C))."""
+def _splat(plan: GatherPlan, images: jnp.ndarray, num_texels_like: jnp.ndarray) -> jnp.ndarray:
+    """(N, C): the transpose of the single-view `plan`'s render applied to `images` (H, W, C) on
+    its hit pixels, i.e. per texel the gather-weighted sum of the values of the pixels that read it
+    (`_evidence` is the same sum of weights)."""
     _, transpose = jax.vjp(lambda t: render(t, plan), num_texels_like)
-    hit = plan.hit.reshape(plan.height, plan.width, 1).astype(jnp.float32)
-    (weight,) = transpose(jnp.broadcast_to(hit, (plan.height, plan.width, num_texels_like.shape[1])))
-    (value,) = transpose(images * hit)
-    return weight[:, 0], value
+    (value,) = transpose(images * plan.hit.reshape(plan.height, plan.width, 1).astype(jnp.float32))
+    return value
 
 
 def texel_view_statistics(plan: GatherPlan, images: Sequence[np.ndarray],
@@ -88,12 +87,14 @@ def texel_view_statistics(plan: GatherPlan, images: Sequence[np.ndarray],
     that read the texel (through the transpose of `render`), so every view counts once."""
     channels = np.asarray(images[0]).shape[-1]
     zeros = jnp.zeros((num_texels, channels), jnp.float32)
+    zeros_1 = jnp.zeros((num_texels, 1), jnp.float32)
     count = np.zeros(num_texels, np.int32)
     first = np.zeros((num_texels, channels), np.float64)
     second = np.zeros((num_texels, channels), np.float64)
     for v, image in enumerate(images):
-        weight, value = (np.asarray(x, np.float64) for x in _splat(plan.select(v), jnp.asarray(image, jnp.float32),
-                                                                   zeros))
+        view = plan.select(v)
+        weight = np.asarray(_evidence(view, zeros_1), np.float64)
+        value = np.asarray(_splat(view, jnp.asarray(image, jnp.float32), zeros), np.float64)
         seen = weight > 0
         mean = np.where(seen[:, None], value / np.where(seen, weight, 1.0)[:, None], 0.0)
         count += seen
