@@ -171,8 +171,8 @@ def make_step(prior, settings: StepSettings, optimizer: optax.GradientTransforma
     batch: index (B, P, T) int32, weight (B, P, T) float32, hit (B, P) bool (the views' gather
     plans), pixel_weight (B, H, W) float32, normal_rotation (B, 3, 3) float32, view (B,) int32
     the views' indices (per-view gains, `align.py`), prior: the prior's per-view data.
-    `align_optimizer` updates the per-view log-gains when settings.align == "gain". frozen: {"chain": MipChain, "prior": the prior's constants,
-    "alphas_cumprod": (T,) float32 or None}.
+    frozen: {"chain": MipChain, "prior": the prior's constants, "alphas_cumprod": (T,) float32 or
+    None}. `align_optimizer` updates the per-view log-gains when settings.align == "gain".
     """
     maps = settings.channels.maps
 
