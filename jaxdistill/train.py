@@ -19,7 +19,8 @@ import numpy as np
 from absl import logging
 from tqdm.auto import tqdm
 
-from jaxdistill import MAP_NAMES, align as align_lib, checkpoint, evaluation, export, imageio, metrics, model_estimates, run_files
+from jaxdistill import (MAP_NAMES, align as align_lib, checkpoint, evaluation, export, imageio, metrics,
+                        model_estimates, run_files)
 from jaxdistill.config import DistillConfig, check_views_per_step, resumable_flags
 from jaxdistill.distill import (StepSettings, data_mesh, init_state, initial_align, initial_reused, jit_step,
                                 make_optimizer, make_step)
@@ -158,8 +159,8 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
     history = {"step": [], "loss": [], "eval_step": [], "albedo_psnr": []}
 
     out.mkdir(parents=True, exist_ok=True)
-    run_files.write_texel_space(out, problem.space, texel_trust(problem), problem.channels.maps,
-                                _json_safe(recorded))
+    trust = texel_trust(problem)                   # once: the texel space file and the exported pages
+    run_files.write_texel_space(out, problem.space, trust, problem.channels.maps, _json_safe(recorded))
     store = checkpoint.CheckpointStore(out / "checkpoints", max_to_keep=config.keep_checkpoints or None)
     if latest is not None:
         state, _ = store.restore(latest, state)
@@ -172,7 +173,8 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
         logging.info("resumed from step %d in %s", latest, out / "checkpoints")
 
     eval_context = evaluation_context(config, problem)
-    step_fn, traces = jit_step(make_step(problem.prior, settings, optimizer, align_optimizer), mesh, first, state, problem.frozen)
+    step_fn, traces = jit_step(make_step(problem.prior, settings, optimizer, align_optimizer), mesh, first, state,
+                               problem.frozen)
     replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
     by_view = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("data"))
     state = jax.device_put(state, replicated)
@@ -216,7 +218,7 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
         return {"stopped_by": stopped_by, "step": int(jax.device_get(state.step)), "exit_status": stop.exit_status}
 
     texels = np.asarray(jax.device_get(state.texels))
-    summary = write_outputs(config, problem, texels, history, eval_context)
+    summary = write_outputs(config, problem, texels, history, eval_context, trust)
     steps_run = config.steps - start_step
     summary.update({
         "steps": config.steps, "steps_this_run": steps_run, "resumed_from": start_step if config.resume else None,
@@ -311,11 +313,11 @@ def quick_psnr(state, problem: Problem, ctx: EvalContext) -> float:
 
 
 def write_outputs(config: DistillConfig, problem: Problem, texels: np.ndarray, history: dict,
-                  ctx: EvalContext) -> dict:
-    """maps/, scene.glb, renders/, contact sheets, loss.png; returns the metrics part of metrics.json."""
+                  ctx: EvalContext, trust: np.ndarray) -> dict:
+    """maps/, scene.glb, renders/, contact sheets, loss.png; returns the metrics part of metrics.json.
+    trust: (N,) each texel's weight in the exported pages (`texel_trust`)."""
     out = Path(config.out_dir)
     scene, channels, space = problem.scene, problem.channels, problem.space
-    trust = texel_trust(problem)
     # one map at a time: full float pages of all maps at once would be 20 GiB at 30 pages of 4096²
     written, layers = [], {}
     for m in [m for m in MAP_NAMES if m in channels.maps]:
