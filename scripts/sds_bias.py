@@ -110,7 +110,7 @@ def main(argv=None) -> int:
         est = np.stack([e["albedo"] for e in model_estimates.read_estimates(
             est_folder, [x.name for x in scene.views], ("albedo",), [(h, w)] * v)])
         entry = {"x_pred_at_gt": rows, "estimates": stats(est, gt, masks),
-                 "photo_as_albedo": stats(photos ** 2.2, gt, masks), "views": v, "size": [h, w]}
+                 "photo_as_albedo": stats(imageio.srgb_to_linear(photos), gt, masks), "views": v, "size": [h, w]}
         print(f"{Path(spec).name}: estimates {entry['estimates']}  photo as albedo {entry['photo_as_albedo']}")
         doc["scenes"][Path(spec).name] = entry
     if args.out:
