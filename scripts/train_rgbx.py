@@ -33,6 +33,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -152,8 +153,8 @@ def run_stage(name: str, work: Path, state, step_fn, batch_fn, steps: int, ckpt_
 
 
 def adamw(lr: float, steps: int, weight_decay: float = 0.01):
-    warmup = min(500, steps // 10)
-    schedule = optax.warmup_cosine_decay_schedule(0.0, lr, max(warmup, 1), max(steps, warmup + 1), lr * 0.05)
+    warmup = max(min(500, steps // 10), 1)
+    schedule = optax.warmup_cosine_decay_schedule(0.0, lr, warmup, max(steps, warmup + 1), lr * 0.05)
     return optax.chain(optax.clip_by_global_norm(1.0), optax.adamw(schedule, weight_decay=weight_decay))
 
 
@@ -211,6 +212,22 @@ def encode_all(args, vae, vae_params, photos, maps):
 # ----------------------------------------------------------------------------- stage 3: UNet
 
 
+def load_init(folder: Path):
+    """The networks and float32 params of a diffusers folder to continue from (`--init`)."""
+    from jaxdistill.models.convert import load_rgbx
+
+    if not (folder / "model_index.json").is_file():
+        raise SystemExit(f"--init: {folder} has no model_index.json; give a diffusers folder this script exported")
+    return load_rgbx(folder, flag="--init")
+
+
+def init_prompts(init, tokenizer):
+    """(text params, (6, 77, D) last hidden states of the five prompts then "") of an `--init` model."""
+    ids = jnp.asarray(tokenizer.encode([MAP_PROMPTS[m] for m in MAPS] + [""]))
+    params = init.params["text_encoder"]
+    return params, np.asarray(init.networks.text_encoder.apply(params, ids))
+
+
 def text_encoder_and_prompts(seed: int, tokenizer, text: dict = TEXT):
     """(frozen CLIP params, (6, 77, D) last hidden states of the five prompts then "")."""
     encoder = CLIPTextTransformer(CLIPTextConfig.from_dict(dict(text, vocab_size=len(tokenizer.backend.get_vocab()))))
@@ -219,7 +236,7 @@ def text_encoder_and_prompts(seed: int, tokenizer, text: dict = TEXT):
     return params, np.asarray(encoder.apply(params, ids))
 
 
-def train_unet(args, latents, contexts, scaling):
+def train_unet(args, latents, contexts, scaling, init_params=None):
     unet = UNet2DCondition(UNetConfig.from_dict(UNET))
     config = sched.SchedulerConfig(**{k: SCHEDULER[k] for k in ("beta_start", "beta_end", "beta_schedule",
                                                                 "num_train_timesteps", "prediction_type",
@@ -229,6 +246,12 @@ def train_unet(args, latents, contexts, scaling):
     targets = np.stack([latents[m] * scaling for m in MAPS], 1)   # (N, 5, h, w, 4)
     n, h, w = photo.shape[:3]
     params = unet.init(jax.random.key(args.seed + 1), jnp.zeros((1, h, w, 8)), jnp.zeros((1,)), jnp.asarray(contexts[:1]))
+    if init_params is not None:
+        if jax.tree.structure(init_params) != jax.tree.structure(params) or any(
+                a.shape != b.shape for a, b in zip(jax.tree.leaves(init_params), jax.tree.leaves(params))):
+            raise SystemExit(f"--init: its UNet is not this script's UNet ({UNET['block_out_channels']} blocks, "
+                             f"{h}x{w} latents); give a folder this script exported")
+        params = jax.tree.map(jnp.asarray, init_params)
     tx = adamw(args.unet_lr, args.unet_steps)
     state = {"params": params, "ema": params, "opt": tx.init(params)}
     ctx = jnp.asarray(contexts)
@@ -354,8 +377,10 @@ def model_record(args, images: int, scaling: float) -> dict:
         return json.loads(path.read_text().splitlines()[-1])["loss"] if path.is_file() else None
 
     return {"name": args.name, "version": args.version, "images": images, "data": str(args.data),
+            "init": str(args.init) if args.init else None,
             "seed": args.seed, "latent_scaling_factor": scaling, "export_dtype": args.export_dtype,
-            "vae": {"steps": args.vae_steps, "batch": args.vae_batch, "lr": args.vae_lr, "final_loss": last_loss("vae")},
+            "vae": ({"from": str(args.init)} if args.init else
+                    {"steps": args.vae_steps, "batch": args.vae_batch, "lr": args.vae_lr, "final_loss": last_loss("vae")}),
             "unet": {"steps": args.unet_steps, "batch": args.unet_batch, "lr": args.unet_lr, "ema": args.ema,
                      "p_drop": args.p_drop, "final_loss": last_loss("unet")},
             "command": "python scripts/train_rgbx.py " + " ".join(sys.argv[1:])}
@@ -381,6 +406,10 @@ def main(argv=None) -> int:
     parser.add_argument("--version", default="1")
     parser.add_argument("--export_dtype", choices=("float32", "float16"), default="float16",
                         help="weights dtype of the exported folder (float16: half the size)")
+    parser.add_argument("--init", type=Path, default=None,
+                        help="continue from this diffusers folder (e.g. the shipped model): its VAE, latent scaling, "
+                             "text encoder and tokenizer are kept, the VAE stage is skipped, and the UNet starts "
+                             "from its weights (fine-tuning on --data)")
     parser.add_argument("--ckpt_every", type=int, default=250)
     parser.add_argument("--stop_after_steps", type=int, default=0, help="train at most this many steps in this run")
     parser.add_argument("--time_limit", type=float, default=0.0, help="minutes; then checkpoint and exit 75")
@@ -391,22 +420,35 @@ def main(argv=None) -> int:
     sys.path.insert(0, str(REPO / "tests"))
     from tiny_clip_vocab import write_tiny_clip_tokenizer
 
-    if not (args.work / "tokenizer" / "vocab.json").exists():
+    init = load_init(args.init) if args.init else None
+    if init is not None:
+        shutil.copytree(args.init / "tokenizer", args.work / "tokenizer", dirs_exist_ok=True)
+    elif not (args.work / "tokenizer" / "vocab.json").exists():
         write_tiny_clip_tokenizer(args.work / "tokenizer", pad_token="!", style="modern")
     tokenizer = load_tokenizer(args.work / "tokenizer")
     start = time.perf_counter()
     photos, maps, _ = load_images(args.data)
     print(f"{len(photos)} images of {photos.shape[2]}x{photos.shape[1]} from {args.data} ({time.perf_counter() - start:.0f} s)")
-    vae, vae_params = train_vae(args, photos, maps)
+    if init is None:
+        vae, vae_params = train_vae(args, photos, maps)
+    else:
+        vae, vae_params = init.networks.vae, init.params["vae"]
+        print(f"VAE, latent scaling and text encoder of {args.init}; the UNet starts from its weights")
     if args.stage == "vae":
         return 0
     latents = encode_all(args, vae, vae_params, photos, maps)
-    scaling = float(1.0 / np.std(np.concatenate([latents[m] for m in MAPS])))
+    if init is None:
+        scaling = float(1.0 / np.std(np.concatenate([latents[m] for m in MAPS])))
+    else:
+        scaling = float(init.networks.vae.config.scaling_factor)
     print(f"latent scaling factor {scaling:.5f}")
     if args.stage == "latents":
         return 0
-    text_params, contexts = text_encoder_and_prompts(args.seed, tokenizer, TEXT)
-    _, unet_params = train_unet(args, latents, contexts, scaling)
+    if init is None:
+        text_params, contexts = text_encoder_and_prompts(args.seed, tokenizer, TEXT)
+    else:
+        text_params, contexts = init_prompts(init, tokenizer)
+    _, unet_params = train_unet(args, latents, contexts, scaling, init.params["unet"] if init else None)
     if args.stage == "unet":
         return 0
     export(out, args.work / "tokenizer", unet_params, vae_params, text_params, scaling=scaling, unet=UNET, vae=VAE, text=TEXT,

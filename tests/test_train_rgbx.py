@@ -165,3 +165,33 @@ def test_float16_export_halves_the_weights_and_reads_back_rounded(exported, tmp_
         train_rgbx.check_export(half, unet_p, vae_p, text_p, "float32")  # rounding did happen
     size = {f: sum(p.stat().st_size for p in (f / "unet").glob("*.safetensors")) for f in (folder, half)}
     assert size[half] < 0.6 * size[folder]          # half the bytes per weight, plus the same header
+
+
+def test_init_continues_a_model_keeping_its_vae_scaling_and_text_encoder(exported, tmp_path, monkeypatch):
+    """`--init`: no VAE training; the export keeps the init's VAE, latent scaling and text
+    encoder exactly; with 0 UNet steps the UNet is the init's too (it was loaded into the right
+    tree), with 2 steps it moved."""
+    folder, (_, unet_p), (_, vae_p), (_, text_p), _ = exported
+    monkeypatch.setattr(train_rgbx, "VAE", TINY_VAE)
+    monkeypatch.setattr(train_rgbx, "UNET", TINY_UNET)
+    monkeypatch.setattr(train_rgbx, "TEXT", TINY_TEXT)
+    tiny_shards(tmp_path / "data")
+    for steps in (0, 2):
+        work = tmp_path / f"work{steps}"
+        assert train_rgbx.main(["--data", str(tmp_path / "data"), "--work", str(work), "--init", str(folder),
+                                "--unet_batch=4", f"--unet_steps={steps}", "--export_dtype=float32"]) == 0
+        assert not (work / "ckpt_vae").exists()
+        out = load_rgbx(work / "model")
+        assert out.networks.vae.config.scaling_factor == pytest.approx(0.37)
+        for part, params in (("vae", vae_p), ("text_encoder", text_p)) + ((("unet", unet_p),) if steps == 0 else ()):
+            assert all(np.array_equal(np.asarray(a), np.asarray(b))
+                       for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(out.params[part]))), (steps, part)
+        moved = max(float(np.max(np.abs(np.asarray(a) - np.asarray(b))))
+                    for a, b in zip(jax.tree.leaves(unet_p), jax.tree.leaves(out.params["unet"])))
+        assert (moved > 0) == (steps > 0)
+
+
+def test_init_names_the_flag_when_the_folder_is_not_a_model(tmp_path):
+    tiny_shards(tmp_path / "data")
+    with pytest.raises(SystemExit, match="--init: .*model_index.json"):
+        train_rgbx.main(["--data", str(tmp_path / "data"), "--work", str(tmp_path / "w"), "--init", str(tmp_path)])
