@@ -238,13 +238,22 @@ class CheckpointStore:
             return jax.ShapeDtypeStruct(tuple(x.shape), x.dtype, sharding=sharding)
 
         target = jax.tree.map(abstract, like)
+        if isinstance(target, dict):
+            # a field stored as None by jaxdistill versions before `stored_tree` (an unused
+            # optional part): restored as the None it was, which the current state has too
+            saved = self._mngr.metadata(step).item_metadata["state"].tree
+            if isinstance(saved, dict):
+                target.update({k: None for k, v in saved.items() if v is None and k not in target})
         restored = self._mngr.restore(
             step,
             args=ocp.args.Composite(state=ocp.args.StandardRestore(target), config=ocp.args.JsonRestore()),
         )
+        stored = restored.state
+        if isinstance(like, dict):
+            stored = {k: stored[k] for k in like}
         state = jax.tree.map(
             lambda x, data: jax.random.wrap_key_data(data, impl=_key_impl(x)) if _is_typed_key(x) else data,
-            like, restored.state,
+            like, stored,
         )
         if dataclasses.is_dataclass(full_like):
             state = full_like.replace(**state)

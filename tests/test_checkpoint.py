@@ -323,3 +323,33 @@ def test_abandoned_reads_of_a_damaged_step_print_no_traceback(monkeypatch):
     del b                    # outside, the hook that was installed before reports again
     gc.collect()
     assert reported == ["read of a damaged chunk"]
+
+
+def test_fields_stored_as_none_by_older_versions_restore(tmp_path, monkeypatch):
+    """A checkpoint that stored an unused optional field as None (jaxdistill before
+    `stored_tree`) restores into a dataclass state whose field is None, with the other leaves
+    bit-identical."""
+    import dataclasses
+
+    from jaxdistill import checkpoint
+
+    @jax.tree_util.register_dataclass
+    @dataclasses.dataclass(frozen=True)
+    class State:
+        texels: jax.Array
+        step: jax.Array
+        reused: jax.Array | None = None
+
+        def replace(self, **kw):
+            return dataclasses.replace(self, **kw)
+
+    state = State(jnp.arange(6, dtype=jnp.float32).reshape(3, 2), jnp.int32(4))
+    monkeypatch.setattr(checkpoint, "stored_tree", lambda s: dataclasses.asdict(s) if dataclasses.is_dataclass(s) else s)
+    with CheckpointStore(tmp_path) as store:                  # the older layout: {"reused": None} on disk
+        store.save(4, state, {})
+    monkeypatch.undo()
+    with CheckpointStore(tmp_path) as store:
+        assert store._mngr.metadata(4).item_metadata["state"].tree["reused"] is None
+        restored, _ = store.restore(4, State(jnp.zeros((3, 2)), jnp.int32(0)))
+    assert restored.reused is None
+    _assert_bit_identical((restored.texels, restored.step), (state.texels, state.step))
