@@ -11,6 +11,8 @@ the main job's own evaluation (`jaxdistill.evaluation`):
   metallic, normals facing the camera, the photo's luminance as irradiance;
 - `estimates`: the model's per-view estimates (`model_estimates`: the demo's 50 DDIM steps at
   the render size), each view on its own;
+- `estimates_mean`: the same with 1 DDIM step from t = 999, i.e. the model's conditional mean
+  (zero terminal SNR), not a draw from its posterior;
 - `fusion`: those estimates fused by the `views` prior (the scene with the estimates as its
   per-view targets);
 - `sds_*`: score distillation with the model through the rgbx prior, at the settings of
@@ -79,10 +81,11 @@ def trivial_maps(scene) -> list[dict]:
             for v in scene.views]
 
 
-def estimates_folder(scene, model_dir: Path) -> Path:
+def estimates_folder(scene, model_dir: Path, steps: int = model_estimates.ESTIMATE_STEPS) -> Path:
     model = rgbx.load_prior(convert.load_rgbx(model_dir))
     h, w = render_shape(scene, RENDER_SIZE, 8)
-    return model_estimates.cached_estimates(model, [(v.name, v.photo, v.exposure) for v in scene.views], MAPS, h, w)
+    return model_estimates.cached_estimates(model, [(v.name, v.photo, v.exposure) for v in scene.views], MAPS, h, w,
+                                            steps=steps)
 
 
 def fusion_scene(scene, folder: Path, out: Path) -> Path:
@@ -132,7 +135,7 @@ def main(argv=None) -> int:
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--rgbx_dir", type=Path, default=None, help="model folder (default: the shipped model)")
     parser.add_argument("--runs", default="trivial,estimates,fusion,sds_thesis,sds",
-                        help=f"rows: trivial, estimates and any of {', '.join(RUNS)}")
+                        help=f"rows: trivial, estimates, estimates_mean and any of {', '.join(RUNS)}")
     parser.add_argument("--set", action="append", default=[], help="RUN:field=value (a DistillConfig field); "
                         "RUN = BASE+NAME starts from BASE's settings")
     args = parser.parse_args(argv)
@@ -160,8 +163,8 @@ def main(argv=None) -> int:
                 start = time.perf_counter()
                 if run == "trivial":
                     result = {"ours": score(scene, trivial_maps(scene))}
-                elif run == "estimates":
-                    est = estimates_folder(scene, model_dir)
+                elif run in ("estimates", "estimates_mean"):
+                    est = estimates_folder(scene, model_dir, 1 if run == "estimates_mean" else model_estimates.ESTIMATE_STEPS)
                     shapes = [(v.camera.height, v.camera.width) for v in scene.views]
                     result = {"ours": score(scene, model_estimates.read_estimates(
                         est, [v.name for v in scene.views], MAPS, shapes)), "folder": str(est)}
