@@ -212,6 +212,11 @@ def encode_all(args, vae, vae_params, photos, maps):
 # ----------------------------------------------------------------------------- stage 3: UNet
 
 
+def prompt_ids(tokenizer):
+    """(6, 77) token ids of the five map prompts, then the empty prompt."""
+    return jnp.asarray(tokenizer.encode([MAP_PROMPTS[m] for m in MAPS] + [""]))
+
+
 def load_init(folder: Path):
     """The networks and float32 params of a diffusers folder to continue from (`--init`)."""
     from jaxdistill.models.convert import load_rgbx
@@ -223,7 +228,7 @@ def load_init(folder: Path):
 
 def init_prompts(init, tokenizer):
     """(text params, (6, 77, D) last hidden states of the five prompts then "") of an `--init` model."""
-    ids = jnp.asarray(tokenizer.encode([MAP_PROMPTS[m] for m in MAPS] + [""]))
+    ids = prompt_ids(tokenizer)
     params = init.params["text_encoder"]
     return params, np.asarray(init.networks.text_encoder.apply(params, ids))
 
@@ -231,7 +236,7 @@ def init_prompts(init, tokenizer):
 def text_encoder_and_prompts(seed: int, tokenizer, text: dict = TEXT):
     """(frozen CLIP params, (6, 77, D) last hidden states of the five prompts then "")."""
     encoder = CLIPTextTransformer(CLIPTextConfig.from_dict(dict(text, vocab_size=len(tokenizer.backend.get_vocab()))))
-    ids = jnp.asarray(tokenizer.encode([MAP_PROMPTS[m] for m in MAPS] + [""]))
+    ids = prompt_ids(tokenizer)
     params = encoder.init(jax.random.key(seed + 7), ids)
     return params, np.asarray(encoder.apply(params, ids))
 
