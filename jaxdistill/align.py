@@ -22,6 +22,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
+from jaxdistill import metrics
 from jaxdistill.maps import MapChannels
 
 ALIGNED_MAPS = ("albedo", "irradiance")
@@ -68,3 +69,69 @@ def ridge(log_gains, view_ids, pixel_weight, strength: float):
     a = centred(log_gains)[view_ids]
     per_view = jnp.sum(pixel_weight, axis=(1, 2))
     return strength * jnp.sum(per_view * jnp.sum(jnp.square(a), axis=-1)) / pixel_weight.shape[0]
+
+
+# -- the global anchor: the distilled maps' overall scale set to the per-view estimates' -----------
+#
+# Score distillation follows the prior's mode-seeking x̂0, not the estimates' average, and its
+# albedo drifts in overall brightness (staircase2: renders at 0.83× the model's own estimates in
+# linear light). `--anchor=estimates` measures, after the loop, one gain g_c per channel of each
+# aligned map such that the renders' mean over every view's covered pixels, taken where colour
+# maps are compared and shown (sRGB-encoded, `metrics.evaluate_view`), equals the estimates':
+#
+#     mean_hit srgb(clip(g_c · render_c, 0, 1)) = mean_hit srgb(estimate_c)
+#
+# (solved by bisection: the left side increases with g_c), and scales the texels by it in linear
+# light. Every texel keeps its place relative to the others: the structure SDS found is untouched.
+# A mean in sRGB is less dominated by the brightest pixels than a linear one (on the held-out
+# rooms a linear mean lowered albedo PSNR by up to 0.5 dB, the sRGB mean changed it by −0.17 to
+# +0.19 dB; docs/seams.md). The per-view `gain` alignment above removes the views' disagreement
+# around a scale; this sets the scale itself.
+
+ANCHOR_GAIN_RANGE = (1.0 / 64.0, 64.0)
+
+
+def _srgb(x: np.ndarray) -> np.ndarray:
+    """sRGB encode as the metrics compare albedo (linear values clipped to [0, 1])."""
+    return metrics.srgb_encode(np.clip(x, 0.0, 1.0))
+
+
+def _display_mean_gain(render: np.ndarray, target_mean: float, iterations: int = 60) -> float:
+    """g in ANCHOR_GAIN_RANGE with mean(srgb(g · render)) = target_mean (bisection on log g; the
+    range's end when the target is out of reach)."""
+    lo, hi = np.log(ANCHOR_GAIN_RANGE[0]), np.log(ANCHOR_GAIN_RANGE[1])
+    for _ in range(iterations):
+        mid = 0.5 * (lo + hi)
+        if _srgb(np.exp(mid) * render).mean() < target_mean:
+            lo = mid
+        else:
+            hi = mid
+    return float(np.exp(0.5 * (lo + hi)))
+
+
+def anchor_gains(renders, estimates, hits, maps) -> dict[str, np.ndarray]:
+    """{map: (C,) float64 g_c} for the aligned maps among `maps` that the estimates have.
+
+    renders, estimates: per view {map: (H, W, C) file-space image} of the same size; hits: per
+    view (H, W) bool, the pixels the mesh covers. A channel that renders black on every covered
+    pixel gets gain 1 (nothing to scale)."""
+    gains = {}
+    for m in maps:
+        if m not in ALIGNED_MAPS or not all(m in e for e in estimates):
+            continue
+        render = np.concatenate([np.asarray(r[m], np.float64)[h] for r, h in zip(renders, hits)])
+        target = np.concatenate([np.asarray(e[m], np.float64)[h] for e, h in zip(estimates, hits)])
+        gains[m] = np.array([_display_mean_gain(render[:, c], float(_srgb(target[:, c]).mean()))
+                             if render[:, c].max(initial=0.0) > 0 else 1.0 for c in range(render.shape[1])])
+    return gains
+
+
+def anchored_texels(texels: np.ndarray, gains: dict[str, np.ndarray], channels: MapChannels) -> np.ndarray:
+    """Model-space texels with each map in `gains` scaled by its per-channel gain in linear light
+    (x' = clip(g · clip(x + 1, 0, 2), 0, 2) − 1: the file value v in [0, 1] becomes g · v clipped
+    to [0, 1]); other maps unchanged."""
+    out = np.array(texels, np.float32, copy=True)
+    for m, g in gains.items():
+        part = channels.slice(m)
+        out[:, part] = np.clip(np.asarray(g, np.float32) * np.clip(out[:, part] + 1.0, 0.0, 2.0), 0.0, 2.0) - 1.0
+    return out

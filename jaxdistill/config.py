@@ -22,6 +22,7 @@ from jaxdistill.render.gather_plan import SAMPLERS
 PRIORS = ("auto", "rgbx", "views")
 LOSS_SPACES = ("image", "latent")
 ALIGN_MODES = ("none", "gain")
+ANCHOR_MODES = ("none", "estimates")
 ANNEALING = ("none", "linear", "sqrt")
 T_WEIGHTINGS = ("none", "sds")
 LATENT_MODES = ("mode", "sample")
@@ -31,7 +32,7 @@ RGBX_DIR_ENV = "JAXDISTILL_RGBX_DIR"
 
 # Flags that may change when a run is resumed; every other flag must match the checkpoint.
 RESUMABLE_FLAGS = ("steps", "resume", "ckpt_every", "keep_checkpoints", "out_dir", "log_every", "eval_every", "renders",
-                   "contact_views", "rgbx_dir", "convert_cache", "allow_outside_paths")
+                   "contact_views", "rgbx_dir", "convert_cache", "allow_outside_paths", "anchor")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -62,6 +63,7 @@ class DistillConfig:
     reuse_steps: int = 1
     align: str = "none"
     align_strength: float = 0.01
+    anchor: str = "estimates"
     render_size: int = 0
     texture_size: str = "auto"
     max_texture_size: int = 4096
@@ -129,6 +131,10 @@ def define_flags(fv: flags.FlagValues = flags.FLAGS, *, main_module: bool = Fals
                       "geometric mean 1)", **where)
     flags.DEFINE_float("align_strength", d.align_strength, "ridge on the per-view log-gains, per unit of pixel "
                        "weight (--align=gain)", **where)
+    flags.DEFINE_enum("anchor", d.anchor, ANCHOR_MODES, "overall scale of the distilled albedo and irradiance: "
+                      "estimates (after the loop, one gain per channel sets the renders' mean to the per-view "
+                      "estimates' mean: the model's own estimates with the rgbx prior, the scene's targets with "
+                      "views), or none (as distilled)", **where)
     flags.DEFINE_integer("reuse_steps", d.reuse_steps, "rgbx prior: take K AdamW steps on the same views towards "
                          "one x_pred before the prior runs again (1 = a new x_pred every step, the thesis; K > 1 costs "
                          "1/K of the prior per step, like Instruct-NeRF2NeRF's iterative dataset update)", **where)
@@ -203,6 +209,8 @@ def validate(config: DistillConfig) -> DistillConfig:
             bad(name, f"must be >= 0, got {getattr(c, name)}")
     if c.log_every == 0:
         bad("log_every", "must be >= 1")
+    if c.anchor not in ANCHOR_MODES:
+        bad("anchor", f"must be one of {', '.join(ANCHOR_MODES)}, got {c.anchor!r}")
     if c.align_strength < 0:
         bad("align_strength", f"must be >= 0, got {c.align_strength}")
     if c.align != "none" and c.loss_space == "latent":

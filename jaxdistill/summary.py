@@ -54,6 +54,10 @@ def summary_table(result: dict, out: Path) -> str:
         lines += [f"{label:<{width}}  {_number(o):>10}  {_number(b):>10}  {better}" for label, o, b, better in rows]
     else:
         lines.append(result.get("note", "no metrics against ground truth"))
+    anchor = result.get("anchor")
+    if anchor:
+        lines.append("anchored to the per-view estimates' overall scale: gains " + "; ".join(
+            f"{m} {' '.join(f'{g:.3f}' for g in gains)}" for m, gains in anchor["gains"].items()) + " (--anchor)")
     wall = result.get("wall_seconds")
     if wall is not None:
         lines.append(f"wall time {wall:.1f} s ({result.get('steps_this_run', 0)} steps at "

@@ -218,7 +218,9 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
         return {"stopped_by": stopped_by, "step": int(jax.device_get(state.step)), "exit_status": stop.exit_status}
 
     texels = np.asarray(jax.device_get(state.texels))
-    summary = write_outputs(config, problem, texels, history, eval_context, trust)
+    baseline = per_view_baseline(config, problem, [f.shape for f in eval_context.fragments])
+    texels, anchor = anchor_to_baseline(config, problem, texels, eval_context, baseline)
+    summary = write_outputs(config, problem, texels, history, eval_context, trust, baseline)
     steps_run = config.steps - start_step
     summary.update({
         "steps": config.steps, "steps_this_run": steps_run, "resumed_from": start_step if config.resume else None,
@@ -232,7 +234,7 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
         "peak_device_memory_mb": _peak_device_memory_mb(devices),
         "parameters": {"texels": problem.space.num_texels, "channels": problem.channels.num_channels,
                        "page_sizes": list(problem.space.layout.page_sizes)},
-        "traces": traces.traces, "config": recorded,
+        "traces": traces.traces, "config": recorded, "anchor": anchor,
     })
     if state.align is not None:          # the learned per-view gains (geometric mean 1 per channel)
         gains = np.exp(np.asarray(jax.device_get(align_lib.centred(state.align["log_gains"]))))
@@ -312,10 +314,52 @@ def quick_psnr(state, problem: Problem, ctx: EvalContext) -> float:
     return evaluation.albedo_psnr(pred, ctx.gt_maps, ctx.masks)
 
 
+class Baseline:
+    """The per-view estimates a run is scored against (and anchored to): per view {map: (H, W, C)
+    file-space image} at the evaluation size, where they come from, and the cache folder of the
+    model's estimates (None for the views prior's targets)."""
+
+    def __init__(self, views: list[dict] | None, source: str, folder: Path | None = None):
+        self.views, self.source, self.folder = views, source, folder
+
+
+def per_view_baseline(config: DistillConfig, problem: Problem, shapes: list[tuple[int, int]]) -> Baseline:
+    """The rgbx prior's baseline is the model's own per-view estimates (computed once, cached);
+    the views prior's is the scene's per-view targets (None when the scene has none)."""
+    scene, channels = problem.scene, problem.channels
+    if problem.rgbx_model is None:
+        return Baseline(evaluation.read_baseline(scene, channels.maps, shapes), "the scene's per-view target images")
+    folder = model_estimates.cached_estimates(
+        problem.rgbx_model, [(v.name, v.photo, v.exposure) for v in scene.views], channels.maps, problem.height,
+        problem.width, dtype=config.prior_dtype, seed=config.seed)
+    views = model_estimates.read_estimates(folder, [v.name for v in scene.views], channels.maps, shapes)
+    return Baseline(views, f"the model's own per-view estimates ({model_estimates.ESTIMATE_STEPS} DDIM steps, "
+                    f"{folder})", folder)
+
+
+def anchor_to_baseline(config: DistillConfig, problem: Problem, texels: np.ndarray, ctx: EvalContext,
+                       baseline: Baseline) -> tuple[np.ndarray, dict | None]:
+    """`--anchor=estimates`: the texels with albedo and irradiance scaled per channel so that their
+    renders' mean over the covered pixels of all views is the baseline's (`align.anchor_gains`),
+    and what was done, for metrics.json; the texels unchanged and None otherwise."""
+    if config.anchor == "none" or not baseline.views:
+        return texels, None
+    renders = evaluation.render_views(texels, ctx.plan, ctx.cameras, problem.channels)
+    hits = np.asarray(ctx.plan.hit).reshape(-1, ctx.plan.height, ctx.plan.width)
+    gains = align_lib.anchor_gains(renders, baseline.views, list(hits), problem.channels.maps)
+    if not gains:
+        return texels, None
+    logging.info("anchored to %s: per-channel gains %s", baseline.source,
+                 ", ".join(f"{m} {np.round(g, 3).tolist()}" for m, g in gains.items()))
+    return (align_lib.anchored_texels(texels, gains, problem.channels),
+            {"to": baseline.source, "gains": {m: g.round(4).tolist() for m, g in gains.items()}})
+
+
 def write_outputs(config: DistillConfig, problem: Problem, texels: np.ndarray, history: dict,
-                  ctx: EvalContext, trust: np.ndarray) -> dict:
+                  ctx: EvalContext, trust: np.ndarray, baseline: Baseline) -> dict:
     """maps/, scene.glb, renders/, contact sheets, loss.png; returns the metrics part of metrics.json.
-    trust: (N,) each texel's weight in the exported pages (`texel_trust`)."""
+    trust: (N,) each texel's weight in the exported pages (`texel_trust`); baseline: what the
+    run is scored against (`per_view_baseline`)."""
     out = Path(config.out_dir)
     scene, channels, space = problem.scene, problem.channels, problem.space
     # one map at a time: full float pages of all maps at once would be 20 GiB at 30 pages of 4096²
@@ -335,18 +379,10 @@ def write_outputs(config: DistillConfig, problem: Problem, texels: np.ndarray, h
     names = [v.name for v in scene.views]
     if config.renders:
         evaluation.write_renders(out / "renders", names, pred)
-    shapes = [f.shape for f in ctx.fragments]
     result = {}
-    if problem.rgbx_model is not None:     # the rgbx prior is scored against its own per-view estimates
-        folder = model_estimates.cached_estimates(
-            problem.rgbx_model, [(v.name, v.photo, v.exposure) for v in scene.views], channels.maps, problem.height,
-            problem.width, dtype=config.prior_dtype, seed=config.seed)
-        baseline = model_estimates.read_estimates(folder, [v.name for v in scene.views], channels.maps, shapes)
-        baseline_source = f"the model's own per-view estimates ({model_estimates.ESTIMATE_STEPS} DDIM steps, {folder})"
-        result["estimates_folder"] = str(folder)
-    else:
-        baseline = evaluation.read_baseline(scene, channels.maps, shapes)
-        baseline_source = "the scene's per-view target images"
+    if baseline.folder is not None:
+        result["estimates_folder"] = str(baseline.folder)
+    baseline_source, baseline = baseline.source, baseline.views
     written += write_evidence(out, problem, ctx, baseline)
     result["maps_written"] = [str(p.relative_to(out)) for p in written]
     if ctx.gt_maps is not None:

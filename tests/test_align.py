@@ -108,3 +108,65 @@ def test_with_zero_strength_and_unit_gains_the_first_step_equals_the_plain_step(
     a = run(problem, prior, dataclasses.replace(base, align="gain", align_strength=0.5), 1)
     b = run(problem, prior, base, 1)
     np.testing.assert_array_equal(np.asarray(a.texels), np.asarray(b.texels))
+
+
+def srgb_mean(x):
+    """Mean of the IEC 61966-2-1 sRGB encoding of linear values clipped to [0, 1], per channel."""
+    x = np.clip(np.asarray(x, np.float64), 0, 1)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055).mean(axis=0)
+
+
+def test_anchor_gains_give_the_renders_the_estimates_mean_in_srgb():
+    rng = np.random.default_rng(2)
+    hits = [rng.uniform(size=(5, 7)) > 0.3 for _ in range(3)]
+    renders = [{m: rng.uniform(0, 0.8, (5, 7, c)).astype(np.float32) for m, c in
+                (("albedo", 3), ("irradiance", 3), ("roughness", 1))} for _ in range(3)]
+    renders[0]["irradiance"][..., 2] = 0.0                    # a channel that renders black everywhere
+    for r in renders[1:]:
+        r["irradiance"][..., 2] = 0.0
+    estimates = [{m: rng.uniform(0, 1, (5, 7, c)).astype(np.float32) for m, c in
+                  (("albedo", 3), ("irradiance", 3), ("roughness", 1))} for _ in range(3)]
+    gains = align.anchor_gains(renders, estimates, hits, ("albedo", "roughness", "irradiance", "normal"))
+    assert sorted(gains) == ["albedo", "irradiance"]          # roughness has no per-image scale; normal no estimate
+    for m in gains:
+        est = np.concatenate([e[m][h] for e, h in zip(estimates, hits)])
+        ren = np.concatenate([r[m][h] for r, h in zip(renders, hits)])
+        live = ren.max(axis=0) > 0
+        assert_close(srgb_mean(gains[m] * ren)[live], srgb_mean(est)[live], rtol=1e-6)
+        assert (np.abs(gains[m][live] - 1) > 0.05).all()        # the renders were darker: not trivially 1
+    assert gains["irradiance"][2] == 1.0
+    # a gain that clips: the mean is reached through the clipped values (the bright half saturates)
+    ren = np.concatenate([np.full(50, 0.5), np.full(50, 0.05)])[:, None]
+    est = np.full((100, 1), 0.9)
+    g = align.anchor_gains([{"albedo": ren.repeat(3, -1)}], [{"albedo": est.repeat(3, -1)}],
+                           [np.ones(100, bool)], ["albedo"])["albedo"]
+    assert_close(srgb_mean(g * ren.repeat(3, -1)), srgb_mean(est.repeat(3, -1)), rtol=1e-6)
+    assert (g > 2).all()
+
+
+def test_anchored_texels_scale_the_colour_maps_in_linear_light_and_leave_the_rest(problem):
+    """Renders of the anchored texture have the baseline's sRGB mean per channel (no texel clips here)."""
+    from jaxdistill.train import anchor_to_baseline, evaluation_context, per_view_baseline
+
+    channels = MapChannels(("albedo", "roughness"))
+    texels = np.random.default_rng(3).uniform(-0.9, -0.5, (problem.space.num_texels, 4)).astype(np.float32)
+    prob = dataclasses.replace(problem, channels=channels)
+    config = DistillConfig(scene="unused", out_dir="unused", maps=channels.maps, prior="views", anchor="estimates")
+    ctx = evaluation_context(config, prob)
+    baseline = per_view_baseline(config, prob, [f.shape for f in ctx.fragments])
+    anchored, record = anchor_to_baseline(config, prob, texels, ctx, baseline)
+    assert list(record["gains"]) == ["albedo"] and "target" in record["to"]
+    assert (np.abs(np.asarray(record["gains"]["albedo"]) - 1) > 0.2).all()         # the texture was too dark
+    np.testing.assert_array_equal(anchored[:, 3], texels[:, 3])                     # roughness untouched
+    g = np.asarray(record["gains"]["albedo"], np.float32)
+    assert_close((anchored[:, :3] + 1) / 2, g * (texels[:, :3] + 1) / 2, rtol=1e-4)  # file values x g
+    from jaxdistill.evaluation import render_views
+
+    hits = np.asarray(ctx.plan.hit).reshape(-1, ctx.plan.height, ctx.plan.width)
+    renders = render_views(anchored, ctx.plan, ctx.cameras, channels)
+    ours = srgb_mean(np.concatenate([r["albedo"][h] for r, h in zip(renders, hits)]))
+    target = srgb_mean(np.concatenate([b["albedo"][h] for b, h in zip(baseline.views, hits)]))
+    assert (np.abs(anchored[:, :3]) < 1).all()                                      # nothing clipped
+    assert_close(ours, target, rtol=1e-3)
+    unchanged, none = anchor_to_baseline(dataclasses.replace(config, anchor="none"), prob, texels, ctx, baseline)
+    assert none is None and unchanged is texels

@@ -54,7 +54,7 @@ def restored(out: Path, step: int):
         return store.restore(step, like)
 
 
-def test_main_job_writes_every_output(tiny_scene, tmp_path):
+def test_main_job_writes_every_output(tiny_scene, tmp_path, capsys):
     out = tmp_path / "run"
     summary = train.run(tiny_config(tiny_scene, out), progress=False)
     doc = json.loads((out / "metrics.json").read_text())
@@ -63,6 +63,8 @@ def test_main_job_writes_every_output(tiny_scene, tmp_path):
     for key in ("albedo_psnr", "albedo_ssim", "normal_angular_deg", "roughness_mse", "metallic_mse"):
         assert np.isfinite(doc["ours"][key]) and np.isfinite(doc["baseline_per_view_estimates"][key])
     assert doc["history"]["step"] == [1, 2, 3, 4, 5, 6] and doc["history"]["eval_step"] == [3, 6]
+    assert "per-view target" in doc["anchor"]["to"] and sorted(doc["anchor"]["gains"]) == ["albedo", "irradiance"]
+    assert "anchored to the per-view estimates' overall scale: gains albedo " in capsys.readouterr().out
     assert train._json_safe(summary["ours"]) == doc["ours"]       # NaN (a seam ratio of a flat GT) is null
     objects = ["room_floor", "room_ceiling", "room_wall_z0", "room_wall_z1", "room_wall_x0", "room_wall_x1"]
     for m in ("albedo", "normal", "roughness", "metallic", "irradiance"):
