@@ -22,7 +22,7 @@ from jaxdistill.render.gather_plan import SAMPLERS
 PRIORS = ("auto", "rgbx", "views")
 LOSS_SPACES = ("image", "latent")
 ALIGN_MODES = ("none", "gain")
-ANCHOR_MODES = ("none", "estimates")
+ANCHOR_MODES = ("auto", "estimates", "none")
 ANNEALING = ("none", "linear", "sqrt")
 T_WEIGHTINGS = ("none", "sds")
 LATENT_MODES = ("mode", "sample")
@@ -63,7 +63,7 @@ class DistillConfig:
     reuse_steps: int = 1
     align: str = "none"
     align_strength: float = 0.01
-    anchor: str = "estimates"
+    anchor: str = "auto"
     render_size: int = 0
     texture_size: str = "auto"
     max_texture_size: int = 4096
@@ -132,9 +132,10 @@ def define_flags(fv: flags.FlagValues = flags.FLAGS, *, main_module: bool = Fals
     flags.DEFINE_float("align_strength", d.align_strength, "ridge on the per-view log-gains, per unit of pixel "
                        "weight (--align=gain)", **where)
     flags.DEFINE_enum("anchor", d.anchor, ANCHOR_MODES, "overall scale of the distilled albedo and irradiance: "
-                      "estimates (after the loop, one gain per channel sets the renders' mean to the per-view "
-                      "estimates' mean: the model's own estimates with the rgbx prior, the scene's targets with "
-                      "views), or none (as distilled)", **where)
+                      "estimates (after the loop, one gain per channel sets the renders' sRGB mean over the views to "
+                      "the per-view estimates': the model's own with the rgbx prior, the scene's targets with views), "
+                      "none (as distilled), or auto: estimates with the rgbx prior, none with views (a fusion already "
+                      "has its targets' scale)", **where)
     flags.DEFINE_integer("reuse_steps", d.reuse_steps, "rgbx prior: take K AdamW steps on the same views towards "
                          "one x_pred before the prior runs again (1 = a new x_pred every step, the thesis; K > 1 costs "
                          "1/K of the prior per step, like Instruct-NeRF2NeRF's iterative dataset update)", **where)

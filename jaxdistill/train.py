@@ -337,12 +337,22 @@ def per_view_baseline(config: DistillConfig, problem: Problem, shapes: list[tupl
                     f"{folder})", folder)
 
 
+def anchor_mode(config: DistillConfig, problem: Problem) -> str:
+    """--anchor resolved: auto is `estimates` with the rgbx prior (SDS follows the prior's x̂0 and
+    drifts from the estimates' overall scale) and `none` with the views prior (a least-squares
+    fusion of the targets has their scale already; docs/seams.md measures both)."""
+    if config.anchor != "auto":
+        return config.anchor
+    return "estimates" if problem.rgbx_model is not None else "none"
+
+
 def anchor_to_baseline(config: DistillConfig, problem: Problem, texels: np.ndarray, ctx: EvalContext,
                        baseline: Baseline) -> tuple[np.ndarray, dict | None]:
-    """`--anchor=estimates`: the texels with albedo and irradiance scaled per channel so that their
-    renders' mean over the covered pixels of all views is the baseline's (`align.anchor_gains`),
-    and what was done, for metrics.json; the texels unchanged and None otherwise."""
-    if config.anchor == "none" or not baseline.views:
+    """With `--anchor` resolving to estimates (`anchor_mode`): the texels with albedo and irradiance
+    scaled per channel so that their renders' sRGB mean over the covered pixels of all views is
+    the baseline's (`align.anchor_gains`), and what was done, for metrics.json; otherwise the
+    texels unchanged and None."""
+    if anchor_mode(config, problem) == "none" or not baseline.views:
         return texels, None
     renders = evaluation.render_views(texels, ctx.plan, ctx.cameras, problem.channels)
     hits = np.asarray(ctx.plan.hit).reshape(-1, ctx.plan.height, ctx.plan.width)

@@ -241,6 +241,19 @@ def text_encoder_and_prompts(seed: int, tokenizer, text: dict = TEXT):
     return params, np.asarray(encoder.apply(params, ids))
 
 
+def timesteps(key, batch: int, num_train_timesteps: int, high_fraction: float = 0.0, high_from: int = 900):
+    """(batch,) int32 training timesteps: U{0..T-1}, except that a fraction `high_fraction` of
+    the batch (rounded down) draws from U{high_from..T-1}. The x̂0 a single pass at t = T-1 gives
+    (the model's conditional mean under zero terminal SNR) is learned only from the high-t
+    samples, a tenth of a uniform batch above t = 900."""
+    k_all, k_high = jax.random.split(key)
+    t = jax.random.randint(k_all, (batch,), 0, num_train_timesteps)
+    high = int(batch * high_fraction)
+    if high:
+        t = t.at[:high].set(jax.random.randint(k_high, (high,), high_from, num_train_timesteps))
+    return t
+
+
 def train_unet(args, latents, contexts, scaling, init_params=None):
     unet = UNet2DCondition(UNetConfig.from_dict(UNET))
     config = sched.SchedulerConfig(**{k: SCHEDULER[k] for k in ("beta_start", "beta_end", "beta_schedule",
@@ -264,7 +277,7 @@ def train_unet(args, latents, contexts, scaling, init_params=None):
     def loss_fn(params, x0, cond, which, key):
         k_t, k_eps, k_img, k_txt = jax.random.split(key, 4)
         b = x0.shape[0]
-        t = jax.random.randint(k_t, (b,), 0, config.num_train_timesteps)
+        t = timesteps(k_t, b, config.num_train_timesteps, args.t_high_fraction, args.t_high_from)
         eps = jax.random.normal(k_eps, x0.shape)
         ab = alpha_bar[t]
         z_t = sched.add_noise(x0, eps, ab)
@@ -387,7 +400,8 @@ def model_record(args, images: int, scaling: float) -> dict:
             "vae": ({"from": str(args.init)} if args.init else
                     {"steps": args.vae_steps, "batch": args.vae_batch, "lr": args.vae_lr, "final_loss": last_loss("vae")}),
             "unet": {"steps": args.unet_steps, "batch": args.unet_batch, "lr": args.unet_lr, "ema": args.ema,
-                     "p_drop": args.p_drop, "final_loss": last_loss("unet")},
+                     "p_drop": args.p_drop, "t_high_fraction": args.t_high_fraction, "t_high_from": args.t_high_from,
+                     "final_loss": last_loss("unet")},
             "command": "python scripts/train_rgbx.py " + " ".join(sys.argv[1:])}
 
 
@@ -406,6 +420,9 @@ def main(argv=None) -> int:
     parser.add_argument("--unet_batch", type=int, default=64)
     parser.add_argument("--unet_lr", type=float, default=1e-3)
     parser.add_argument("--ema", type=float, default=0.999)
+    parser.add_argument("--t_high_fraction", type=float, default=0.0,
+                        help="fraction of each UNet batch whose t is drawn from U{t_high_from..999} instead of U{0..999}")
+    parser.add_argument("--t_high_from", type=int, default=900)
     parser.add_argument("--p_drop", type=float, default=0.1, help="photo and prompt dropout, each")
     parser.add_argument("--name", default="jaxdistill-rgbx-rooms", help="model name in jaxdistill_model.json")
     parser.add_argument("--version", default="1")

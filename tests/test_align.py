@@ -168,5 +168,6 @@ def test_anchored_texels_scale_the_colour_maps_in_linear_light_and_leave_the_res
     target = srgb_mean(np.concatenate([b["albedo"][h] for b, h in zip(baseline.views, hits)]))
     assert (np.abs(anchored[:, :3]) < 1).all()                                      # nothing clipped
     assert_close(ours, target, rtol=1e-3)
-    unchanged, none = anchor_to_baseline(dataclasses.replace(config, anchor="none"), prob, texels, ctx, baseline)
-    assert none is None and unchanged is texels
+    for mode in ("none", "auto"):                           # auto: none with the views prior
+        unchanged, none = anchor_to_baseline(dataclasses.replace(config, anchor=mode), prob, texels, ctx, baseline)
+        assert none is None and unchanged is texels

@@ -63,7 +63,12 @@ def test_main_job_writes_every_output(tiny_scene, tmp_path, capsys):
     for key in ("albedo_psnr", "albedo_ssim", "normal_angular_deg", "roughness_mse", "metallic_mse"):
         assert np.isfinite(doc["ours"][key]) and np.isfinite(doc["baseline_per_view_estimates"][key])
     assert doc["history"]["step"] == [1, 2, 3, 4, 5, 6] and doc["history"]["eval_step"] == [3, 6]
-    assert "per-view target" in doc["anchor"]["to"] and sorted(doc["anchor"]["gains"]) == ["albedo", "irradiance"]
+    assert doc["anchor"] is None                            # --anchor=auto: none with the views prior
+    assert "anchored to" not in capsys.readouterr().out
+    anchored = train.run(tiny_config(tiny_scene, tmp_path / "anchored", anchor="estimates", renders=False),
+                         progress=False)
+    assert "per-view target" in anchored["anchor"]["to"]
+    assert sorted(anchored["anchor"]["gains"]) == ["albedo", "irradiance"]
     assert "anchored to the per-view estimates' overall scale: gains albedo " in capsys.readouterr().out
     assert train._json_safe(summary["ours"]) == doc["ours"]       # NaN (a seam ratio of a flat GT) is null
     objects = ["room_floor", "room_ceiling", "room_wall_z0", "room_wall_z1", "room_wall_x0", "room_wall_x1"]
@@ -299,6 +304,7 @@ def test_auto_prior_uses_rgbx_weights_end_to_end(tiny_scene, rgbx_dir, tmp_path,
     assert doc["prior"]["model"] == {"name": "rgb-to-x", "source": "user", "folder": str(rgbx_dir)}
     # scored against the model's own per-view estimates, not the scene's targets
     assert doc["baseline_source"].startswith("the model's own per-view estimates (50 DDIM steps")
+    assert doc["anchor"]["to"] == doc["baseline_source"] and list(doc["anchor"]["gains"]) == ["albedo"]  # auto
     assert doc["baseline_per_view_estimates"]["albedo_psnr"] != json.loads(
         (views_run / "metrics.json").read_text())["baseline_per_view_estimates"]["albedo_psnr"]
     assert doc["traces"] == 1 and all(np.isfinite(doc["history"]["loss"]))

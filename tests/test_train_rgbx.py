@@ -195,3 +195,13 @@ def test_init_names_the_flag_when_the_folder_is_not_a_model(tmp_path):
     tiny_shards(tmp_path / "data")
     with pytest.raises(SystemExit, match="--init: .*model_index.json"):
         train_rgbx.main(["--data", str(tmp_path / "data"), "--work", str(tmp_path / "w"), "--init", str(tmp_path)])
+
+
+def test_timesteps_draw_the_high_fraction_from_the_top_of_the_schedule():
+    key = jax.random.key(0)
+    uniform = np.asarray(train_rgbx.timesteps(key, 4000, 1000))
+    assert uniform.min() >= 0 and uniform.max() <= 999 and abs((uniform >= 900).mean() - 0.1) < 0.02
+    mixed = np.asarray(train_rgbx.timesteps(key, 4000, 1000, high_fraction=0.25, high_from=900))
+    assert (mixed[:1000] >= 900).all() and mixed.max() <= 999            # the first quarter: U{900..999}
+    assert abs((mixed[1000:] >= 900).mean() - 0.1) < 0.02                # the rest stays uniform
+    assert len(np.unique(mixed[:1000])) > 90
