@@ -361,6 +361,14 @@ def anchor_to_baseline(config: DistillConfig, problem: Problem, texels: np.ndarr
         return texels, None
     logging.info("anchored to %s: per-channel gains %s", baseline.source,
                  ", ".join(f"{m} {np.round(g, 3).tolist()}" for m, g in gains.items()))
+    low, high = align_lib.ANCHOR_GAIN_RANGE
+    extreme = [f"{m}[{c}] = {g:.3g}" for m, gs in gains.items() for c, g in enumerate(gs)
+               if g <= low * 1.001 or g >= high * 0.999]
+    if extreme:
+        logging.warning("--anchor: %s reached the end of the gain range [%g, %g]: the renders and the per-view "
+                        "estimates disagree about that channel's scale by more than the range (check the "
+                        "estimates in %s, or run with --anchor=none)", ", ".join(extreme), low, high,
+                        baseline.folder or "the scene's targets")
     return (align_lib.anchored_texels(texels, gains, problem.channels),
             {"to": baseline.source, "gains": {m: g.round(4).tolist() for m, g in gains.items()}})
 

@@ -171,3 +171,17 @@ def test_anchored_texels_scale_the_colour_maps_in_linear_light_and_leave_the_res
     for mode in ("none", "auto"):                           # auto: none with the views prior
         unchanged, none = anchor_to_baseline(dataclasses.replace(config, anchor=mode), prob, texels, ctx, baseline)
         assert none is None and unchanged is texels
+
+
+def test_an_anchor_gain_at_the_end_of_its_range_is_reported(problem, caplog):
+    from jaxdistill.train import anchor_to_baseline, evaluation_context, per_view_baseline
+
+    config = DistillConfig(scene="unused", out_dir="unused", maps=problem.channels.maps, prior="views",
+                           anchor="estimates")
+    ctx = evaluation_context(config, problem)
+    baseline = per_view_baseline(config, problem, [f.shape for f in ctx.fragments])
+    texels = np.full((problem.space.num_texels, 3), -0.9999, np.float32)      # file value 5e-5: far too dark
+    with caplog.at_level("WARNING"):
+        _, record = anchor_to_baseline(config, problem, texels, ctx, baseline)
+    assert max(record["gains"]["albedo"]) == pytest.approx(align.ANCHOR_GAIN_RANGE[1], rel=1e-3)
+    assert "reached the end of the gain range" in caplog.text and "albedo[0]" in caplog.text
