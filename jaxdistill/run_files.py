@@ -3,7 +3,8 @@
 `texel_space.npz` in the run's out_dir (written once, before the first step): the level-0 tile
 set of the texel space, how far each texel is trusted (`export.texel_trust`), and the distilled maps. With it, the
 texels of any checkpoint become the same file-space map pages that `maps/` holds at the end
-(`map_pages`), without the scene, the ray casts or the prior.
+(`map_pages`; the final checkpoint's after `as_exported`, which applies the `--anchor` gains the
+run recorded in metrics.json), without the scene, the ray casts or the prior.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxdistill import align
 from jaxdistill.errors import InputError
 from jaxdistill.maps import MapChannels, model_to_file
 from jaxdistill.problem import initial_file_values
@@ -32,6 +34,17 @@ def map_pages(name: str, texels: np.ndarray, channels: MapChannels, space: Texel
     pages = expand(values, space, initial_file_values([name])[name], dilation=0)
     weights = expand(np.asarray(trust, np.float32)[:, None], space, 0.0, dilation=0)
     return [push_pull(page, w[..., 0]) for page, w in zip(pages, weights)]
+
+
+def as_exported(out_dir, texels: np.ndarray, channels: MapChannels) -> np.ndarray:
+    """The texels as the finished run exported them: with the per-channel gains of `--anchor`
+    (metrics.json `anchor`) applied; unchanged when the run has not finished or did not anchor."""
+    path = Path(out_dir) / "metrics.json"
+    anchor = json.loads(path.read_text()).get("anchor") if path.is_file() else None
+    if not anchor:
+        return texels
+    gains = {m: np.asarray(g, np.float64) for m, g in anchor["gains"].items()}
+    return align.anchored_texels(texels, gains, channels)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -370,7 +370,7 @@ def anchor_to_baseline(config: DistillConfig, problem: Problem, texels: np.ndarr
                         "estimates in %s, or run with --anchor=none)", ", ".join(extreme), low, high,
                         baseline.folder or "the scene's targets")
     return (align_lib.anchored_texels(texels, gains, problem.channels),
-            {"to": baseline.source, "gains": {m: g.round(4).tolist() for m, g in gains.items()}})
+            {"to": baseline.source, "gains": {m: g.tolist() for m, g in gains.items()}})
 
 
 def write_outputs(config: DistillConfig, problem: Problem, texels: np.ndarray, history: dict,
