@@ -7,6 +7,7 @@ previous step (JAX dispatch is asynchronous); metrics are fetched every --log_ev
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from concurrent.futures import ThreadPoolExecutor
@@ -314,13 +315,15 @@ def quick_psnr(state, problem: Problem, ctx: EvalContext) -> float:
     return evaluation.albedo_psnr(pred, ctx.gt_maps, ctx.masks)
 
 
+@dataclasses.dataclass(frozen=True)
 class Baseline:
     """The per-view estimates a run is scored against (and anchored to): per view {map: (H, W, C)
     file-space image} at the evaluation size, where they come from, and the cache folder of the
     model's estimates (None for the views prior's targets)."""
 
-    def __init__(self, views: list[dict] | None, source: str, folder: Path | None = None):
-        self.views, self.source, self.folder = views, source, folder
+    views: list[dict] | None
+    source: str
+    folder: Path | None = None
 
 
 def per_view_baseline(config: DistillConfig, problem: Problem, shapes: list[tuple[int, int]]) -> Baseline:
@@ -352,12 +355,17 @@ def anchor_to_baseline(config: DistillConfig, problem: Problem, texels: np.ndarr
     scaled per channel so that their renders' sRGB mean over the covered pixels of all views is
     the baseline's (`align.anchor_gains`), and what was done, for metrics.json; otherwise the
     texels unchanged and None."""
-    if anchor_mode(config, problem) == "none" or not baseline.views:
+    if anchor_mode(config, problem) == "none":
         return texels, None
-    renders = evaluation.render_views(texels, ctx.plan, ctx.cameras, problem.channels)
-    hits = np.asarray(ctx.plan.hit).reshape(-1, ctx.plan.height, ctx.plan.width)
-    gains = align_lib.anchor_gains(renders, baseline.views, list(hits), problem.channels.maps)
+    gains = {}
+    if baseline.views:
+        renders = evaluation.render_views(texels, ctx.plan, ctx.cameras, problem.channels)
+        hits = np.asarray(ctx.plan.hit).reshape(-1, ctx.plan.height, ctx.plan.width)
+        gains = align_lib.anchor_gains(renders, baseline.views, list(hits), problem.channels.maps)
     if not gains:
+        if config.anchor == "estimates":     # asked for by name: say why nothing happened (auto: no colour map)
+            logging.warning("--anchor=%s: nothing to anchor: %s has no %s for the distilled maps; the maps keep their "
+                            "distilled scale", config.anchor, baseline.source, " or ".join(align_lib.ALIGNED_MAPS))
         return texels, None
     logging.info("anchored to %s: per-channel gains %s", baseline.source,
                  ", ".join(f"{m} {np.round(g, 3).tolist()}" for m, g in gains.items()))

@@ -185,3 +185,17 @@ def test_an_anchor_gain_at_the_end_of_its_range_is_reported(problem, caplog):
         _, record = anchor_to_baseline(config, problem, texels, ctx, baseline)
     assert max(record["gains"]["albedo"]) == pytest.approx(align.ANCHOR_GAIN_RANGE[1], rel=1e-3)
     assert "reached the end of the gain range" in caplog.text and "albedo[0]" in caplog.text
+
+
+def test_anchor_estimates_without_a_colour_map_says_so(problem, caplog):
+    from jaxdistill.train import anchor_to_baseline, evaluation_context, per_view_baseline
+
+    prob = dataclasses.replace(problem, channels=MapChannels(("roughness",)))
+    config = DistillConfig(scene="unused", out_dir="unused", maps=("roughness",), prior="views", anchor="estimates")
+    ctx = evaluation_context(config, prob)
+    baseline = per_view_baseline(config, prob, [f.shape for f in ctx.fragments])
+    texels = np.zeros((prob.space.num_texels, 1), np.float32)
+    with caplog.at_level("WARNING"):
+        out, record = anchor_to_baseline(config, prob, texels, ctx, baseline)
+    assert record is None and out is texels
+    assert "nothing to anchor" in caplog.text and "albedo or irradiance" in caplog.text
