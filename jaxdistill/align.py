@@ -76,8 +76,9 @@ def ridge(log_gains, view_ids, pixel_weight, strength: float):
 # Score distillation follows the prior's mode-seeking x̂0, not the estimates' average, and its
 # albedo drifts in overall brightness (staircase2: renders at 0.83× the model's own estimates in
 # linear light). `--anchor=estimates` measures, after the loop, one gain g_c per channel of each
-# aligned map such that the renders' mean over every view's covered pixels, taken where colour
-# maps are compared and shown (sRGB-encoded, `metrics.evaluate_view`), equals the estimates':
+# aligned map such that the renders' mean over every view's covered pixels, sRGB-encoded (where
+# albedo is compared, `metrics.evaluate_view`, and where both colour maps are shown), equals the
+# estimates' (irradiance is scored scale-invariantly, so for it only the files change):
 #
 #     mean_hit srgb(clip(g_c · render_c, 0, 1)) = mean_hit srgb(estimate_c)
 #

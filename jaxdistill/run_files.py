@@ -36,11 +36,13 @@ def map_pages(name: str, texels: np.ndarray, channels: MapChannels, space: Texel
     return [push_pull(page, w[..., 0]) for page, w in zip(pages, weights)]
 
 
-def as_exported(out_dir, texels: np.ndarray, channels: MapChannels) -> np.ndarray:
-    """The texels as the finished run exported them: with the per-channel gains of `--anchor`
-    (metrics.json `anchor`) applied; unchanged when the run has not finished or did not anchor."""
+def as_exported(out_dir, texels: np.ndarray, channels: MapChannels, step: int) -> np.ndarray:
+    """The texels of the checkpoint at `step` as the finished run exported them: with the
+    per-channel gains of `--anchor` (metrics.json `anchor`) applied; unchanged when no finished
+    run wrote maps from that step (still running, resumed past it) or the run did not anchor."""
     path = Path(out_dir) / "metrics.json"
-    anchor = json.loads(path.read_text()).get("anchor") if path.is_file() else None
+    doc = json.loads(path.read_text()) if path.is_file() else {}
+    anchor = doc.get("anchor") if doc.get("steps") == step else None
     if not anchor:
         return texels
     gains = {m: np.asarray(g, np.float64) for m, g in anchor["gains"].items()}

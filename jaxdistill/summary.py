@@ -56,7 +56,7 @@ def summary_table(result: dict, out: Path) -> str:
         lines.append(result.get("note", "no metrics against ground truth"))
     anchor = result.get("anchor")
     if anchor:
-        lines.append("anchored to the per-view estimates' overall scale: gains " + "; ".join(
+        lines.append(f"overall scale anchored to {anchor['to']}: gains " + "; ".join(
             f"{m} {' '.join(f'{g:.3f}' for g in gains)}" for m, gains in anchor["gains"].items()) + " (--anchor)")
     wall = result.get("wall_seconds")
     if wall is not None:

@@ -246,11 +246,10 @@ def timesteps(key, batch: int, num_train_timesteps: int, high_fraction: float = 
     the batch (rounded down) draws from U{high_from..T-1}. The x̂0 a single pass at t = T-1 gives
     (the model's conditional mean under zero terminal SNR) is learned only from the high-t
     samples, a tenth of a uniform batch above t = 900."""
-    k_all, k_high = jax.random.split(key)
-    t = jax.random.randint(k_all, (batch,), 0, num_train_timesteps)
+    t = jax.random.randint(key, (batch,), 0, num_train_timesteps)      # as before the option: same stream at 0
     high = int(batch * high_fraction)
     if high:
-        t = t.at[:high].set(jax.random.randint(k_high, (high,), high_from, num_train_timesteps))
+        t = t.at[:high].set(jax.random.randint(jax.random.fold_in(key, 1), (high,), high_from, num_train_timesteps))
     return t
 
 
@@ -421,8 +420,10 @@ def main(argv=None) -> int:
     parser.add_argument("--unet_lr", type=float, default=1e-3)
     parser.add_argument("--ema", type=float, default=0.999)
     parser.add_argument("--t_high_fraction", type=float, default=0.0,
-                        help="fraction of each UNet batch whose t is drawn from U{t_high_from..999} instead of U{0..999}")
-    parser.add_argument("--t_high_from", type=int, default=900)
+                        help="fraction in [0, 1] of each UNet batch whose t is drawn from U{t_high_from..T-1} instead "
+                        "of U{0..T-1} (T = 1000 training timesteps)")
+    parser.add_argument("--t_high_from", type=int, default=900,
+                        help="first timestep of the high draw (--t_high_fraction), in [0, T-1]")
     parser.add_argument("--p_drop", type=float, default=0.1, help="photo and prompt dropout, each")
     parser.add_argument("--name", default="jaxdistill-rgbx-rooms", help="model name in jaxdistill_model.json")
     parser.add_argument("--version", default="1")
@@ -436,6 +437,10 @@ def main(argv=None) -> int:
     parser.add_argument("--stop_after_steps", type=int, default=0, help="train at most this many steps in this run")
     parser.add_argument("--time_limit", type=float, default=0.0, help="minutes; then checkpoint and exit 75")
     args = parser.parse_args(argv)
+    if not 0.0 <= args.t_high_fraction <= 1.0:
+        parser.error(f"--t_high_fraction: must be in [0, 1], got {args.t_high_fraction}")
+    if not 0 <= args.t_high_from < SCHEDULER["num_train_timesteps"]:
+        parser.error(f"--t_high_from: must be in [0, {SCHEDULER['num_train_timesteps'] - 1}], got {args.t_high_from}")
     args.budget = Budget(args.stop_after_steps, args.time_limit)
     args.work.mkdir(parents=True, exist_ok=True)
     out = args.out or args.work / "model"

@@ -64,12 +64,12 @@ def test_main_job_writes_every_output(tiny_scene, tmp_path, capsys):
         assert np.isfinite(doc["ours"][key]) and np.isfinite(doc["baseline_per_view_estimates"][key])
     assert doc["history"]["step"] == [1, 2, 3, 4, 5, 6] and doc["history"]["eval_step"] == [3, 6]
     assert doc["anchor"] is None                            # --anchor=auto: none with the views prior
-    assert "anchored to" not in capsys.readouterr().out
+    assert "anchored" not in capsys.readouterr().out
     anchored = train.run(tiny_config(tiny_scene, tmp_path / "anchored", anchor="estimates", renders=False),
                          progress=False)
     assert "per-view target" in anchored["anchor"]["to"]
     assert sorted(anchored["anchor"]["gains"]) == ["albedo", "irradiance"]
-    assert "anchored to the per-view estimates' overall scale: gains albedo " in capsys.readouterr().out
+    assert "overall scale anchored to the scene's per-view target images: gains albedo " in capsys.readouterr().out
     assert train._json_safe(summary["ours"]) == doc["ours"]       # NaN (a seam ratio of a flat GT) is null
     objects = ["room_floor", "room_ceiling", "room_wall_z0", "room_wall_z1", "room_wall_x0", "room_wall_x1"]
     for m in ("albedo", "normal", "roughness", "metallic", "irradiance"):

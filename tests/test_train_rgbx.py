@@ -205,3 +205,13 @@ def test_timesteps_draw_the_high_fraction_from_the_top_of_the_schedule():
     assert (mixed[:1000] >= 900).all() and mixed.max() <= 999            # the first quarter: U{900..999}
     assert abs((mixed[1000:] >= 900).mean() - 0.1) < 0.02                # the rest stays uniform
     assert len(np.unique(mixed[:1000])) > 90
+
+
+def test_uniform_timesteps_are_the_stream_of_one_randint_and_bad_high_flags_are_named(tmp_path, capsys):
+    key = jax.random.key(3)
+    np.testing.assert_array_equal(np.asarray(train_rgbx.timesteps(key, 64, 1000)),
+                                  np.asarray(jax.random.randint(key, (64,), 0, 1000)))   # recipes stay reproducible
+    for flag, value in (("--t_high_fraction", "1.5"), ("--t_high_from", "1000"), ("--t_high_from", "-1")):
+        with pytest.raises(SystemExit):
+            train_rgbx.main([f"--data={tmp_path}", f"--work={tmp_path / 'w'}", f"{flag}={value}"])
+        assert f"{flag}: must be in" in capsys.readouterr().err

@@ -135,9 +135,11 @@ def test_smoke_run_writes_evidence_and_a_texel_space_that_reproduces_its_maps(sm
     assert live.config["scene"] == "bedroom" and list(live.channels.maps) == live.config["maps"]
     stems = export.page_names(RunDir(smoke_run).scene.mesh.object_names, live.space.layout.object_page)
     with checkpoint.CheckpointStore(smoke_run / "checkpoints") as store:
-        raw = store.read_texels()
-    texels = run_files.as_exported(smoke_run, raw, live.channels)        # the --anchor gains of metrics.json
+        step = store.latest_step()
+        raw = store.read_texels(step)
+    texels = run_files.as_exported(smoke_run, raw, live.channels, step)     # the --anchor gains of metrics.json
     assert json.loads((smoke_run / "metrics.json").read_text())["anchor"] and not np.array_equal(texels, raw)
+    assert run_files.as_exported(smoke_run, raw, live.channels, step - 1) is raw     # not the step maps/ came from
     trusted = expand(live.trust[:, None], live.space, 0.0, dilation=0)
     for m in live.channels.maps:        # the checkpoint's texels through texel_space.npz == maps/ of the run
         pages = run_files.map_pages(m, texels, live.channels, live.space, live.trust)
