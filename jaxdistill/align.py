@@ -22,7 +22,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdistill import metrics
+from jaxdistill.imageio import linear_to_srgb
 from jaxdistill.maps import MapChannels
 
 ALIGNED_MAPS = ("albedo", "irradiance")
@@ -92,18 +92,13 @@ def ridge(log_gains, view_ids, pixel_weight, strength: float):
 ANCHOR_GAIN_RANGE = (1.0 / 64.0, 64.0)
 
 
-def _srgb(x: np.ndarray) -> np.ndarray:
-    """sRGB encode as the metrics compare albedo (linear values clipped to [0, 1])."""
-    return metrics.srgb_encode(np.clip(x, 0.0, 1.0))
-
-
 def _display_mean_gain(render: np.ndarray, target_mean: float, iterations: int = 32) -> float:
     """g in ANCHOR_GAIN_RANGE with mean(srgb(g · render)) = target_mean (bisection on log g, to
     2e-9 relative; the range's end when the target is out of reach)."""
     lo, hi = np.log(ANCHOR_GAIN_RANGE[0]), np.log(ANCHOR_GAIN_RANGE[1])
     for _ in range(iterations):
         mid = 0.5 * (lo + hi)
-        if _srgb(np.float32(np.exp(mid)) * render).mean(dtype=np.float64) < target_mean:
+        if linear_to_srgb(np.float32(np.exp(mid)) * render).mean(dtype=np.float64) < target_mean:
             lo = mid
         else:
             hi = mid
@@ -123,7 +118,7 @@ def anchor_gains(renders, estimates, hits, maps) -> dict[str, np.ndarray]:
         render = np.concatenate([np.asarray(r[m], np.float32)[h] for r, h in zip(renders, hits)])
         target = np.concatenate([np.asarray(e[m], np.float32)[h] for e, h in zip(estimates, hits)])
         gains[m] = np.array([_display_mean_gain(np.ascontiguousarray(render[:, c]),
-                                                float(_srgb(target[:, c]).mean(dtype=np.float64)))
+                                                float(linear_to_srgb(target[:, c]).mean(dtype=np.float64)))
                              if render[:, c].max(initial=0.0) > 0 else 1.0 for c in range(render.shape[1])])
     return gains
 

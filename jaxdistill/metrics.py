@@ -229,7 +229,7 @@ def angular_error_deg(pred, gt, mask=None) -> float:
 
 # ----------------------------------------------------------------------------- per view, aggregate
 
-def srgb_encode(x: np.ndarray) -> np.ndarray:
+def _srgb_encode(x: np.ndarray) -> np.ndarray:
     """IEC 61966-2-1 sRGB encode of linear values in [0, 1], float64 (as imageio.linear_to_srgb)."""
     return np.where(x <= 0.0031308, x * 12.92, 1.055 * np.power(x, 1 / 2.4) - 0.055)
 
@@ -265,7 +265,7 @@ def _map_metrics(name: str, pred, gt, mask) -> dict[str, float]:
     p, g = _image(pred, "pred"), _image(gt, "gt")
     out: dict[str, float] = {}
     if name == "albedo":
-        p, g = srgb_encode(np.clip(p, 0.0, 1.0)), srgb_encode(np.clip(g, 0.0, 1.0))
+        p, g = _srgb_encode(np.clip(p, 0.0, 1.0)), _srgb_encode(np.clip(g, 0.0, 1.0))
         out["albedo_psnr"] = psnr(p, g, mask)
         out["albedo_ssim"] = ssim(p, g, mask)
         out["albedo_si_psnr"] = si_psnr(p, g, mask)
@@ -345,7 +345,7 @@ def _seam_values(name: str, pred: np.ndarray, gt: np.ndarray, mask) -> tuple[np.
     channel) and both divided by gt's peak (exposure-free, as `irradiance_si_psnr`)."""
     p, g = _image(pred, "pred"), _image(gt, "gt")
     if name == "albedo":
-        return srgb_encode(np.clip(p, 0.0, 1.0)), srgb_encode(np.clip(g, 0.0, 1.0))
+        return _srgb_encode(np.clip(p, 0.0, 1.0)), _srgb_encode(np.clip(g, 0.0, 1.0))
     if name in ("roughness", "metallic"):
         return (p if p.ndim == 2 else p[:, :, 0]), (g if g.ndim == 2 else g[:, :, 0])
     if name == "irradiance":
