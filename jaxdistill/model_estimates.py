@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
+import shutil
 import time
 from pathlib import Path
 from typing import Sequence
@@ -78,6 +80,11 @@ def estimate_views(model: rgbx.RgbxPrior, photos: Sequence[tuple[str, Path, floa
     return summary
 
 
+def _covers(done: Path, maps: Sequence[str]) -> bool:
+    """Whether the cache entry whose summary is `done` holds every map of `maps`."""
+    return done.is_file() and set(maps) <= set(json.loads(done.read_text())["maps"])
+
+
 def cached_estimates(model: rgbx.RgbxPrior, photos: Sequence[tuple[str, Path, float]], maps: Sequence[str],
                      height: int, width: int, *, dtype: str = "float32", steps: int = ESTIMATE_STEPS, seed: int = 0,
                      cache_dir: Path | None = None, progress: bool = True) -> Path:
@@ -86,16 +93,21 @@ def cached_estimates(model: rgbx.RgbxPrior, photos: Sequence[tuple[str, Path, fl
     key = cache_key(model.loaded.folder, photos, height, width, steps, seed, dtype)
     folder = Path(cache_dir or default_cache_dir() / "estimates") / key
     done = folder / "estimate.json"
-    if done.is_file() and set(maps) <= set(json.loads(done.read_text())["maps"]):
+    if _covers(done, maps):
         logging.info("the model's per-view estimates: cached in %s", folder)
         return folder
-    tmp = folder.with_name(folder.name + ".tmp")
+    # a folder of this process's own, then renamed into place: concurrent runs sharing the cache
+    # never see (or write into) a half-written folder
+    tmp = folder.with_name(f"{folder.name}.{os.getpid()}.tmp")
     summary = estimate_views(model, photos, maps, height, width, tmp, steps=steps, seed=seed, progress=progress)
-    if folder.exists():
-        import shutil
-
-        shutil.rmtree(folder)
-    tmp.replace(folder)
+    if _covers(done, maps):             # another run finished the same estimates meanwhile: keep those
+        shutil.rmtree(tmp)
+    else:
+        if folder.exists():             # an earlier entry with fewer maps: replaced by this one
+            stale = folder.with_name(f"{folder.name}.{os.getpid()}.old")
+            folder.replace(stale)
+            shutil.rmtree(stale)
+        tmp.replace(folder)
     logging.info("the model's per-view estimates: %d views x %d maps in %.0f s, cached in %s", len(photos), len(maps),
                  summary["seconds"], folder)
     return folder

@@ -87,3 +87,45 @@ def test_batched_cached_estimates_equal_the_estimate_command(rgbx_dir, tmp_path,
     assert again == folder
     with pytest.raises(AssertionError, match="computed again"):      # another seed is another baseline
         model_estimates.cached_estimates(model, photos, maps, 24, 32, steps=4, seed=4, cache_dir=cache, progress=False)
+
+
+def test_concurrent_runs_sharing_the_cache_never_mix_their_folders(tmp_path, monkeypatch):
+    """Each run writes its estimates into a folder of its own (named by its pid) and renames it
+    into place: a run that finds the same entry finished by another run meanwhile keeps that
+    one; an entry holding fewer maps is replaced whole; no temporary folder is left behind."""
+    import json
+    import os
+    import types
+
+    weights = tmp_path / "model"
+    weights.mkdir()
+    (weights / "model_index.json").write_text("{}")
+    photo = tmp_path / "view_0.png"
+    photo.write_bytes(b"not read by the fake")
+    photos = [("view_0", photo, 0.0)]
+    model = types.SimpleNamespace(loaded=types.SimpleNamespace(folder=weights))
+    cache = tmp_path / "cache"
+    calls = []
+
+    def fake_estimate_views(model, photos, maps, height, width, folder, **kwargs):
+        assert folder.name.endswith(f".{os.getpid()}.tmp")
+        folder.mkdir(parents=True)
+        (folder / "estimate.json").write_text(json.dumps({"maps": list(maps), "by": "this run"}))
+        calls.append(tuple(maps))
+        if other is not None:           # another run renames its finished entry into place meanwhile
+            final = cache / folder.name.split(".")[0]
+            final.mkdir(parents=True)
+            (final / "estimate.json").write_text(json.dumps({"maps": list(other), "by": "the other run"}))
+        return {"seconds": 0.0}
+
+    monkeypatch.setattr(model_estimates, "estimate_views", fake_estimate_views)
+    other = ("albedo", "normal")
+    folder = model_estimates.cached_estimates(model, photos, ["albedo"], 24, 32, cache_dir=cache, progress=False)
+    assert json.loads((folder / "estimate.json").read_text())["by"] == "the other run"
+    other = None                        # a later run wants one more map than the entry has: replaced whole
+    again = model_estimates.cached_estimates(model, photos, ["albedo", "roughness"], 24, 32, cache_dir=cache,
+                                             progress=False)
+    assert again == folder and json.loads((folder / "estimate.json").read_text()) == {
+        "maps": ["albedo", "roughness"], "by": "this run"}
+    assert calls == [("albedo",), ("albedo", "roughness")]
+    assert sorted(p.name for p in cache.iterdir()) == [folder.name]

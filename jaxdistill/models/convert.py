@@ -19,6 +19,7 @@ import dataclasses
 import hashlib
 import json
 import logging
+import os
 import time
 from pathlib import Path
 from typing import Any
@@ -246,7 +247,7 @@ def _load_part(folder: Path, stem: str, abstract: dict, cache_dir: Path | None, 
     params = convert_state_dict(read_safetensors(folder, stem), abstract, str(folder), consume=True)
     if cache_file is not None:
         cache_file.parent.mkdir(parents=True, exist_ok=True)
-        tmp = cache_file.with_suffix(".tmp")
+        tmp = cache_file.with_suffix(f".{os.getpid()}.tmp")      # concurrent runs never share a partial file
         save_file({"/".join(k): v for k, v in traverse_util.flatten_dict(params).items()}, str(tmp))
         tmp.replace(cache_file)
     return params
