@@ -7,6 +7,7 @@ with that reason where it is missing. WebGL runs on SwiftShader.
 
 from __future__ import annotations
 
+import functools
 import json
 import shutil
 import socket
@@ -21,7 +22,8 @@ from absl import flags
 
 pytest.importorskip("viser", reason="the viewer needs the view extra: pip install -e \".[view]\"")
 
-from jaxdistill import checkpoint, config as config_lib, evaluation, export, imageio, run_files, train, view  # noqa: E402
+from jaxdistill import (checkpoint, config as config_lib, evaluation, export, imageio, model_estimates, run_files,  # noqa: E402
+                        train, view)
 from jaxdistill.mesh import Mesh  # noqa: E402
 from jaxdistill.render.fragments import compute_fragments  # noqa: E402
 from jaxdistill.render.sampler import expand, sample_pages  # noqa: E402
@@ -41,6 +43,10 @@ def smoke_run(tmp_path_factory):
     fv([sys.argv[0], f"--flagfile={REPO / 'configs' / 'smoke.cfg'}", f"--out_dir={out}"])
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("JAXDISTILL_CACHE", str(tmp_path_factory.mktemp("view_cache")))
+        # the model's per-view estimates (the baseline the viewer shows) in 4 DDIM steps instead of
+        # the demo's 50: what the viewer shows of them does not depend on how they were sampled
+        # (tests/test_model_estimates.py checks them against `jaxdistill.estimate`)
+        mp.setattr(model_estimates, "cached_estimates", functools.partial(model_estimates.cached_estimates, steps=4))
         train.run(config_lib.config_from_flags(fv), progress=False)
         yield out
 
@@ -175,7 +181,7 @@ def test_a_running_out_dir_shows_its_newest_checkpoint_and_refreshes(smoke_run, 
 def test_a_views_comparison_and_metrics_are_those_of_that_view(smoke_run):
     """The per-view panel's GT, estimate and metrics for view k equal what the run's evaluation
     (all views' fragments at once) has for view k."""
-    from jaxdistill import metrics, model_estimates
+    from jaxdistill import metrics
 
     run = RunDir(smoke_run)
     k = 7
