@@ -12,6 +12,18 @@ import pytest
 from jaxdistill import cameras
 
 
+# The modules whose tests take minutes (an end-to-end run or a training in a fixture or a test;
+# `pytest --durations=30` lists them), slowest first. They are collected first, so that `pytest -n 2 --dist
+# loadfile` (the README's test command) starts them at once and the quick modules fill in around
+# them, instead of one of them running alone at the end.
+SLOW_MODULES = ("test_train_rgbx.py", "test_view.py", "test_prepare_scene.py", "test_smoke_outputs.py", "test_main.py")
+
+
+def pytest_collection_modifyitems(config, items):
+    rank = {name: i for i, name in enumerate(SLOW_MODULES)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))      # stable: order kept within a module
+
+
 def intrinsics(width: int, height: int, fx: float, fy: float | None = None, cx: float | None = None,
                cy: float | None = None) -> np.ndarray:
     """K with the principal point at the image centre unless given."""
