@@ -24,7 +24,7 @@ import numpy as np
 from absl import app, flags, logging
 from tqdm import tqdm
 
-from jaxdistill import imageio
+from jaxdistill.io import images as imageio
 from jaxdistill.errors import InputError
 from jaxdistill.models import convert, prior
 from jaxdistill.models.tokenizer import MAP_PROMPTS

@@ -8,7 +8,7 @@
 
 Formats: fipt (HDR .exr photos), iris (same layout, LDR .png), scannetpp, nerfstudio, colmap
 (see `jaxdistill/datasets/`). `--mesh` replaces the dataset's mesh: a mesh file or a scene
-config .json listing objects with transforms (`jaxdistill/scene_config.py`). The photos stay
+config .json listing objects with transforms (`jaxdistill/scene/objects.py`). The photos stay
 where they are (scene.json points at them, outside --out: the main job then needs
 --allow_outside_paths, which the printed run command includes); derived images (undistorted photos, masks) and
 the unwrapped mesh are written into --out, with import.json (what was decided and how long
@@ -58,8 +58,8 @@ def main(argv=None) -> int:
     from jaxdistill import datasets
     from jaxdistill.datasets.common import ImportOptions
     from jaxdistill.render.visibility import MIN_HIT_FRACTION
-    from jaxdistill.scene import read_scene, write_scene
-    from jaxdistill.scene_paths import ALLOW_FLAG, is_inside
+    from jaxdistill.scene.model import read_scene, write_scene
+    from jaxdistill.scene.paths import ALLOW_FLAG, is_inside
 
     out = Path(args.out)
     start = time.perf_counter()

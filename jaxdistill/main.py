@@ -1,6 +1,6 @@
 """The distillation job: `python -m jaxdistill.main --flagfile=configs/bedroom.cfg`.
 
-Flags (see jaxdistill/config.py or --helpfull) are parsed once into a frozen DistillConfig;
+Flags (see jaxdistill/engine/config.py or --helpfull) are parsed once into a frozen DistillConfig;
 train.run does the rest. Bad input stops with a message naming the file and field before any
 compute; a NaN loss stops with the last good checkpoint kept (status 3); SIGINT/SIGTERM save a
 checkpoint and exit with 130/143, so a scheduler can tell a stopped run from a finished one.
@@ -13,7 +13,7 @@ import sys
 
 from absl import app, flags, logging
 
-from jaxdistill import config as config_lib
+from jaxdistill.engine import config as config_lib
 from jaxdistill.errors import InputError
 
 FLAGS = flags.FLAGS
@@ -30,17 +30,18 @@ def main(argv) -> None:
     logging.get_absl_handler().addFilter(QuietLibraries())
     if len(argv) > 1:
         raise app.UsageError(f"unexpected arguments {argv[1:]}; every setting is a --flag")
-    from jaxdistill import train
+    from jaxdistill import pipeline
+    from jaxdistill.engine.loop import NonFiniteLoss
 
     follower = None
     try:
         config = config_lib.config_from_flags(FLAGS)
         if "view" in FLAGS and FLAGS.view:
             follower = start_viewer(config)
-        summary = train.run(config)
+        summary = pipeline.run(config)
     except InputError as err:
         raise app.UsageError(str(err)) from None
-    except train.NonFiniteLoss as err:
+    except NonFiniteLoss as err:
         logging.error("%s", err)
         sys.exit(3)
     finally:

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 from absl import app, flags, logging
 
-from jaxdistill import imageio
+from jaxdistill.io import images as imageio
 from jaxdistill.errors import InputError
 from jaxdistill.render import fragments as fr
 from jaxdistill.render.gather_plan import SAMPLERS, build_gather_plans, build_texel_space

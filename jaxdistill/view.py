@@ -78,7 +78,7 @@ class Follower:
         self.thread.start()
 
     def _serve(self) -> None:
-        from jaxdistill.run_files import TEXEL_SPACE_FILE
+        from jaxdistill.export.run_dir import TEXEL_SPACE_FILE
 
         while self.viewer is None:
             if self.stopping.wait(0.5):

@@ -8,7 +8,7 @@
     python scripts/bench_memory.py --cases=bedroom,room_1m --steps=2 --faces_per_side=40 --views=2 \
         --resolution=128
 
-Every case runs the library's real job, `jaxdistill.train.run(config)` (what
+Every case runs the library's real job, `jaxdistill.engine.loop.run(config)` (what
 `python -m jaxdistill.main` runs), in a fresh child process, so peaks never mix:
 
   bedroom                  configs/bedroom.cfg as it is: the default run (pages auto-sized, capped
@@ -218,11 +218,11 @@ def nbytes(*arrays) -> int:
 
 
 def child_run(args, flag_argv) -> int:
-    """One case: train.run(config) with phase marks; writes the result JSON to args.result."""
+    """One case: pipeline.run(config) with phase marks; writes the result JSON to args.result."""
     rec = Recorder(Path(args.phases))
     from absl import flags
 
-    from jaxdistill import config as config_lib
+    from jaxdistill.engine import config as config_lib
 
     fv = flags.FlagValues()
     config_lib.define_flags(fv)
@@ -232,10 +232,12 @@ def child_run(args, flag_argv) -> int:
     import jax
     import numpy as np
 
-    from jaxdistill import problem as problem_mod
-    from jaxdistill import train
+    from jaxdistill.engine import problem as problem_mod
+    from jaxdistill import pipeline
+    from jaxdistill.engine import loop
+    from jaxdistill.evaluate import scoring
     from jaxdistill.errors import InputError
-    from jaxdistill.maps import MapChannels
+    from jaxdistill.scene.maps import MapChannels
     from jaxdistill.render import fragments as fragments_mod
 
     rec.mark("imports")
@@ -290,11 +292,11 @@ def child_run(args, flag_argv) -> int:
         rec.info.update({"views": p.num_views, "height": p.height, "width": p.width})
         rec.mark("problem")
 
-    after(train, "build_problem", on_problem)
-    after(train, "init_state", lambda r, a, k: rec.mark("init state"))
-    after(train, "evaluation_context", lambda r, a, k: rec.mark("evaluation context"))
+    after(pipeline, "build_problem", on_problem)
+    after(loop, "init_state", lambda r, a, k: rec.mark("init state"))
+    after(scoring, "evaluation_context", lambda r, a, k: rec.mark("evaluation context"))
 
-    original_jit_step = train.jit_step
+    original_jit_step = loop.jit_step
 
     def jit_step(*a, **k):
         jitted, counter = original_jit_step(*a, **k)
@@ -318,8 +320,8 @@ def child_run(args, flag_argv) -> int:
 
         return call, counter
 
-    train.jit_step = jit_step
-    original_save = train._save
+    loop.jit_step = jit_step
+    original_save = loop._save
 
     def save(store, state, *a, **k):
         jax.block_until_ready(state)
@@ -327,15 +329,15 @@ def child_run(args, flag_argv) -> int:
         original_save(store, state, *a, **k)
         rec.mark("checkpoint")
 
-    train._save = save
+    loop._save = save
     if args.outputs:
-        after(train, "write_outputs", lambda r, a, k: rec.mark("outputs"))
+        after(pipeline, "write_outputs", lambda r, a, k: rec.mark("outputs"))
     else:
-        train.write_outputs = lambda *a, **k: {"outputs": "skipped by bench_memory (write_outputs stubbed)"}
+        pipeline.write_outputs = lambda *a, **k: {"outputs": "skipped by bench_memory (write_outputs stubbed)"}
 
     status, reason, summary = "ok", None, {}
     try:
-        summary = train.run(config, progress=False)
+        summary = pipeline.run(config, progress=False)
     except MemoryGuard as err:
         status, reason = "skipped", str(err)
     except InputError as err:          # the library's own refusal (problem.check_state_fits)
@@ -367,10 +369,11 @@ def child_prep(args) -> int:
     sys.path.insert(0, str(ROOT / "scripts"))
     from bench_render import room_cameras
 
-    from jaxdistill import imageio, synthetic
-    from jaxdistill.evaluation import camera_normals, face_normals
+    from jaxdistill.io import images as imageio
+    from jaxdistill.scene import shapes as synthetic
+    from jaxdistill.evaluate.ground_truth import camera_normals, face_normals
     from jaxdistill.render import fragments as fr
-    from jaxdistill.scene import Scene, View, write_scene
+    from jaxdistill.scene.model import Scene, View, write_scene
 
     folder = Path(args.scene_dir)
     n = args.faces_per_side

@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdistill import cameras, synthetic
+from jaxdistill.scene import cameras, shapes as synthetic
 from jaxdistill.render import fragments as fr
 from jaxdistill.render.gather_plan import build_gather_plans, build_texel_space
 from jaxdistill.render.layout import make_layout

@@ -102,8 +102,8 @@ def peak_rss_gb() -> float:
 
 def views_problem(args, size: int, maps):
     """The bedroom at `size` with the views prior: scene, plans, weights (no networks)."""
-    from jaxdistill import config as config_lib
-    from jaxdistill.problem import build_problem
+    from jaxdistill.engine import config as config_lib
+    from jaxdistill.engine.problem import build_problem
 
     config = config_lib.validate(config_lib.DistillConfig(
         scene="bedroom", out_dir="unused", maps=tuple(maps), prior="views", render_size=size,
@@ -125,8 +125,8 @@ def cases(args):
 
 def batch_photos(problem, view_ids):
     """(B, H, W, 3) sRGB [0, 1] photos of the batch views at the render size."""
-    from jaxdistill import imageio
-    from jaxdistill.problem import resize
+    from jaxdistill.io import images as imageio
+    from jaxdistill.engine.problem import resize
 
     return [resize(imageio.read_photo_srgb(problem.scene.views[i].photo, problem.scene.views[i].exposure), problem.height, problem.width)
             for i in view_ids]
@@ -148,13 +148,13 @@ def jax_worker(args, folder: str, dtype_name: str) -> list[dict]:
     import jax.numpy as jnp
     import optax
 
-    from jaxdistill.distill import (data_mesh, init_state, jit_step, make_optimizer, make_step, render_maps,
+    from jaxdistill.engine.step import (data_mesh, init_state, jit_step, make_optimizer, make_step, render_maps,
                                     sample_timesteps, weighted_square_error)
     from jaxdistill.models import convert
     from jaxdistill.models import prior as rgbx
-    from jaxdistill.priors import make_rgbx_prior
+    from jaxdistill.engine.priors import make_rgbx_prior
     from jaxdistill.render.gather_plan import GatherPlan
-    from jaxdistill.train import step_settings
+    from jaxdistill.engine.loop import step_settings
 
     t0 = time.perf_counter()
     dtype = {"float32": jnp.float32, "bfloat16": jnp.bfloat16}[dtype_name]
@@ -266,7 +266,7 @@ def torch_worker(args, folder: str) -> list[dict]:
     from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
     from transformers import CLIPTextModel, CLIPTokenizer
 
-    from jaxdistill.maps import GREY_MAPS
+    from jaxdistill.scene.maps import GREY_MAPS
     from jaxdistill.models.prior import DEMO_SCHEDULER_OVERRIDES, photo_to_model_space
     from jaxdistill.models.tokenizer import MAP_PROMPTS
 

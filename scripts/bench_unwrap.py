@@ -24,8 +24,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from jaxdistill import cameras  # noqa: E402
-from jaxdistill.scene import Mesh  # noqa: E402
+from jaxdistill.scene import cameras
+from jaxdistill.scene.model import Mesh  # noqa: E402
 
 
 def scan_room(faces: int, one_object: bool, seed: int = 0) -> Mesh:
@@ -72,7 +72,7 @@ def main(argv=None) -> int:
     parser.add_argument("--one_object", action="store_true", help="one object (a scan) instead of six walls")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args(argv)
-    from jaxdistill import unwrap
+    from jaxdistill.render import unwrap
 
     rows = []
     cams = room_cameras(args.views)

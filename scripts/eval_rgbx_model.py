@@ -7,7 +7,7 @@ never saw), the model's estimate of each map (the demo's 50 DDIM steps, noise pe
 from --seed, as `jaxdistill.estimate` draws it; `--steps=50,1` adds a row per step count, 1 step
 being the model's conditional mean: one UNet pass at t = 999 under zero terminal SNR) against
 the exact ground truth, with the main
-job's metrics (`jaxdistill.metrics.evaluate_view`, valid pixels: not emitters, no misses), next
+job's metrics (`jaxdistill.evaluate.metrics.evaluate_view`, valid pixels: not emitters, no misses), next
 to the trivial baseline: the photo as albedo (linear), the mean material, normals facing the
 camera, the photo's luminance as irradiance. Prints a table, writes JSON.
 """
@@ -24,7 +24,8 @@ import jax
 import numpy as np
 from tqdm import tqdm
 
-from jaxdistill import imageio, metrics
+from jaxdistill.io import images as imageio
+from jaxdistill.evaluate import metrics
 from jaxdistill.models import convert
 from jaxdistill.models import prior as rgbx
 from jaxdistill.models.shipped import model_info, shipped_folder

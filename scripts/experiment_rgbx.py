@@ -5,7 +5,7 @@
 
 For every scene, with one RGB<->X-family model (default: the model shipped in the package), the
 rows of one table, every one scored against the scene's ground truth at the photos' size by
-the main job's own evaluation (`jaxdistill.evaluation`):
+the main job's own evaluation (`jaxdistill.evaluate.ground_truth`):
 
 - `trivial`: the photo as albedo (linear, clipped), the training data's mean roughness and
   metallic, normals facing the camera, the photo's luminance as irradiance;
@@ -34,16 +34,20 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxdistill import checkpoint, evaluation, imageio, model_estimates, train
-from jaxdistill.config import DistillConfig, validate
+from jaxdistill.io import checkpoint, images as imageio
+from jaxdistill.evaluate import ground_truth as evaluation
+from jaxdistill.models import estimates as model_estimates
+from jaxdistill import pipeline
+from jaxdistill.engine import loop
+from jaxdistill.engine.config import DistillConfig, validate
 from jaxdistill.datasets import ImportOptions, open_scene
 from jaxdistill.models import convert
 from jaxdistill.models import prior as rgbx
 from jaxdistill.models.shipped import model_info, shipped_folder
-from jaxdistill.problem import render_shape
+from jaxdistill.engine.problem import render_shape
 from jaxdistill.render import fragments as fr
-from jaxdistill.scene import write_scene
-from jaxdistill.view_images import read_target, resize
+from jaxdistill.scene.model import write_scene
+from jaxdistill.io.view_images import read_target, resize
 
 from eval_rgbx_model import trivial_linear     # scripts/: the same trivial baseline
 
@@ -118,7 +122,7 @@ def run_main(scene_path: Path, out: Path, model_dir: Path, settings: dict) -> di
     config = validate(DistillConfig(scene=str(scene_path), out_dir=str(out), rgbx_dir=str(model_dir),
                                     allow_outside_paths=True, resume=resume, **{**COMMON, **settings}))
     start = time.perf_counter()
-    result = train.run(config)
+    result = pipeline.run(config)
     result["experiment_wall_seconds"] = time.perf_counter() - start
     return result
 
@@ -182,7 +186,7 @@ def main(argv=None) -> int:
                 result["seconds"] = time.perf_counter() - start
                 result["settings"] = runs.get(run)
                 path.parent.mkdir(parents=True, exist_ok=True)
-                path.write_text(json.dumps(train._json_safe(result), indent=1))
+                path.write_text(json.dumps(run_dir.json_safe(result), indent=1))
             result = json.loads(path.read_text())
             rows[run] = dict(row(result.get("ours")), seconds=result.get("seconds"))
     doc = {"model": model_info(model_dir), "table": table}

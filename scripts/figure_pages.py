@@ -15,10 +15,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from jaxdistill import evaluation, imageio  # noqa: E402
+from jaxdistill.evaluate import ground_truth as evaluation
+from jaxdistill.io import images as imageio
 from jaxdistill.render import fragments as fr  # noqa: E402
 from jaxdistill.render.sampler import sample_pages  # noqa: E402
-from jaxdistill.scene import read_scene  # noqa: E402
+from jaxdistill.scene.model import read_scene  # noqa: E402
 from jaxdistill.scenes import scene_path  # noqa: E402
 
 

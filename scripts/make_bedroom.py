@@ -40,14 +40,15 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from jaxdistill import cameras, imageio
-from jaxdistill.exposure import scene_exposure
-from jaxdistill import mitsuba_bridge as mb
-from jaxdistill.evaluation import camera_normals, face_normals  # GT normals exactly as evaluation makes them
+from jaxdistill.scene import cameras
+from jaxdistill.io import images as imageio
+from jaxdistill.io.exposure import scene_exposure
+from jaxdistill.datasets.mitsuba import bridge as mb
+from jaxdistill.evaluate.ground_truth import camera_normals, face_normals  # GT normals exactly as evaluation makes them
 from jaxdistill.render import fragments as fr
 from jaxdistill.render.sampler import sample_pages
-from jaxdistill.scene import Mesh, Scene, View, write_scene
-from jaxdistill.synthetic import quad_patch
+from jaxdistill.scene.model import Mesh, Scene, View, write_scene
+from jaxdistill.scene.shapes import quad_patch
 
 ROOM = np.array([4.2, 2.6, 3.6])
 TEXELS_PER_METRE = 128
@@ -554,7 +555,7 @@ def psnr_and_match(a: np.ndarray, b: np.ndarray, mask: np.ndarray, tol: float) -
 
 def generate(out: Path, *, seed: int, views: int, width: int, height: int, spp: int) -> dict:
     """Builds the whole scene folder; returns the summary written to the README."""
-    from jaxdistill import metrics
+    from jaxdistill.evaluate import metrics
 
     times = {}
     t0 = time.perf_counter()

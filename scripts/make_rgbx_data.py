@@ -6,7 +6,7 @@
 Each room (`procedural_rooms.random_room(seed)`) becomes one shard `room_<seed>.npz` holding
 its views, all uint8 (V, H, W, C) as RGB<->X's training images are stored:
 - `photo`: path traced (Mitsuba 3, `path` integrator), exposed by Hypersim's rule with one
-  exposure for the room (`jaxdistill.exposure`, as HDR imports are), sRGB-encoded;
+  exposure for the room (`jaxdistill.io.exposure`, as HDR imports are), sRGB-encoded;
 - `albedo` sRGB, `normal` (n + 1) / 2 in RGB<->X camera space (x right, y up, z towards the
   camera), `roughness`, `metallic` (1 channel), exact: our gather sampler on the textures
   Mitsuba renders with, supersampled 2x2 like the photo's pixel box;
@@ -35,9 +35,10 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from jaxdistill import cameras, exposure, imageio
-from jaxdistill import mitsuba_bridge as mb
-from jaxdistill.evaluation import camera_normals, face_normals
+from jaxdistill.scene import cameras
+from jaxdistill.io import exposure, images as imageio
+from jaxdistill.datasets.mitsuba import bridge as mb
+from jaxdistill.evaluate.ground_truth import camera_normals, face_normals
 from jaxdistill.render import fragments as fr
 from jaxdistill.render.sampler import sample_pages
 

@@ -45,9 +45,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from jaxdistill import MAP_NAMES, exposure, imageio, metrics  # noqa: E402
-from jaxdistill import mitsuba_bridge as mb  # noqa: E402
-from jaxdistill.scene import Scene, View, read_scene, write_scene  # noqa: E402
+from jaxdistill import MAP_NAMES
+from jaxdistill.io import exposure, images as imageio
+from jaxdistill.evaluate import metrics
+from jaxdistill.datasets.mitsuba import bridge as mb
+from jaxdistill.scene.model import Scene, View, read_scene, write_scene  # noqa: E402
 
 from make_bedroom import (EXR_TIMESTAMP, MAP_FILES, estimate_view, write_gt_json, write_map,  # noqa: E402
                           write_preview, write_texture_pages)

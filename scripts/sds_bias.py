@@ -31,16 +31,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdistill import imageio, metrics, model_estimates
+from jaxdistill.io import images as imageio
+from jaxdistill.evaluate import metrics
+from jaxdistill.models import estimates as model_estimates
 from jaxdistill.datasets import ImportOptions, open_scene
-from jaxdistill.evaluation import evaluation_masks, view_ground_truth
+from jaxdistill.evaluate.ground_truth import evaluation_masks, view_ground_truth
 from jaxdistill.models import convert
 from jaxdistill.models import prior as rgbx
 from jaxdistill.models import scheduler as sched
 from jaxdistill.models.shipped import shipped_folder
-from jaxdistill.problem import render_shape
+from jaxdistill.engine.problem import render_shape
 from jaxdistill.render import fragments as fr
-from jaxdistill.view_images import resize
+from jaxdistill.io.view_images import resize
 
 T_GRID = (0, 100, 200, 350, 500, 650, 800, 900, 980, 999)
 

@@ -26,7 +26,7 @@ A. The sweep (embedded bedroom, `views` prior). Around the baseline of `configs/
    Each point is one fresh Python process running the library's own code path, as `train.run`
    does: `build_problem`, `make_step` + `jit_step`, `init_state`, the step loop fetching the
    metrics every --log_every steps (NaN check). Its albedo PSNR against ground truth is measured
-   at the photos' native size (`train.evaluation_context` / `train.quick_psnr`, what
+   at the photos' native size (`scoring.evaluation_context` / `scoring.quick_psnr`, what
    --eval_every reports). Per point:
 
      setup_s    build_problem (scene, cached fragments, layout, gather plans, visibility, targets)
@@ -169,7 +169,7 @@ def base_config(args, out_dir: str):
     fixed settings (views prior, --maps, no checkpoints, no periodic evaluation, no outputs)."""
     from absl import flags
 
-    from jaxdistill import config as config_lib
+    from jaxdistill.engine import config as config_lib
 
     fv = flags.FlagValues()
     config_lib.define_flags(fv)
@@ -241,7 +241,7 @@ def effective(config, native_long_side: int | None):
 def make_points(args, base, native_long_side):
     """[(key config, [(factor, label), ...])]: the baseline first, then each factor's other values;
     points whose computation equals another's are run once and carry every label."""
-    from jaxdistill import config as config_lib
+    from jaxdistill.engine import config as config_lib
 
     points = [(base, [("baseline", "baseline")])]
     index = {effective(base, native_long_side): 0}
@@ -301,12 +301,12 @@ def memory_precheck(config, limit_gb: float) -> dict | None:
     """A skipped row when the point's texels cannot fit in `limit_gb`, found without the gather plans
     (minutes at 4096-texel pages). Only when full pages would not fit does it count the compact
     texels, with the layout and texel space build_problem makes from the same fragments."""
-    from jaxdistill.maps import MapChannels
-    from jaxdistill.problem import render_shape, resolve_scene_path, scaled_camera
+    from jaxdistill.scene.maps import MapChannels
+    from jaxdistill.engine.problem import render_shape, resolve_scene_path, scaled_camera
     from jaxdistill.render import fragments as fr
     from jaxdistill.render.gather_plan import build_texel_space
     from jaxdistill.render.layout import make_layout
-    from jaxdistill.scene import read_scene
+    from jaxdistill.scene.model import read_scene
 
     scene = read_scene(resolve_scene_path(config.scene))
     channels = MapChannels(tuple(config.maps)).num_channels
@@ -347,9 +347,12 @@ def run_point(spec: dict) -> dict:
     import numpy as np
     from absl import logging
 
-    from jaxdistill import config as config_lib, evaluation, train
-    from jaxdistill.distill import data_mesh, init_state, jit_step, make_optimizer, make_step
-    from jaxdistill.problem import build_problem
+    from jaxdistill import pipeline
+
+    from jaxdistill.engine import config as config_lib, loop
+    from jaxdistill.evaluate import ground_truth as evaluation, scoring
+    from jaxdistill.engine.step import data_mesh, init_state, jit_step, make_optimizer, make_step
+    from jaxdistill.engine.problem import build_problem
     import_s = time.perf_counter() - t0
     logging.set_verbosity(logging.INFO)
 
@@ -379,7 +382,7 @@ def run_point(spec: dict) -> dict:
     replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
     by_view = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("data"))
     optimizer = make_optimizer(config.lr, config.weight_decay, config.lr_schedule, config.steps)
-    settings = train.step_settings(config, problem)
+    settings = loop.step_settings(config, problem)
     state = init_state(problem.initial_texels(), optimizer, config.seed)
     first = problem.batch(problem.view_ids(0, config.views_per_step, config.seed))
     step_fn, traces = jit_step(make_step(problem.prior, settings, optimizer), mesh, first, state, problem.frozen)
@@ -416,8 +419,8 @@ def run_point(spec: dict) -> dict:
 
     # evaluation at the photos' native size, as --eval_every does
     t0 = time.perf_counter()
-    ctx = train.evaluation_context(config, problem)
-    psnr = train.quick_psnr(state, problem, ctx) if ctx.gt is not None else math.nan
+    ctx = scoring.evaluation_context(config, problem)
+    psnr = scoring.quick_psnr(state, problem, ctx) if ctx.gt is not None else math.nan
     eval_s = time.perf_counter() - t0
     row = {
         "render_hw": [problem.height, problem.width], "texels": int(problem.space.num_texels),
@@ -447,13 +450,14 @@ def run_rgbx(spec: dict) -> dict:
     import numpy as np
     from absl import logging
 
-    from jaxdistill import evaluation, imageio
-    from jaxdistill.maps import MapChannels, file_to_model
+    from jaxdistill.evaluate import ground_truth as evaluation
+    from jaxdistill.io import images as imageio
+    from jaxdistill.scene.maps import MapChannels, file_to_model
     from jaxdistill.models import convert, prior as rgbx, scheduler as sched
-    from jaxdistill.priors import make_rgbx_prior
-    from jaxdistill.problem import read_target, render_shape, resize, resolve_scene_path
+    from jaxdistill.engine.priors import make_rgbx_prior
+    from jaxdistill.engine.problem import read_target, render_shape, resize, resolve_scene_path
     from jaxdistill.render import fragments as fr
-    from jaxdistill.scene import read_scene
+    from jaxdistill.scene.model import read_scene
     logging.set_verbosity(logging.INFO)
 
     folder = Path(spec["folder"]).expanduser()
@@ -583,9 +587,9 @@ def run_child(kind: str, spec: dict, log: Path) -> dict:
 
 def warm_fragments(base, render_sizes) -> dict:
     """Ray casts every render size of the sweep into the library's disk cache (timed)."""
-    from jaxdistill.problem import render_shape, resolve_scene_path, scaled_camera
+    from jaxdistill.engine.problem import render_shape, resolve_scene_path, scaled_camera
     from jaxdistill.render import fragments as fr
-    from jaxdistill.scene import read_scene
+    from jaxdistill.scene.model import read_scene
 
     scene = read_scene(resolve_scene_path(base.scene))
     out = {}
@@ -761,8 +765,8 @@ def main(argv=None) -> int:
                     "wall_s_excludes": "import_s, eval_s, periodic --eval_every PSNRs, checkpoints, output files"}}
     rows, front, baseline_psnr = [], [], None
     if not args.rgbx_only:
-        from jaxdistill.problem import resolve_scene_path
-        from jaxdistill.scene import read_scene
+        from jaxdistill.engine.problem import resolve_scene_path
+        from jaxdistill.scene.model import read_scene
 
         scene = read_scene(resolve_scene_path(base.scene))
         sizes = {(v.camera.height, v.camera.width) for v in scene.views}

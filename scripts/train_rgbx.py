@@ -44,8 +44,8 @@ import numpy as np
 import optax
 from tqdm import tqdm
 
-from jaxdistill import imageio
-from jaxdistill.checkpoint import CheckpointStore, StopSignals
+from jaxdistill.io import images as imageio
+from jaxdistill.io.checkpoint import CheckpointStore, StopSignals
 from jaxdistill.models import scheduler as sched
 from jaxdistill.models.clip import CLIPTextConfig, CLIPTextTransformer
 from jaxdistill.models.prior import MAP_PROMPTS, photo_to_model_space
@@ -78,7 +78,7 @@ SCHEDULER = {"_class_name": "DDIMScheduler", "_diffusers_version": "0.20.0", "be
 
 def load_images(folder: Path):
     """(photos (N, H, W, 3) in model space, {map: (N, H, W, 3) in model space}, valid (N, H, W)):
-    every shard of `folder`, in seed order; model space as `jaxdistill.maps` defines it (albedo
+    every shard of `folder`, in seed order; model space as `jaxdistill.scene.maps` defines it (albedo
     and irradiance linear, normals unit vectors, grey maps replicated to 3 channels)."""
     shards = sorted(p for p in folder.glob("room_*.npz") if ".tmp" not in p.name)
     if not shards:

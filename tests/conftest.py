@@ -9,7 +9,7 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 import numpy as np
 import pytest
 
-from jaxdistill import cameras
+from jaxdistill.scene import cameras
 
 
 # The modules whose tests take minutes (an end-to-end run or a training in a fixture or a test;

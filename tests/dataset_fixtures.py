@@ -1,7 +1,7 @@
 """Tiny datasets in every format the loaders read, written from ONE set of known OpenCV cameras.
 
 Each writer converts the ground-truth cameras into its format's own convention with the
-format's documented formulas (written here, independently of jaxdistill.cameras), so a loader
+format's documented formulas (written here, independently of jaxdistill.scene.cameras), so a loader
 that gets a convention wrong puts the known points on the wrong pixels. The room is a 4 x 2.5 x 3
 box (six wall objects); photos are small random images.
 """
@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from jaxdistill import imageio
-from jaxdistill.synthetic import box_room
+from jaxdistill.io import images as imageio
+from jaxdistill.scene.shapes import box_room
 
 WIDTH, HEIGHT, FOCAL = 32, 24, 28.0
 ROOM = (4.0, 2.5, 3.0)
@@ -76,7 +76,7 @@ def write_mesh(path: Path, uvs: bool = True) -> Path:
     mesh = room_mesh()
     path.parent.mkdir(parents=True, exist_ok=True)
     if uvs:
-        from jaxdistill.scene import save_mesh
+        from jaxdistill.scene.model import save_mesh
 
         save_mesh(mesh, path)
     else:

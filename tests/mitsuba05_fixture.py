@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxdistill import imageio
+from jaxdistill.io import images as imageio
 
 WALL_SRGB_HEX = "#8040c0"
 FLOOR_RGB = (0.3, 0.2, 0.1)

@@ -15,12 +15,13 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from jaxdistill import config as config_lib
-from jaxdistill import train
-from jaxdistill.config import DistillConfig
-from jaxdistill.distill import StepSettings, data_mesh, init_state, jit_step, make_optimizer, make_step
+from jaxdistill.engine import config as config_lib
+from jaxdistill import pipeline
+from jaxdistill.engine import loop
+from jaxdistill.engine.config import DistillConfig
+from jaxdistill.engine.step import StepSettings, data_mesh, init_state, jit_step, make_optimizer, make_step
 from jaxdistill.errors import InputError
-from jaxdistill.problem import build_problem
+from jaxdistill.engine.problem import build_problem
 from tiny_scene import write_tiny_scene
 
 STEPS = 5
@@ -93,7 +94,7 @@ def main(work: Path) -> None:
     bad = config_lib.validate(DistillConfig(scene=str(scene), out_dir=str(work / "run_bad"), prior="views",
                                             views_per_step=3, steps=1))
     try:
-        train.run(bad, progress=False)
+        pipeline.run(bad, progress=False)
         rejected = None
     except InputError as e:
         rejected = str(e)

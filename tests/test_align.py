@@ -9,12 +9,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxdistill import align
-from jaxdistill.config import DistillConfig
-from jaxdistill.distill import StepSettings, init_state, initial_align, make_optimizer, make_step
-from jaxdistill.maps import MapChannels
-from jaxdistill.priors import ViewsPrior
-from jaxdistill.problem import build_problem
+from jaxdistill.engine import gains as align
+from jaxdistill.export import anchor
+from jaxdistill.engine.config import DistillConfig
+from jaxdistill.engine.step import StepSettings, init_state, initial_align, make_optimizer, make_step
+from jaxdistill.scene.maps import MapChannels
+from jaxdistill.engine.priors import ViewsPrior
+from jaxdistill.engine.problem import build_problem
 from jaxdistill.render.gather_plan import GatherPlan
 from jaxdistill.render.sampler import render
 from tiny_scene import write_tiny_scene
@@ -126,7 +127,7 @@ def test_anchor_gains_give_the_renders_the_estimates_mean_in_srgb():
         r["irradiance"][..., 2] = 0.0
     estimates = [{m: rng.uniform(0, 1, (5, 7, c)).astype(np.float32) for m, c in
                   (("albedo", 3), ("irradiance", 3), ("roughness", 1))} for _ in range(3)]
-    gains = align.anchor_gains(renders, estimates, hits, ("albedo", "roughness", "irradiance", "normal"))
+    gains = anchor.anchor_gains(renders, estimates, hits, ("albedo", "roughness", "irradiance", "normal"))
     assert sorted(gains) == ["albedo", "irradiance"]          # roughness has no per-image scale; normal no estimate
     for m in gains:
         est = np.concatenate([e[m][h] for e, h in zip(estimates, hits)])
@@ -138,7 +139,7 @@ def test_anchor_gains_give_the_renders_the_estimates_mean_in_srgb():
     # a gain that clips: the mean is reached through the clipped values (the bright half saturates)
     ren = np.concatenate([np.full(50, 0.5), np.full(50, 0.05)])[:, None]
     est = np.full((100, 1), 0.9)
-    g = align.anchor_gains([{"albedo": ren.repeat(3, -1)}], [{"albedo": est.repeat(3, -1)}],
+    g = anchor.anchor_gains([{"albedo": ren.repeat(3, -1)}], [{"albedo": est.repeat(3, -1)}],
                            [np.ones(100, bool)], ["albedo"])["albedo"]
     assert_close(srgb_mean(g * ren.repeat(3, -1)), srgb_mean(est.repeat(3, -1)), rtol=1e-6)
     assert (g > 2).all()
@@ -146,7 +147,8 @@ def test_anchor_gains_give_the_renders_the_estimates_mean_in_srgb():
 
 def test_anchored_texels_scale_the_colour_maps_in_linear_light_and_leave_the_rest(problem):
     """Renders of the anchored texture have the baseline's sRGB mean per channel (no texel clips here)."""
-    from jaxdistill.train import anchor_to_baseline, evaluation_context, per_view_baseline
+    from jaxdistill.evaluate.scoring import evaluation_context, per_view_baseline
+    from jaxdistill.export.anchor import anchor_to_baseline
 
     channels = MapChannels(("albedo", "roughness"))
     texels = np.random.default_rng(3).uniform(-0.9, -0.5, (problem.space.num_texels, 4)).astype(np.float32)
@@ -160,7 +162,7 @@ def test_anchored_texels_scale_the_colour_maps_in_linear_light_and_leave_the_res
     np.testing.assert_array_equal(anchored[:, 3], texels[:, 3])                     # roughness untouched
     g = np.asarray(record["gains"]["albedo"], np.float32)
     assert_close((anchored[:, :3] + 1) / 2, g * (texels[:, :3] + 1) / 2, rtol=1e-4)  # file values x g
-    from jaxdistill.evaluation import render_views
+    from jaxdistill.evaluate.ground_truth import render_views
 
     hits = np.asarray(ctx.plan.hit).reshape(-1, ctx.plan.height, ctx.plan.width)
     renders = render_views(anchored, ctx.plan, ctx.cameras, channels)
@@ -174,7 +176,8 @@ def test_anchored_texels_scale_the_colour_maps_in_linear_light_and_leave_the_res
 
 
 def test_an_anchor_gain_at_the_end_of_its_range_is_reported(problem, caplog):
-    from jaxdistill.train import anchor_to_baseline, evaluation_context, per_view_baseline
+    from jaxdistill.evaluate.scoring import evaluation_context, per_view_baseline
+    from jaxdistill.export.anchor import anchor_to_baseline
 
     config = DistillConfig(scene="unused", out_dir="unused", maps=problem.channels.maps, prior="views",
                            anchor="estimates")
@@ -183,12 +186,13 @@ def test_an_anchor_gain_at_the_end_of_its_range_is_reported(problem, caplog):
     texels = np.full((problem.space.num_texels, 3), -0.9999, np.float32)      # file value 5e-5: far too dark
     with caplog.at_level("WARNING"):
         _, record = anchor_to_baseline(config, problem, texels, ctx, baseline)
-    assert max(record["gains"]["albedo"]) == pytest.approx(align.ANCHOR_GAIN_RANGE[1], rel=1e-3)
+    assert max(record["gains"]["albedo"]) == pytest.approx(anchor.ANCHOR_GAIN_RANGE[1], rel=1e-3)
     assert "reached the end of the gain range" in caplog.text and "albedo[0]" in caplog.text
 
 
 def test_anchor_estimates_without_a_colour_map_says_so(problem, caplog):
-    from jaxdistill.train import anchor_to_baseline, evaluation_context, per_view_baseline
+    from jaxdistill.evaluate.scoring import evaluation_context, per_view_baseline
+    from jaxdistill.export.anchor import anchor_to_baseline
 
     prob = dataclasses.replace(problem, channels=MapChannels(("roughness",)))
     config = DistillConfig(scene="unused", out_dir="unused", maps=("roughness",), prior="views", anchor="estimates")

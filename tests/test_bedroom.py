@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jaxdistill.scene import read_scene
+from jaxdistill.scene.model import read_scene
 from jaxdistill.scenes import scene_path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -90,7 +90,7 @@ def test_normals_face_into_the_room_and_out_of_furniture(mb, geometry):
 
 
 def test_camera_normals_of_a_wall_facing_the_camera_point_at_it(mb):
-    from jaxdistill import cameras
+    from jaxdistill.scene import cameras
     K = np.array([[20.0, 0, 8], [0, 20.0, 6], [0, 0, 1]])
     cam = cameras.look_at(np.array([0.0, 0.0, 5.0]), np.zeros(3), np.array([0.0, 1.0, 0.0]), K, 16, 12)
     normals = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0]])             # facing the camera; facing up
@@ -160,7 +160,7 @@ def test_committed_bedroom_photos_carry_hypersims_exposure():
     """The prior must see the bedroom's HDR photos as it was trained (and as imports are shown):
     one scene-wide exposure that brings the 90th-percentile brightness 0.3 R + 0.59 G + 0.11 B
     to 0.8 after a 1/2.2 gamma, written out here in NumPy."""
-    from jaxdistill import imageio
+    from jaxdistill.io import images as imageio
 
     scene = read_scene(scene_path("bedroom"))
     photos = [imageio.read_image(v.photo)[..., :3] for v in scene.views]

@@ -1,4 +1,4 @@
-"""Tests for jaxdistill.cameras: one physical camera described in every convention."""
+"""Tests for jaxdistill.scene.cameras: one physical camera described in every convention."""
 
 import dataclasses
 import math
@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from jaxdistill import cameras as cams
+from jaxdistill.scene import cameras as cams
 
 # The physical camera: 384x288, non-square pixels, off-centre principal point, general rotation.
 W, H = 384, 288

@@ -14,7 +14,7 @@ import numpy as np
 import optax
 import pytest
 
-from jaxdistill.checkpoint import CheckpointStore, StopSignals, check_compatible, compatible
+from jaxdistill.io.checkpoint import CheckpointStore, StopSignals, check_compatible, compatible
 from jaxdistill.errors import InputError
 
 CONFIG = {"lr": 0.01, "tex_res": [64, 64], "scene": "bedroom", "steps": 100, "out_dir": "/tmp/x"}
@@ -305,7 +305,7 @@ def test_abandoned_reads_of_a_damaged_step_print_no_traceback(monkeypatch):
     import gc
     import sys
 
-    from jaxdistill.checkpoint import _quiet_abandoned_reads
+    from jaxdistill.io.checkpoint import _quiet_abandoned_reads
 
     reported = []
     monkeypatch.setattr(sys, "unraisablehook", lambda u: reported.append(str(u.exc_value)))
@@ -331,7 +331,7 @@ def test_fields_stored_as_none_by_older_versions_restore(tmp_path, monkeypatch):
     bit-identical."""
     import dataclasses
 
-    from jaxdistill import checkpoint
+    from jaxdistill.io import checkpoint
 
     @jax.tree_util.register_dataclass
     @dataclasses.dataclass(frozen=True)

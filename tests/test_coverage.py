@@ -15,13 +15,13 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import dataset_fixtures as fx
-from jaxdistill import cameras
-from jaxdistill.config import DistillConfig
+from jaxdistill.scene import cameras
+from jaxdistill.engine.config import DistillConfig
 from jaxdistill.errors import InputError
-from jaxdistill.problem import build_problem
+from jaxdistill.engine.problem import build_problem
 from jaxdistill.render import fragments as fr
 from jaxdistill.render.visibility import cast_hit_fractions, check_coverage, coverage_summary, hit_fractions
-from jaxdistill.scene import Mesh, read_scene
+from jaxdistill.scene.model import Mesh, read_scene
 from tiny_scene import write_tiny_scene
 
 REPO = Path(__file__).resolve().parents[1]

@@ -13,11 +13,12 @@ import numpy as np
 import pytest
 
 import dataset_fixtures as fx
-from jaxdistill import datasets, imageio
+from jaxdistill import datasets
+from jaxdistill.io import images as imageio
 from jaxdistill.datasets.common import ImportOptions
 from jaxdistill.errors import InputError
-from jaxdistill.exposure import HYPERSIM_TARGET
-from jaxdistill.scene import read_scene
+from jaxdistill.io.exposure import HYPERSIM_TARGET
+from jaxdistill.scene.model import read_scene
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -197,9 +198,9 @@ def test_main_job_reads_a_scene_naming_outside_files_only_with_its_flag(tmp_path
     reaches the scene reader; without it the run stops before anything is read."""
     from absl import flags
 
-    from jaxdistill import config as config_lib
-    from jaxdistill.problem import build_problem
-    from jaxdistill.scene import write_scene
+    from jaxdistill.engine import config as config_lib
+    from jaxdistill.engine.problem import build_problem
+    from jaxdistill.scene.model import write_scene
 
     out = tmp_path / "imported"
     write_scene(datasets.load("scannetpp", fx.write_scannetpp(tmp_path / "spp", cams), options(tmp_path)), out)
@@ -263,9 +264,10 @@ def test_import_script_exits_2_with_the_problem(tmp_path, cams):
 
 def test_main_job_runs_on_a_fipt_dataset_directly_and_scores_its_image_ground_truth(tmp_path, cams, rgbx_dir):
     """--scene=fipt:PATH: exposure, emitter masks in the loss, metrics against DiffCol/Roughness."""
-    from jaxdistill import config as config_lib, train
-    from jaxdistill.config import DistillConfig
-    from jaxdistill.problem import build_problem
+    from jaxdistill import pipeline
+    from jaxdistill.engine import config as config_lib, loop
+    from jaxdistill.engine.config import DistillConfig
+    from jaxdistill.engine.problem import build_problem
 
     root = fx.write_fipt(tmp_path / "fipt", cams)
     config = config_lib.validate(DistillConfig(scene=f"fipt:{root}", out_dir=str(tmp_path / "run"), steps=2,
@@ -274,7 +276,7 @@ def test_main_job_runs_on_a_fipt_dataset_directly_and_scores_its_image_ground_tr
                                                contact_views=1))
     problem = build_problem(config)
     assert (problem.pixel_weight[:, :4, :5] == 0).all()              # the emitter corner is out of the loss
-    train.run(config, progress=False)
+    pipeline.run(config, progress=False)
     doc = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert doc["ours"]["num_views"] == 3
     assert np.isfinite(doc["ours"]["albedo_psnr"]) and np.isfinite(doc["ours"]["roughness_mse"])

@@ -7,11 +7,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxdistill.config import DistillConfig
-from jaxdistill.distill import (StepSettings, TraceCounter, data_mesh, init_state, initial_reused, jit_step,
+from jaxdistill.engine.config import DistillConfig
+from jaxdistill.engine.step import (StepSettings, TraceCounter, data_mesh, init_state, initial_reused, jit_step,
                                 make_optimizer, make_step, sample_timesteps, t_weights, upper_t)
-from jaxdistill.maps import MapChannels
-from jaxdistill.problem import build_problem
+from jaxdistill.scene.maps import MapChannels
+from jaxdistill.engine.problem import build_problem
 from tiny_scene import write_tiny_scene
 from tolerance import assert_close
 
@@ -90,8 +90,8 @@ def test_one_step_matches_numpy_render_loss_gradient_and_adamw(problem):
 
 
 def test_value_spaces_and_the_camera_rotation_of_normals():
-    from jaxdistill.cameras import rgbx_camera_rotation
-    from jaxdistill.maps import file_to_model, model_to_file
+    from jaxdistill.scene.cameras import rgbx_camera_rotation
+    from jaxdistill.scene.maps import file_to_model, model_to_file
 
     rot = rgbx_camera_rotation(np.eye(4))          # OpenCV camera at the origin looking down +z
     np.testing.assert_allclose(np.array([0.0, 0.0, -1.0]) @ rot, [0, 0, 1])   # facing the camera: +z

@@ -9,11 +9,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jaxdistill import config as config_lib, evaluation, imageio, train
-from jaxdistill.config import DistillConfig
+from jaxdistill import pipeline
+
+from jaxdistill.engine import config as config_lib, loop
+from jaxdistill.evaluate import ground_truth as evaluation
+from jaxdistill.io import images as imageio
+from jaxdistill.engine.config import DistillConfig
 from jaxdistill.errors import InputError
 from jaxdistill.render import fragments as fr
-from jaxdistill.scene import read_scene, write_scene
+from jaxdistill.scene.model import read_scene, write_scene
 from tiny_scene import write_tiny_scene
 
 
@@ -92,7 +96,7 @@ def test_gt_json_without_any_map_is_refused_before_compute(tiny, tmp_path, monke
     config = config_lib.validate(DistillConfig(scene=str(folder), out_dir=str(tmp_path / "run"), steps=2,
                                                views_per_step=2, prior="views"))
     with pytest.raises(InputError) as err:
-        train.run(config, progress=False)
+        pipeline.run(config, progress=False)
     message = str(err.value)
     print(message)
     assert f"{folder / 'gt.json'}: textures: no ground-truth texture for any map" in message

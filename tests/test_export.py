@@ -8,9 +8,10 @@ import struct
 import numpy as np
 import pytest
 
-from jaxdistill import export, imageio
-from jaxdistill.cameras import Camera, look_at
-from jaxdistill.scene import Mesh
+from jaxdistill.export import pages as export
+from jaxdistill.io import images as imageio
+from jaxdistill.scene.cameras import Camera, look_at
+from jaxdistill.scene.model import Mesh
 from tolerance import assert_close
 
 

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from conftest import look_at_camera
-from jaxdistill import synthetic
+from jaxdistill.scene import shapes as synthetic
 from jaxdistill.render import fragments as fr
-from jaxdistill.scene import Mesh
+from jaxdistill.scene.model import Mesh
 
 
 def analytic_plane(camera, size, subdivisions, height=0.0):

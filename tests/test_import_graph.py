@@ -81,6 +81,57 @@ def test_the_cycle_finder_finds_a_cycle_hidden_in_a_function(tmp_path):
 def test_no_import_cycle_in_the_package():
     graph = import_graph()
     assert len(graph) > 40 and "jaxdistill.datasets.common" in graph       # really read the package
-    assert "jaxdistill.scene_config" in graph["jaxdistill.scene"]          # reads real edges
+    assert "jaxdistill.scene.objects" in graph["jaxdistill.scene.model"]          # reads real edges
     cycle = find_cycle(graph)
     assert cycle is None, "import cycle: " + " -> ".join(cycle)
+
+
+# The stages, lowest first (docs/design.md "Layers"). A module may import its own stage and the
+# stages below it, never one above: data flows scene → fragments → gather plans → step → outputs.
+LAYERS = (
+    ("jaxdistill", "jaxdistill.scenes", "jaxdistill.errors"),   # constants, the embedded scene's data, errors
+    ("jaxdistill.io",),            # images, checkpoints, per-view image files, exposure
+    ("jaxdistill.scene",),         # cameras, mesh, scene objects and paths, the scene model, the maps
+    ("jaxdistill.render",),        # ray casts into fragments, texel layout, gather plans, sampler, visibility, unwrap
+    ("jaxdistill.datasets",),      # format loaders and the Mitsuba importer
+    ("jaxdistill.models",),        # the RGB<->X networks, conversion, sampling, the shipped model, training
+    ("jaxdistill.engine",),        # config, priors, the pure step, the problem, the loop
+    ("jaxdistill.evaluate",),      # metrics, ground truth, scoring a run
+    ("jaxdistill.export",),        # map pages, glTF, plots, the anchor, a run's folder and outputs
+    ("jaxdistill.viewer",),        # the browser viewer
+    ("jaxdistill.pipeline", "jaxdistill.main", "jaxdistill.cli", "jaxdistill.__main__", "jaxdistill.estimate",
+     "jaxdistill.precompute", "jaxdistill.import_scene", "jaxdistill.view"),   # the main job and entry points
+)
+
+
+def layer_of(module: str) -> int:
+    """Index in LAYERS of the stage holding `module` (its longest matching prefix)."""
+    best, depth = None, -1
+    for i, stage in enumerate(LAYERS):
+        for prefix in stage:
+            matches = module == prefix or (prefix != "jaxdistill" and module.startswith(prefix + "."))
+            if matches and prefix.count(".") > depth:
+                best, depth = i, prefix.count(".")
+    if best is None:
+        raise AssertionError(f"{module} is in no stage of LAYERS: add its folder to the layering (and docs/design.md)")
+    return best
+
+
+def upward_imports(graph: dict[str, set[str]]) -> list[str]:
+    """'a -> b' for every import of a module from a higher stage than the importer's."""
+    return [f"{a} (stage {layer_of(a)}) imports {b} (stage {layer_of(b)})"
+            for a in sorted(graph) for b in sorted(graph[a]) if layer_of(b) > layer_of(a)]
+
+
+def test_the_layering_check_finds_an_upward_import():
+    graph = {"jaxdistill.scene.model": {"jaxdistill.io.images"}, "jaxdistill.render.sampler": {"jaxdistill.engine.step"},
+             "jaxdistill.engine.step": set(), "jaxdistill.io.images": set()}
+    assert upward_imports(graph) == ["jaxdistill.render.sampler (stage 3) imports jaxdistill.engine.step (stage 6)"]
+    assert layer_of("jaxdistill.datasets.mitsuba.importer") == 4 and layer_of("jaxdistill.scenes") == 0
+
+
+def test_stages_import_only_downward():
+    graph = import_graph()
+    for module in graph:
+        layer_of(module)                   # every module belongs to a stage
+    assert upward_imports(graph) == []

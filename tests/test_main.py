@@ -17,10 +17,13 @@ import pytest
 import trimesh
 from absl import flags
 
-from jaxdistill import checkpoint, config as config_lib, imageio, train
-from jaxdistill.config import DistillConfig
+from jaxdistill.io import checkpoint, images as imageio
+from jaxdistill import pipeline
+from jaxdistill.engine import config as config_lib, loop
+from jaxdistill.engine.config import DistillConfig
 from jaxdistill.errors import InputError
-from jaxdistill.problem import Problem
+from jaxdistill.engine.problem import Problem
+from jaxdistill.export import run_dir
 from tiny_scene import write_tiny_scene
 
 REPO = Path(__file__).resolve().parents[1]
@@ -45,7 +48,7 @@ def tiny_config(scene, out, **kw) -> DistillConfig:
 
 def restored(out: Path, step: int):
     """(state, config) of the checkpoint at `step`, which must be the latest in out/checkpoints."""
-    from jaxdistill.distill import init_state, make_optimizer
+    from jaxdistill.engine.step import init_state, make_optimizer
 
     with checkpoint.CheckpointStore(out / "checkpoints") as store:
         assert store.latest_step() == step
@@ -56,7 +59,7 @@ def restored(out: Path, step: int):
 
 def test_main_job_writes_every_output(tiny_scene, tmp_path, capsys):
     out = tmp_path / "run"
-    summary = train.run(tiny_config(tiny_scene, out), progress=False)
+    summary = pipeline.run(tiny_config(tiny_scene, out), progress=False)
     doc = json.loads((out / "metrics.json").read_text())
     assert doc["prior"]["kind"] == "views" and "per-view target" in doc["prior"]["reason"]
     assert doc["traces"] == 1 and doc["steps"] == 6 and doc["wall_seconds"] > 0 and doc["peak_host_memory_mb"] > 0
@@ -65,12 +68,12 @@ def test_main_job_writes_every_output(tiny_scene, tmp_path, capsys):
     assert doc["history"]["step"] == [1, 2, 3, 4, 5, 6] and doc["history"]["eval_step"] == [3, 6]
     assert doc["anchor"] is None                            # --anchor=auto: none with the views prior
     assert "anchored" not in capsys.readouterr().out
-    anchored = train.run(tiny_config(tiny_scene, tmp_path / "anchored", anchor="estimates", renders=False),
+    anchored = pipeline.run(tiny_config(tiny_scene, tmp_path / "anchored", anchor="estimates", renders=False),
                          progress=False)
     assert "per-view target" in anchored["anchor"]["to"]
     assert sorted(anchored["anchor"]["gains"]) == ["albedo", "irradiance"]
     assert "overall scale anchored to the scene's per-view target images: gains albedo " in capsys.readouterr().out
-    assert train._json_safe(summary["ours"]) == doc["ours"]       # NaN (a seam ratio of a flat GT) is null
+    assert run_dir.json_safe(summary["ours"]) == doc["ours"]       # NaN (a seam ratio of a flat GT) is null
     objects = ["room_floor", "room_ceiling", "room_wall_z0", "room_wall_z1", "room_wall_x0", "room_wall_x1"]
     for m in ("albedo", "normal", "roughness", "metallic", "irradiance"):
         for o in objects:
@@ -89,10 +92,10 @@ def test_main_job_writes_every_output(tiny_scene, tmp_path, capsys):
 
 def test_resumed_run_is_bit_identical_to_an_uninterrupted_one(tiny_scene, tmp_path, monkeypatch):
     full = tmp_path / "full"
-    train.run(tiny_config(tiny_scene, full, steps=8, p_keep=0.7, renders=False), progress=False)
+    pipeline.run(tiny_config(tiny_scene, full, steps=8, p_keep=0.7, renders=False), progress=False)
     part = tmp_path / "part"
-    train.run(tiny_config(tiny_scene, part, steps=4, p_keep=0.7, renders=False), progress=False)
-    train.run(tiny_config(tiny_scene, part, steps=8, p_keep=0.7, renders=False, resume=True), progress=False)
+    pipeline.run(tiny_config(tiny_scene, part, steps=4, p_keep=0.7, renders=False), progress=False)
+    pipeline.run(tiny_config(tiny_scene, part, steps=8, p_keep=0.7, renders=False, resume=True), progress=False)
     a, config_a = restored(full, 8)
     b, _ = restored(part, 8)
     assert config_a["p_keep"] == 0.7 and config_a["prior_kind"] == "views"
@@ -117,10 +120,10 @@ def test_resumed_run_is_bit_identical_to_an_uninterrupted_one(tiny_scene, tmp_pa
 
     monkeypatch.setattr(Problem, "batch", batch_then_crash)
     with pytest.raises(RuntimeError, match="simulated crash"):
-        train.run(tiny_config(tiny_scene, crashed, steps=8, p_keep=0.7, renders=False, ckpt_every=3, log_every=2),
+        pipeline.run(tiny_config(tiny_scene, crashed, steps=8, p_keep=0.7, renders=False, ckpt_every=3, log_every=2),
                   progress=False)
     monkeypatch.setattr(Problem, "batch", original)
-    train.run(tiny_config(tiny_scene, crashed, steps=8, p_keep=0.7, renders=False, resume=True), progress=False)
+    pipeline.run(tiny_config(tiny_scene, crashed, steps=8, p_keep=0.7, renders=False, resume=True), progress=False)
     again = json.loads((crashed / "metrics.json").read_text())
     assert again["resumed_from"] == 3
     assert again["history"]["step"] == list(range(1, 9))
@@ -135,45 +138,45 @@ def jax_leaves(tree):
 
 def test_resume_refuses_a_different_config_and_needs_a_checkpoint(tiny_scene, tmp_path):
     out = tmp_path / "run"
-    train.run(tiny_config(tiny_scene, out, steps=2, renders=False), progress=False)
+    pipeline.run(tiny_config(tiny_scene, out, steps=2, renders=False), progress=False)
     with pytest.raises(InputError, match=r"--lr.*0\.05.*0\.2"):
-        train.run(tiny_config(tiny_scene, out, steps=4, lr=0.2, resume=True), progress=False)
+        pipeline.run(tiny_config(tiny_scene, out, steps=4, lr=0.2, resume=True), progress=False)
     with pytest.raises(InputError, match="already holds a run.*--resume"):
-        train.run(tiny_config(tiny_scene, out, steps=4), progress=False)
+        pipeline.run(tiny_config(tiny_scene, out, steps=4), progress=False)
     with pytest.raises(InputError, match="no complete checkpoint"):
-        train.run(tiny_config(tiny_scene, tmp_path / "empty", resume=True), progress=False)
+        pipeline.run(tiny_config(tiny_scene, tmp_path / "empty", resume=True), progress=False)
     with pytest.raises(InputError, match=r"--steps: 1 is below the checkpoint's step 2"):
-        train.run(tiny_config(tiny_scene, out, steps=1, resume=True), progress=False)
+        pipeline.run(tiny_config(tiny_scene, out, steps=1, resume=True), progress=False)
     from jaxdistill.models import shipped
 
     with pytest.MonkeyPatch.context() as mp, pytest.raises(InputError, match=r"--loss_space.*views prior"):
         mp.setattr(shipped, "SHIPPED_DIR", tmp_path / "no_shipped_model")     # auto resolves to views
-        train.run(tiny_config(tiny_scene, tmp_path / "latent", prior="auto", loss_space="latent"), progress=False)
+        pipeline.run(tiny_config(tiny_scene, tmp_path / "latent", prior="auto", loss_space="latent"), progress=False)
     cosine = tmp_path / "cosine"
-    train.run(tiny_config(tiny_scene, cosine, steps=2, lr_schedule="cosine", renders=False), progress=False)
+    pipeline.run(tiny_config(tiny_scene, cosine, steps=2, lr_schedule="cosine", renders=False), progress=False)
     with pytest.raises(InputError, match="--steps"):       # the cosine schedule depends on the run's length
-        train.run(tiny_config(tiny_scene, cosine, steps=4, lr_schedule="cosine", resume=True), progress=False)
+        pipeline.run(tiny_config(tiny_scene, cosine, steps=4, lr_schedule="cosine", resume=True), progress=False)
 
 
 def test_a_checkpoint_from_before_added_flags_resumes_when_they_keep_their_old_behaviour(tiny_scene, tmp_path,
                                                                                          monkeypatch):
     """A run checkpointed by a jaxdistill without --reuse_steps/--align (its recorded flags lack
     them) resumes with those flags at the values that reproduce it, and is refused otherwise."""
-    original = train._recorded_config
-    monkeypatch.setattr(train, "_recorded_config", lambda config, kind: {
-        k: v for k, v in original(config, kind).items() if k not in train.ADDED_FLAG_DEFAULTS})
+    original = loop.recorded_config
+    monkeypatch.setattr(loop, "recorded_config", lambda config, kind: {
+        k: v for k, v in original(config, kind).items() if k not in loop.ADDED_FLAG_DEFAULTS})
     out = tmp_path / "old"
-    train.run(tiny_config(tiny_scene, out, steps=2, renders=False), progress=False)
-    monkeypatch.setattr(train, "_recorded_config", original)
+    pipeline.run(tiny_config(tiny_scene, out, steps=2, renders=False), progress=False)
+    monkeypatch.setattr(loop, "recorded_config", original)
     with pytest.raises(InputError, match=r"--align: checkpoint has \(not set\), current run has \"gain\""):
-        train.run(tiny_config(tiny_scene, out, steps=3, renders=False, resume=True, align="gain"), progress=False)
-    done = train.run(tiny_config(tiny_scene, out, steps=3, renders=False, resume=True), progress=False)
+        pipeline.run(tiny_config(tiny_scene, out, steps=3, renders=False, resume=True, align="gain"), progress=False)
+    done = pipeline.run(tiny_config(tiny_scene, out, steps=3, renders=False, resume=True), progress=False)
     assert done["resumed_from"] == 2 and done["steps"] == 3
 
 
 def test_sigterm_saves_a_checkpoint_and_the_run_resumes_to_the_same_result(tiny_scene, tmp_path, monkeypatch):
     reference = tmp_path / "reference"
-    train.run(tiny_config(tiny_scene, reference, steps=6, renders=False), progress=False)
+    pipeline.run(tiny_config(tiny_scene, reference, steps=6, renders=False), progress=False)
     original = Problem.batch
     calls = {"n": 0}
 
@@ -185,18 +188,18 @@ def test_sigterm_saves_a_checkpoint_and_the_run_resumes_to_the_same_result(tiny_
 
     monkeypatch.setattr(Problem, "batch", batch_then_signal)
     out = tmp_path / "interrupted"
-    result = train.run(tiny_config(tiny_scene, out, steps=6, renders=False), progress=False)
+    result = pipeline.run(tiny_config(tiny_scene, out, steps=6, renders=False), progress=False)
     monkeypatch.setattr(Problem, "batch", original)
     assert result == {"stopped_by": "SIGTERM", "step": 3, "exit_status": 128 + signal.SIGTERM}
     assert not (out / "metrics.json").exists()
-    train.run(tiny_config(tiny_scene, out, steps=6, renders=False, resume=True), progress=False)
+    pipeline.run(tiny_config(tiny_scene, out, steps=6, renders=False, resume=True), progress=False)
     a, _ = restored(reference, 6)
     b, _ = restored(out, 6)
     np.testing.assert_array_equal(np.asarray(a.texels), np.asarray(b.texels))
 
 
 def test_a_nan_loss_stops_the_run_and_keeps_the_last_good_state(tiny_scene, tmp_path, monkeypatch):
-    from jaxdistill import problem as problem_lib
+    from jaxdistill.engine import problem as problem_lib
 
     build = problem_lib.build_problem
     seed, poisoned_view = 0, {}
@@ -214,10 +217,10 @@ def test_a_nan_loss_stops_the_run_and_keeps_the_last_good_state(tiny_scene, tmp_
         targets[view] = np.nan
         return dataclasses.replace(p, prior=dataclasses.replace(p.prior, target_images=targets))
 
-    monkeypatch.setattr(train, "build_problem", poisoned)
+    monkeypatch.setattr(pipeline, "build_problem", poisoned)
     out = tmp_path / "nan"
-    with pytest.raises(train.NonFiniteLoss, match=r"NaN/inf at step (\d+).*--lr") as err:
-        train.run(tiny_config(tiny_scene, out, steps=8, log_every=4, renders=False), progress=False)
+    with pytest.raises(loop.NonFiniteLoss, match=r"NaN/inf at step (\d+).*--lr") as err:
+        pipeline.run(tiny_config(tiny_scene, out, steps=8, log_every=4, renders=False), progress=False)
     bad = poisoned_view["step"]
     assert bad >= 1 and f"at step {bad};" in str(err.value)
     state, _ = restored(out, bad)          # the checkpoint is the state before the bad step, not after
@@ -280,7 +283,7 @@ def test_views_prior_names_a_missing_target(tmp_path):
     del doc["views"][1]["targets"]["roughness"]
     scene.write_text(json.dumps(doc))
     with pytest.raises(InputError, match=r"views\[1\]\.targets\.roughness.*v1 has no roughness target"):
-        train.run(tiny_config(scene, tmp_path / "o", prior="views"), progress=False)
+        pipeline.run(tiny_config(scene, tmp_path / "o", prior="views"), progress=False)
 
 
 def test_auto_prior_uses_rgbx_weights_end_to_end(tiny_scene, rgbx_dir, tmp_path, monkeypatch):
@@ -290,14 +293,14 @@ def test_auto_prior_uses_rgbx_weights_end_to_end(tiny_scene, rgbx_dir, tmp_path,
     monkeypatch.setenv("JAXDISTILL_RGBX_DIR", str(rgbx_dir))
     views_run = tmp_path / "views_run"
     monkeypatch.delenv("JAXDISTILL_RGBX_DIR")
-    train.run(tiny_config(tiny_scene, views_run, prior="auto", steps=1, maps=("albedo", "roughness"), renders=False,
+    pipeline.run(tiny_config(tiny_scene, views_run, prior="auto", steps=1, maps=("albedo", "roughness"), renders=False,
                           eval_every=0), progress=False)
     monkeypatch.setenv("JAXDISTILL_RGBX_DIR", str(rgbx_dir))
     with pytest.raises(InputError, match=r"--prior_kind.*views.*rgbx"):     # auto resolved differently now
-        train.run(tiny_config(tiny_scene, views_run, prior="auto", steps=2, maps=("albedo", "roughness"),
+        pipeline.run(tiny_config(tiny_scene, views_run, prior="auto", steps=2, maps=("albedo", "roughness"),
                               resume=True), progress=False)
     out = tmp_path / "rgbx"
-    train.run(tiny_config(tiny_scene, out, prior="auto", steps=2, maps=("albedo", "roughness"), renders=False,
+    pipeline.run(tiny_config(tiny_scene, out, prior="auto", steps=2, maps=("albedo", "roughness"), renders=False,
                           eval_every=0), progress=False)
     doc = json.loads((out / "metrics.json").read_text())
     assert doc["prior"]["kind"] == "rgbx" and "JAXDISTILL_RGBX_DIR" in doc["prior"]["reason"]
@@ -318,20 +321,20 @@ def test_a_run_that_reuses_x_pred_resumes_mid_cycle_to_the_same_losses(tiny_scen
     kw = dict(prior="rgbx", rgbx_dir=str(rgbx_dir), maps=("albedo", "roughness"), reuse_steps=3, renders=False,
               eval_every=0, log_every=1)
     full, part = tmp_path / "full", tmp_path / "part"
-    train.run(tiny_config(tiny_scene, full, steps=7, **kw), progress=False)
-    train.run(tiny_config(tiny_scene, part, steps=4, **kw), progress=False)
-    train.run(tiny_config(tiny_scene, part, steps=7, resume=True, **kw), progress=False)
+    pipeline.run(tiny_config(tiny_scene, full, steps=7, **kw), progress=False)
+    pipeline.run(tiny_config(tiny_scene, part, steps=4, **kw), progress=False)
+    pipeline.run(tiny_config(tiny_scene, part, steps=7, resume=True, **kw), progress=False)
     a, b = (json.loads((o / "metrics.json").read_text()) for o in (full, part))
     assert b["resumed_from"] == 4 and a["traces"] == 1 and all(np.isfinite(a["history"]["loss"]))
     assert a["history"]["loss"] == b["history"]["loss"] and len(a["history"]["loss"]) == 7
     assert a["ours"] == b["ours"]
     with pytest.raises(InputError, match="--reuse_steps"):
-        train.run(tiny_config(tiny_scene, part, steps=8, resume=True, **dict(kw, reuse_steps=2)), progress=False)
+        pipeline.run(tiny_config(tiny_scene, part, steps=8, resume=True, **dict(kw, reuse_steps=2)), progress=False)
 
 
 def test_smaller_renders_train_at_their_size_and_evaluate_at_the_photos_size(tiny_scene, tmp_path):
     out = tmp_path / "small"
-    train.run(tiny_config(tiny_scene, out, render_size=16, steps=2, eval_every=0), progress=False)
+    pipeline.run(tiny_config(tiny_scene, out, render_size=16, steps=2, eval_every=0), progress=False)
     doc = json.loads((out / "metrics.json").read_text())
     assert doc["config"]["render_size"] == 16 and np.isfinite(doc["ours"]["albedo_psnr"])
     assert imageio.read_image(out / "renders" / "albedo" / "v0.png").shape == (24, 32, 3)
@@ -340,7 +343,7 @@ def test_smaller_renders_train_at_their_size_and_evaluate_at_the_photos_size(tin
 def test_state_that_cannot_fit_in_memory_is_refused_before_any_allocation(tiny_scene, tmp_path, monkeypatch):
     """A run whose texels + AdamW moments exceed the memory budget stops in build_problem with an
     InputError naming the sizing flags (the budget is shrunk to make the tiny scene 'too big')."""
-    from jaxdistill import problem as problem_lib
+    from jaxdistill.engine import problem as problem_lib
 
     config = tiny_config(tiny_scene, tmp_path / "big", texture_size="64", sampler="trilinear")
     fits = problem_lib.build_problem(config)
@@ -391,7 +394,7 @@ def test_damaged_newest_checkpoint_falls_back_to_the_previous_one(tiny_scene, tm
     import shutil
 
     damaged, direct = tmp_path / "damaged", tmp_path / "direct"
-    train.run(tiny_config(tiny_scene, damaged, steps=4, ckpt_every=2, renders=False, eval_every=0), progress=False)
+    pipeline.run(tiny_config(tiny_scene, damaged, steps=4, ckpt_every=2, renders=False, eval_every=0), progress=False)
     shutil.copytree(damaged, direct)
     shutil.rmtree(direct / "checkpoints" / "4")                        # the reference: step 2 is the newest
     arrays = sorted((damaged / "checkpoints" / "4" / "state").glob("ocdbt.process_*/d/*"))
@@ -399,8 +402,8 @@ def test_damaged_newest_checkpoint_falls_back_to_the_previous_one(tiny_scene, tm
     for f in arrays:
         f.write_bytes(f.read_bytes()[: f.stat().st_size // 2])
     with caplog.at_level("WARNING"):
-        train.run(tiny_config(tiny_scene, damaged, steps=6, resume=True, renders=False, eval_every=0), progress=False)
-    train.run(tiny_config(tiny_scene, direct, steps=6, resume=True, renders=False, eval_every=0), progress=False)
+        pipeline.run(tiny_config(tiny_scene, damaged, steps=6, resume=True, renders=False, eval_every=0), progress=False)
+    pipeline.run(tiny_config(tiny_scene, direct, steps=6, resume=True, renders=False, eval_every=0), progress=False)
     warning = [r.getMessage() for r in caplog.records if "is damaged" in r.getMessage()]
     assert len(warning) == 1, warning
     assert warning[0].startswith(f"{damaged / 'checkpoints' / '4'}: checkpoint of step 4 is damaged (")
@@ -417,12 +420,12 @@ def test_damaged_newest_checkpoint_falls_back_to_the_previous_one(tiny_scene, tm
 
 def test_no_readable_checkpoint_says_how_to_start_fresh(tiny_scene, tmp_path, monkeypatch):
     out = tmp_path / "run"
-    train.run(tiny_config(tiny_scene, out, steps=2, renders=False, eval_every=0), progress=False)
+    pipeline.run(tiny_config(tiny_scene, out, steps=2, renders=False, eval_every=0), progress=False)
     for f in (out / "checkpoints" / "2" / "state").glob("ocdbt.process_*/d/*"):
         f.write_bytes(b"\0" * 64)
-    monkeypatch.setattr(train, "build_problem", lambda *a, **k: pytest.fail("computed before refusing"))
+    monkeypatch.setattr(pipeline, "build_problem", lambda *a, **k: pytest.fail("computed before refusing"))
     with pytest.raises(InputError) as err:
-        train.run(tiny_config(tiny_scene, out, steps=4, resume=True), progress=False)
+        pipeline.run(tiny_config(tiny_scene, out, steps=4, resume=True), progress=False)
     message = str(err.value)
     assert f"{out / 'checkpoints' / '2'}: step 2: checkpoint is damaged (" in message
     assert (f"{out / 'checkpoints'}: --resume: no committed checkpoint reads back, so there is nothing to resume; "
@@ -479,7 +482,7 @@ def test_views_per_step_above_the_view_count_is_refused_before_ray_casting(tiny_
     monkeypatch.setattr(fragments, "compute_fragments", lambda *a, **k: pytest.fail("ray cast before refusing"))
     with pytest.raises(InputError, match=rf"flags: --views_per_step: 5 is more than the 4 views of {tiny_scene}; "
                        r".*use --views_per_step <= 4"):
-        train.run(tiny_config(tiny_scene, tmp_path / "o", views_per_step=5), progress=False)
+        pipeline.run(tiny_config(tiny_scene, tmp_path / "o", views_per_step=5), progress=False)
 
 
 def test_damaged_rgbx_weights_stop_the_main_job_before_any_compute(tiny_scene, rgbx_dir, tmp_path, monkeypatch):
@@ -488,18 +491,18 @@ def test_damaged_rgbx_weights_stop_the_main_job_before_any_compute(tiny_scene, r
     folder = shutil.copytree(rgbx_dir, tmp_path / "rgbx")
     vae = folder / "vae" / "diffusion_pytorch_model.safetensors"
     vae.write_bytes(vae.read_bytes()[:1000])
-    monkeypatch.setattr(train, "build_problem", lambda *a, **k: pytest.fail("computed before refusing"))
+    monkeypatch.setattr(pipeline, "build_problem", lambda *a, **k: pytest.fail("computed before refusing"))
     with pytest.raises(InputError, match=rf"{vae}: vae weights: damaged or incomplete safetensors file "
                        r"\(1,000 bytes; safetensors: .*\); re-download it: `huggingface-cli download zheng95z/rgb-to-x "
                        rf"vae/diffusion_pytorch_model.safetensors --local-dir {folder}`"):
-        train.run(tiny_config(tiny_scene, tmp_path / "o", prior="rgbx", rgbx_dir=str(folder)), progress=False)
+        pipeline.run(tiny_config(tiny_scene, tmp_path / "o", prior="rgbx", rgbx_dir=str(folder)), progress=False)
 
 
 @pytest.mark.parametrize("keep, expected", [(None, [5, 6]), (0, [1, 2, 3, 4, 5, 6]), (3, [4, 5, 6])])
 def test_checkpoints_are_kept_to_the_newest_two_by_default(tiny_scene, tmp_path, keep, expected):
     out = tmp_path / "run"
     extra = {} if keep is None else {"keep_checkpoints": keep}
-    train.run(tiny_config(tiny_scene, out, ckpt_every=1, renders=False, eval_every=0, **extra), progress=False)
+    pipeline.run(tiny_config(tiny_scene, out, ckpt_every=1, renders=False, eval_every=0, **extra), progress=False)
     with checkpoint.CheckpointStore(out / "checkpoints") as store:
         assert store.all_steps() == expected
     assert sorted(int(p.name) for p in (out / "checkpoints").iterdir() if p.name.isdigit()) == expected

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from jaxdistill import metrics
+from jaxdistill.evaluate import metrics
 
 C1 = 0.01 ** 2
 C2 = 0.03 ** 2

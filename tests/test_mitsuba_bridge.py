@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 
 from conftest import look_at_camera
-from jaxdistill import synthetic
+from jaxdistill.scene import shapes as synthetic
 from jaxdistill.render import fragments as fr
 from jaxdistill.render.sampler import sample_pages
 
 mi = pytest.importorskip("mitsuba")
-from jaxdistill import mitsuba_bridge as mb  # noqa: E402
+from jaxdistill.datasets.mitsuba import bridge as mb
 
 
 def off_centre_camera():

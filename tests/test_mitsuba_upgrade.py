@@ -10,17 +10,17 @@ import numpy as np
 import pytest
 
 from conftest import look_at_camera
-from jaxdistill import imageio
+from jaxdistill.io import images as imageio
 from jaxdistill.errors import InputError
-from jaxdistill.mitsuba_upgrade import camel_to_snake, needs_upgrade, upgrade
+from jaxdistill.datasets.mitsuba.upgrade import camel_to_snake, needs_upgrade, upgrade
 from jaxdistill.render import fragments as fr
 from mitsuba05_fixture import (FLOOR_ALPHA, FLOOR_RGB, LEAF_CENTRE, LEAF_RGB, LIGHT_RADIANCE, PHONG_EXPONENT,
                                WALL_SRGB_HEX, write_scene05)
 
 mi = pytest.importorskip("mitsuba")
 pytest.importorskip("xatlas")
-from jaxdistill import mitsuba_bridge as mb  # noqa: E402
-from jaxdistill import mitsuba_import as imp  # noqa: E402
+from jaxdistill.datasets.mitsuba import bridge as mb
+from jaxdistill.datasets.mitsuba import importer as imp
 
 
 def srgb_decode(code: int) -> float:

@@ -6,13 +6,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from jaxdistill import estimate, imageio, model_estimates
-from jaxdistill.config import DistillConfig
+from jaxdistill import estimate
+from jaxdistill.io import images as imageio
+from jaxdistill.models import estimates as model_estimates
+from jaxdistill.engine.config import DistillConfig
 from jaxdistill.errors import InputError
 from jaxdistill.models import convert, shipped
 from jaxdistill.models import prior as rgbx
-from jaxdistill.problem import choose_prior
-from jaxdistill.scene import read_scene
+from jaxdistill.engine.problem import choose_prior
+from jaxdistill.scene.model import read_scene
 from tiny_scene import write_tiny_scene
 
 

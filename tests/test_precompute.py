@@ -8,7 +8,7 @@ import sys
 
 import numpy as np
 
-from jaxdistill import imageio
+from jaxdistill.io import images as imageio
 from jaxdistill.precompute import PrecomputeConfig, run
 from test_scene import make_scene_folder
 

@@ -12,15 +12,15 @@ import numpy as np
 import pytest
 
 from conftest import look_at_camera
-from jaxdistill import imageio
+from jaxdistill.io import images as imageio
 from jaxdistill.errors import InputError
 from jaxdistill.render import fragments as fr
-from jaxdistill.scene import read_scene
+from jaxdistill.scene.model import read_scene
 
 mi = pytest.importorskip("mitsuba")
 pytest.importorskip("xatlas")
-from jaxdistill import mitsuba_import as imp  # noqa: E402
-from jaxdistill import unwrap  # noqa: E402
+from jaxdistill.datasets.mitsuba import importer as imp
+from jaxdistill.render import unwrap
 
 REPO = Path(__file__).resolve().parents[1]
 # Bitterli's "Modern Hall" (CC-BY 3.0, tests/data/staircase2/LICENSE.txt): the copy in tests/data (so CI
@@ -325,7 +325,7 @@ def test_staircase2_imports(tmp_path):
 
 def test_analytic_shape_uvs_match_mitsuba():
     """Tessellated shapes: our UV of a surface point equals Mitsuba's own hit UV there."""
-    from jaxdistill import mitsuba_bridge
+    from jaxdistill.datasets.mitsuba import bridge as mitsuba_bridge
     mitsuba_bridge.load_mitsuba()
     m = np.eye(4)
     angle = 0.7
@@ -493,7 +493,7 @@ def test_prepared_scene_runs_in_the_main_job_with_evaluation(source, tmp_path, m
 
 
 def test_irradiance_without_llvm_is_a_clear_error_before_any_compute(tmp_path, monkeypatch, room_xml):
-    from jaxdistill import mitsuba_bridge
+    from jaxdistill.datasets.mitsuba import bridge as mitsuba_bridge
     real = mitsuba_bridge.load_mitsuba
 
     def no_llvm(variant=mitsuba_bridge.VARIANT):

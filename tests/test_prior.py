@@ -181,7 +181,8 @@ def test_prompt_embeddings_are_computed_once_per_map(rgbx_prior, loaded):
 
 
 def test_estimate_command_writes_maps(rgbx_dir, tmp_path):
-    from jaxdistill import estimate, imageio
+    from jaxdistill import estimate
+    from jaxdistill.io import images as imageio
 
     photo = np.random.default_rng(5).uniform(0, 1, (48, 64, 3)).astype(np.float32)
     imageio.write_image(tmp_path / "kitchen.png", photo, encode_srgb=False)

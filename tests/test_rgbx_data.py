@@ -12,8 +12,8 @@ import pytest
 
 mi = pytest.importorskip("mitsuba")
 
-from jaxdistill import cameras  # noqa: E402
-from jaxdistill import mitsuba_bridge as mb  # noqa: E402
+from jaxdistill.scene import cameras
+from jaxdistill.datasets.mitsuba import bridge as mb
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "scripts"))

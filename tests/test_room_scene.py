@@ -13,10 +13,10 @@ import pytest
 
 pytest.importorskip("mitsuba")
 
-from jaxdistill import imageio  # noqa: E402
-from jaxdistill.evaluation import evaluation_masks, read_ground_truth, view_ground_truth  # noqa: E402
+from jaxdistill.io import images as imageio
+from jaxdistill.evaluate.ground_truth import evaluation_masks, read_ground_truth, view_ground_truth  # noqa: E402
 from jaxdistill.render import fragments as fr  # noqa: E402
-from jaxdistill.scene import read_scene  # noqa: E402
+from jaxdistill.scene.model import read_scene  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "scripts"))

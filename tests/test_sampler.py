@@ -9,7 +9,7 @@ import pytest
 from scipy import ndimage
 
 from conftest import look_at_camera
-from jaxdistill import synthetic
+from jaxdistill.scene import shapes as synthetic
 from jaxdistill.render import fragments as fr
 from jaxdistill.render.gather_plan import build_gather_plans, build_texel_space
 from jaxdistill.render.layout import TextureLayout, make_layout

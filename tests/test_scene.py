@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 
 from conftest import look_at_camera
-from jaxdistill import imageio, synthetic
+from jaxdistill.io import images as imageio
+from jaxdistill.scene import shapes as synthetic
 from jaxdistill.errors import InputError
-from jaxdistill.scene import Mesh, Scene, View, read_scene, validate_scene, write_scene
+from jaxdistill.scene.model import Mesh, Scene, View, read_scene, validate_scene, write_scene
 
 
 def make_scene_folder(folder, mesh_name="mesh.glb"):
@@ -166,7 +167,7 @@ def test_unreadable_mesh_and_json(tmp_path):
 def test_paths_outside_the_scene_folder_are_refused_before_anything_is_read(tmp_path, monkeypatch):
     """../, absolute paths and symlinks out of the folder: refused by default, naming file and field,
     before any file is opened (so the messages cannot tell which files exist); read with the opt-in."""
-    from jaxdistill import scene as scene_lib
+    from jaxdistill.scene import model as scene_lib
 
     scene, path = make_scene_folder(tmp_path / "scene")
     shared = tmp_path / "shared"

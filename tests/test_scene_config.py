@@ -10,9 +10,9 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from jaxdistill.errors import InputError
-from jaxdistill.scene import read_scene
-from jaxdistill.cameras import quaternion_to_rotation
-from jaxdistill.scene_config import euler_xyz_matrix, read_scene_config
+from jaxdistill.scene.model import read_scene
+from jaxdistill.scene.cameras import quaternion_to_rotation
+from jaxdistill.scene.objects import euler_xyz_matrix, read_scene_config
 from tiny_scene import write_tiny_scene
 
 

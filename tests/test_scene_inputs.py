@@ -11,11 +11,12 @@ import numpy as np
 import pytest
 
 import dataset_fixtures as fx
-from jaxdistill import datasets, imageio
+from jaxdistill import datasets
+from jaxdistill.io import images as imageio
 from jaxdistill.datasets.common import ImportOptions
 from jaxdistill.errors import InputError
-from jaxdistill.problem import read_target
-from jaxdistill.scene import read_scene
+from jaxdistill.engine.problem import read_target
+from jaxdistill.scene.model import read_scene
 from tiny_scene import write_tiny_scene
 
 

@@ -91,7 +91,7 @@ def test_estimates_beat_the_trivial_baseline_on_held_out_rooms(loaded):
     +3 dB in albedo; the shipped v1 measures +1.0 dB on 40 held-out images, see its card.)"""
     from eval_rgbx_model import ground_truth, to_file_space, trivial
 
-    from jaxdistill import metrics
+    from jaxdistill.evaluate import metrics
 
     model = rgbx.load_prior(loaded)
     with np.load(SAMPLE) as z:

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jaxdistill.cameras import from_opencv
+from jaxdistill.scene.cameras import from_opencv
 from jaxdistill.scenes import scene_path
 from test_export import gltf_projection, read_glb
 from tolerance import assert_close

@@ -16,18 +16,20 @@ import optax
 import pytest
 
 from conftest import look_at_camera
-from jaxdistill import config as config_lib, imageio, synthetic
-from jaxdistill.config import DistillConfig
-from jaxdistill.distill import StepSettings, init_state, make_optimizer, make_step
+from jaxdistill.engine import config as config_lib
+from jaxdistill.io import images as imageio
+from jaxdistill.scene import shapes as synthetic
+from jaxdistill.engine.config import DistillConfig
+from jaxdistill.engine.step import StepSettings, init_state, make_optimizer, make_step
 from jaxdistill.errors import InputError
 from jaxdistill.models import scheduler as sch
-from jaxdistill.problem import build_problem
+from jaxdistill.engine.problem import build_problem
 from jaxdistill.render import fragments as fr
 from jaxdistill.render.gather_plan import build_gather_plans, build_texel_space
 from jaxdistill.render.layout import TextureLayout
 from jaxdistill.render.sampler import render
 from jaxdistill.render.visibility import pixel_weights
-from jaxdistill.scene import Mesh
+from jaxdistill.scene.model import Mesh
 from tiny_scene import write_tiny_scene
 from tolerance import assert_close
 

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from jaxdistill import imageio
+from jaxdistill.io import images as imageio
 from jaxdistill.datasets.undistort import (Distortion, distort_normalized, undistort_image,
                                            undistort_normalized, undistort_photo)
 from jaxdistill.errors import InputError

@@ -7,10 +7,10 @@ import time
 import numpy as np
 import pytest
 
-from jaxdistill import unwrap as uw
-from jaxdistill.cameras import Camera
+from jaxdistill.render import unwrap as uw
+from jaxdistill.scene.cameras import Camera
 from jaxdistill.errors import InputError
-from jaxdistill.scene import Mesh
+from jaxdistill.scene.model import Mesh
 
 pytest.importorskip("xatlas")
 pytest.importorskip("embreex")
@@ -264,7 +264,7 @@ def test_split_chunks_and_shelf_pack():
 def test_chunked_unwrap_is_valid(capsys, caplog):
     v, f = grid(45, noise=0.2)                               # 4050 faces
     mesh = make_mesh([("big", v, f)])
-    with caplog.at_level("INFO", logger="jaxdistill.unwrap"):
+    with caplog.at_level("INFO", logger="jaxdistill.render.unwrap"):
         out, (d,) = uw.ensure_uvs(mesh, cache_dir=False, progress=True, chunk_faces=500)
     assert "16 chunk(s)" in caplog.text                    # 4050 -> 2025 -> 1012 -> 506 -> 253
     check_layout(out, np.arange(mesh.num_faces), d, density_tol=0.05)

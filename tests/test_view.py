@@ -22,9 +22,14 @@ from absl import flags
 
 pytest.importorskip("viser", reason="the viewer needs the view extra: pip install -e \".[view]\"")
 
-from jaxdistill import (checkpoint, config as config_lib, evaluation, export, imageio, model_estimates, run_files,  # noqa: E402
-                        train, view)
-from jaxdistill.mesh import Mesh  # noqa: E402
+from jaxdistill.io import checkpoint, images as imageio
+from jaxdistill import pipeline
+from jaxdistill.engine import config as config_lib, loop
+from jaxdistill.evaluate import ground_truth as evaluation
+from jaxdistill.export import pages as export, run_dir as run_files
+from jaxdistill.models import estimates as model_estimates
+from jaxdistill import view
+from jaxdistill.scene.mesh import Mesh  # noqa: E402
 from jaxdistill.render.fragments import compute_fragments  # noqa: E402
 from jaxdistill.render.sampler import expand, sample_pages  # noqa: E402
 from jaxdistill.viewer import display  # noqa: E402
@@ -47,7 +52,7 @@ def smoke_run(tmp_path_factory):
         # the demo's 50: what the viewer shows of them does not depend on how they were sampled
         # (tests/test_model_estimates.py checks them against `jaxdistill.estimate`)
         mp.setattr(model_estimates, "cached_estimates", functools.partial(model_estimates.cached_estimates, steps=4))
-        train.run(config_lib.config_from_flags(fv), progress=False)
+        pipeline.run(config_lib.config_from_flags(fv), progress=False)
         yield out
 
 
@@ -181,7 +186,7 @@ def test_a_running_out_dir_shows_its_newest_checkpoint_and_refreshes(smoke_run, 
 def test_a_views_comparison_and_metrics_are_those_of_that_view(smoke_run):
     """The per-view panel's GT, estimate and metrics for view k equal what the run's evaluation
     (all views' fragments at once) has for view k."""
-    from jaxdistill import metrics
+    from jaxdistill.evaluate import metrics
 
     run = RunDir(smoke_run)
     k = 7

@@ -5,7 +5,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdistill import imageio
+from jaxdistill.io import images as imageio
 from jaxdistill.render.gather_plan import build_gather_plans, build_texel_space, view_taps
 from jaxdistill.render.layout import make_layout
 from jaxdistill.render.visibility import (pixel_weights, texel_evidence, texel_view_statistics, view_counts,
@@ -117,7 +117,7 @@ def test_texel_view_statistics_match_brute_force_per_view_values():
 def test_texel_trust_expands_to_the_page_trust_of_the_expanded_evidence():
     """What texel_space.npz stores per texel (export.texel_trust) gives, expanded to pages, the
     very trust pages the export weights its push-pull fill with (export.page_trust)."""
-    from jaxdistill import export
+    from jaxdistill.export import pages as export
     from jaxdistill.render.sampler import expand
 
     mesh, frags = scene_views()

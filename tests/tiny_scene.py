@@ -12,12 +12,13 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxdistill import cameras, imageio
-from jaxdistill.evaluation import camera_normals, face_normals
+from jaxdistill.scene import cameras
+from jaxdistill.io import images as imageio
+from jaxdistill.evaluate.ground_truth import camera_normals, face_normals
 from jaxdistill.render import fragments as fr
 from jaxdistill.render.sampler import sample_pages
-from jaxdistill.scene import Scene, View, write_scene
-from jaxdistill.synthetic import box_room
+from jaxdistill.scene.model import Scene, View, write_scene
+from jaxdistill.scene.shapes import box_room
 
 PAGE = 16
 

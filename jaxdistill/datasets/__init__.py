@@ -28,8 +28,8 @@ def load(fmt: str, path, options: ImportOptions = ImportOptions(), *, split: str
          report: dict | None = None):
     """The Scene of dataset `path` in format `fmt` (one of FORMATS)."""
     if fmt == "scene":
-        from jaxdistill.scene import read_scene
-        from jaxdistill.scene_paths import resolve_scene_path
+        from jaxdistill.scene.model import read_scene
+        from jaxdistill.scene.paths import resolve_scene_path
 
         return read_scene(resolve_scene_path(str(path)), allow_outside_paths=options.allow_outside_paths)
     if not Path(path).exists():

@@ -35,8 +35,8 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxdistill import cameras
-from jaxdistill.cameras import Camera, quaternion_to_rotation
+from jaxdistill.scene import cameras
+from jaxdistill.scene.cameras import Camera, quaternion_to_rotation
 from jaxdistill.datasets.undistort import Distortion
 from jaxdistill.errors import InputError, ProblemList
 

@@ -37,12 +37,12 @@ from typing import Mapping, Sequence
 import numpy as np
 from tqdm.auto import tqdm
 
-from jaxdistill import exposure as exposure_rule
-from jaxdistill import imageio
-from jaxdistill.cameras import Camera
+from jaxdistill.io import exposure as exposure_rule
+from jaxdistill.io import images as imageio
+from jaxdistill.scene.cameras import Camera
 from jaxdistill.errors import InputError, ProblemList
-from jaxdistill.scene import Mesh, Scene, View, load_mesh, log_notes, validate_scene, view_problems
-from jaxdistill.view_images import read_mask
+from jaxdistill.scene.model import Mesh, Scene, View, load_mesh, log_notes, validate_scene, view_problems
+from jaxdistill.io.view_images import read_mask
 
 log = logging.getLogger(__name__)
 
@@ -132,7 +132,7 @@ def load_scene_mesh(path, *, allow_outside_paths: bool = False) -> Mesh:
     object files stay inside its folder unless `allow_outside_paths`)."""
     path = Path(path)
     if path.suffix.lower() == ".json":
-        from jaxdistill.scene_config import read_scene_config
+        from jaxdistill.scene.objects import read_scene_config
 
         return read_scene_config(path, allow_outside_paths=allow_outside_paths)
     return load_mesh(path, require_uv=False)
@@ -193,7 +193,7 @@ def build_scene(name: str, root: Path, mesh_path, views: Sequence[ViewSource], o
 
 def _build_scene(name: str, root: Path, mesh_path, views: Sequence[ViewSource], options: ImportOptions, *,
                  source_file: str, report: dict | None) -> Scene:
-    from jaxdistill import unwrap
+    from jaxdistill.render import unwrap
     from jaxdistill.render.visibility import cast_hit_fractions, check_coverage, coverage_summary
 
     timings = {}

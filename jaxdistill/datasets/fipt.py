@@ -23,7 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxdistill import cameras, imageio
+from jaxdistill.scene import cameras
+from jaxdistill.io import images as imageio
 from jaxdistill.datasets.common import ImportOptions, ViewSource, build_scene, default_work_dir
 from jaxdistill.errors import InputError, ProblemList, read_json
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from jaxdistill import cameras
+from jaxdistill.scene import cameras
 from jaxdistill.datasets.common import ImportOptions, ViewSource, build_scene
 from jaxdistill.errors import InputError, ProblemList, read_json
 
@@ -106,7 +106,7 @@ def read_transforms(path, *, image_folder: str | None = None, pose: str = "openg
                 else:
                     size = {}
                     if not all(k in params for k in ("w", "h")) and photo.is_file():
-                        from jaxdistill.imageio import image_size    # Blender NeRF scenes give no size
+                        from jaxdistill.io.images import image_size    # Blender NeRF scenes give no size
 
                         size = dict(zip(("width", "height"), image_size(photo)[:2]))
                     camera = cameras.from_nerf_frame(meta, frame, **size)

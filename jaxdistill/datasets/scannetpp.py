@@ -28,7 +28,7 @@ import logging
 import os
 from pathlib import Path
 
-from jaxdistill import imageio
+from jaxdistill.io import images as imageio
 from jaxdistill.datasets.common import ImportOptions, build_scene
 from jaxdistill.datasets.nerfstudio import read_transforms
 from jaxdistill.errors import InputError

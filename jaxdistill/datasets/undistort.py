@@ -11,7 +11,7 @@ so a camera-space point (X, Y, Z) appears in the photo at u = fx x_d + cx, v = f
 x = X / Z, y = Y / Z. The jaxdistill cameras are pinholes, so photos taken through a distorting
 lens are resampled by `undistort_image` / `undistort_photo` onto the pinhole image with the SAME
 K and size. Pixel centres are at +0.5 (the first pixel's centre is at (0.5, 0.5)), as in
-jaxdistill.cameras and COLMAP.
+jaxdistill.scene.cameras and COLMAP.
 
 Only these models are supported: "none", "radial" (k1, k2; COLMAP SIMPLE_RADIAL is k2 = 0) and
 "opencv" (k1, k2, p1, p2). Everything is NumPy with float64 coordinates; pixels are float32 linear.
@@ -25,8 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxdistill import imageio
-from jaxdistill.cameras import validate_intrinsics
+from jaxdistill.io import images as imageio
+from jaxdistill.scene.cameras import validate_intrinsics
 from jaxdistill.errors import InputError
 
 MODELS = ("none", "radial", "opencv")

@@ -20,8 +20,8 @@ from typing import Sequence
 import numpy as np
 from tqdm.auto import tqdm
 
-from jaxdistill.cameras import Camera
-from jaxdistill.scene import Mesh
+from jaxdistill.scene.cameras import Camera
+from jaxdistill.scene.model import Mesh
 
 CACHE_VERSION = 1
 RAYS_PER_CALL = 1 << 20

@@ -20,12 +20,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdistill import imageio
-from jaxdistill.cameras import Camera
+from jaxdistill.io import images as imageio
+from jaxdistill.scene.cameras import Camera
 from jaxdistill.errors import InputError
 from jaxdistill.render.gather_plan import GatherPlan, TexelSpace
 from jaxdistill.render.sampler import expand, render
-from jaxdistill.scene import Mesh
+from jaxdistill.scene.model import Mesh
 
 log = logging.getLogger(__name__)
 

@@ -20,9 +20,11 @@ from typing import Sequence
 
 import numpy as np
 
-from jaxdistill import evaluation, export, imageio
-from jaxdistill.cameras import Camera
-from jaxdistill.scene import Mesh
+from jaxdistill.evaluate import ground_truth as evaluation
+from jaxdistill.export import pages as export
+from jaxdistill.io import images as imageio
+from jaxdistill.scene.cameras import Camera
+from jaxdistill.scene.model import Mesh
 
 NO_DATA = np.array([0.25, 0.25, 0.25], np.float32)     # evidence texels without data
 IRRADIANCE_PERCENTILE, IRRADIANCE_TARGET = 99.0, 0.9

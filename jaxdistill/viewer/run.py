@@ -13,10 +13,13 @@ import json
 from pathlib import Path
 import numpy as np
 
-from jaxdistill import MAP_NAMES, checkpoint, evaluation, export, imageio, metrics, run_files
+from jaxdistill import MAP_NAMES
+from jaxdistill.io import checkpoint, images as imageio
+from jaxdistill.evaluate import ground_truth as evaluation, metrics
+from jaxdistill.export import pages as export, run_dir as run_files
 from jaxdistill.errors import InputError
-from jaxdistill.maps import MapChannels
-from jaxdistill.scene import Scene
+from jaxdistill.scene.maps import MapChannels
+from jaxdistill.scene.model import Scene
 
 EVIDENCE_KINDS = ("visibility", "disagreement")
 
@@ -172,7 +175,7 @@ class RunDir:
         """For view `index`, per map, the file-space images (at the photo's size) of the per-view
         estimate, ours (the pages sampled through the view, normals in RGB<->X camera space as
         the estimates have them) and GT (None where the run has none)."""
-        from jaxdistill.cameras import rgbx_camera_rotation
+        from jaxdistill.scene.cameras import rgbx_camera_rotation
         from jaxdistill.render.sampler import sample_pages
 
         view = self.scene.views[index]
@@ -190,7 +193,7 @@ class RunDir:
     def _estimates(self, index: int, shape: tuple[int, int]) -> dict | None:
         doc = self._metrics() or {}
         if doc.get("estimates_folder"):
-            from jaxdistill.model_estimates import read_estimates
+            from jaxdistill.models.estimates import read_estimates
 
             folder = Path(doc["estimates_folder"])
             name = self.scene.views[index].name

@@ -1,7 +1,7 @@
 """Import a Mitsuba 3 scene as a jaxdistill scene with exact per-view ground truth.
 
 Mitsuba 0.5/0.6 files (root `version` below 2, as Bitterli's Rendering Resources ship them) are
-upgraded to Mitsuba 3 first by `jaxdistill.mitsuba_upgrade`; the changes are logged and the
+upgraded to Mitsuba 3 first by `jaxdistill.datasets.mitsuba.upgrade`; the changes are logged and the
 upgraded XML is written to the output folder as `<stem>.mitsuba3.xml`.
 
 `prepare_scene(xml, out_dir, num_views=..., width=..., height=..., spp=...)` does, in order:
@@ -29,7 +29,7 @@ upgraded XML is written to the output folder as `<stem>.mitsuba3.xml`.
    (faces with zero UV area over > 1 % of its surface) and do not overlap (rasterised at
    256^2: < 2 % of covered texels covered twice); otherwise (and always for the tessellated
    analytic shapes) it is re-unwrapped with xatlas, 2-texel padding, for about a 1024^2 page
-   (the rules are those of `jaxdistill.unwrap`). Layout "pages": one page per object.
+   (the rules are those of `jaxdistill.render.unwrap`). Layout "pages": one page per object.
 4. **Views**: seeded random eyes inside the bounding box of the unmasked geometry (shrunk by
    5 %), kept when 26 probe rays mostly hit, none is closer than a clearance (1 % of the scene
    diagonal) and they see >= 3 distinct objects (inside a closed object they see only it);
@@ -77,15 +77,15 @@ from typing import Callable, Sequence
 import numpy as np
 from tqdm.auto import tqdm
 
-from jaxdistill import exposure as exposure_rule
-from jaxdistill import imageio
-from jaxdistill import mitsuba_bridge as mb
-from jaxdistill.cameras import Camera, look_at, rgbx_camera_normals
+from jaxdistill.io import exposure as exposure_rule
+from jaxdistill.io import images as imageio
+from jaxdistill.datasets.mitsuba import bridge as mb
+from jaxdistill.scene.cameras import Camera, look_at, rgbx_camera_normals
 from jaxdistill.errors import InputError, ProblemList
-from jaxdistill.mitsuba_upgrade import needs_upgrade, upgrade
+from jaxdistill.datasets.mitsuba.upgrade import needs_upgrade, upgrade
 from jaxdistill.render import fragments as fr
-from jaxdistill.scene import Mesh, Scene, View, read_scene, write_scene
-from jaxdistill.unwrap import UVDecision, unwrap_object, uv_problem
+from jaxdistill.scene.model import Mesh, Scene, View, read_scene, write_scene
+from jaxdistill.render.unwrap import UVDecision, unwrap_object, uv_problem
 
 log = logging.getLogger(__name__)
 
@@ -490,7 +490,7 @@ def _load_upgraded(xml_path: Path, upgraded_dir):
 def load_source(xml_path, *, up=None, upgraded_dir=None) -> MitsubaSource:
     """Loads a Mitsuba scene XML into SourceObjects; InputError for every problem found.
 
-    A Mitsuba 0.5/0.6 file (root version < 2) is upgraded first (`jaxdistill.mitsuba_upgrade`):
+    A Mitsuba 0.5/0.6 file (root version < 2) is upgraded first (`jaxdistill.datasets.mitsuba.upgrade`):
     the changes are logged, kept in `MitsubaSource.upgrade_changes`, and the upgraded XML is
     written to `upgraded_dir` (when given) for inspection.
     """
@@ -1152,7 +1152,7 @@ def _write_readme(out: Path, source: MitsubaSource, summary: dict, mesh: Mesh) -
     lines = [
         f"# {out.name}: imported from a Mitsuba 3 scene",
         "",
-        f"Source: `{summary['source']['mitsuba']}`, imported by `jaxdistill.mitsuba_import`"
+        f"Source: `{summary['source']['mitsuba']}`, imported by `jaxdistill.datasets.mitsuba.importer`"
         " (`scripts/prepare_scene.py`).",
         "",
         "## Source and licence",

@@ -11,14 +11,15 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from pathlib import Path
 
 import numpy as np
 
-from jaxdistill import align
+from jaxdistill.export.anchor import anchored_texels
 from jaxdistill.errors import InputError
-from jaxdistill.maps import MapChannels, model_to_file
-from jaxdistill.problem import initial_file_values
+from jaxdistill.scene.maps import MapChannels, model_to_file
+from jaxdistill.engine.problem import initial_file_values
 from jaxdistill.render.gather_plan import TexelSpace, space_from_tile_set, tile_set_arrays
 from jaxdistill.render.sampler import expand, push_pull
 
@@ -46,7 +47,7 @@ def as_exported(out_dir, texels: np.ndarray, channels: MapChannels, step: int) -
     if not anchor:
         return texels
     gains = {m: np.asarray(g, np.float64) for m, g in anchor["gains"].items()}
-    return align.anchored_texels(texels, gains, channels)
+    return anchored_texels(texels, gains, channels)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -80,3 +81,16 @@ def read_texel_space(out_dir) -> TexelSpaceFile:
         arrays = {k: data[k] for k in data.files}
     return TexelSpaceFile(space_from_tile_set(arrays), arrays["trust"].astype(np.float32),
                           MapChannels(tuple(str(m) for m in arrays["maps"])), json.loads(str(arrays["config"])))
+
+
+def json_safe(value):
+    """`value` with NumPy scalars as Python numbers and non-finite floats as None (JSON null)."""
+    if isinstance(value, dict):
+        return {k: json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    if isinstance(value, (np.floating, float)):
+        return float(value) if math.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    return value

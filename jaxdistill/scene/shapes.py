@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from jaxdistill.scene import Mesh
+from jaxdistill.scene.model import Mesh
 
 
 def quad_patch(origin, edge_u, edge_v, subdivisions: int = 1):

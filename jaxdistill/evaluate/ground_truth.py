@@ -24,14 +24,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdistill import imageio, metrics
+from jaxdistill.io import images as imageio
+from jaxdistill.evaluate import metrics
 from jaxdistill.errors import InputError, read_json
-from jaxdistill.export import png_pixels
-from jaxdistill.cameras import rgbx_camera_normals, rgbx_camera_rotation
-from jaxdistill.maps import CHANNELS, MapChannels, model_to_file
+from jaxdistill.scene.cameras import rgbx_camera_normals, rgbx_camera_rotation
+from jaxdistill.scene.maps import CHANNELS, MapChannels, model_to_file, png_pixels
 from jaxdistill.render.gather_plan import GatherPlan
 from jaxdistill.render.sampler import render, sample_pages
-from jaxdistill.scene import Scene
+from jaxdistill.scene.model import Scene
 
 GT_FORMAT = "jaxdistill-gt"
 
@@ -131,7 +131,7 @@ def gt_view_maps(gt: GroundTruth, scene: Scene, fragments: Sequence) -> list[dic
 
 def evaluation_masks(gt: GroundTruth | None, scene: Scene, fragments: Sequence) -> list[np.ndarray]:
     """Per view (H, W) bool: hit pixels not on excluded (emitter) objects nor masked by the view's mask."""
-    from jaxdistill.problem import read_mask
+    from jaxdistill.io.view_images import read_mask
 
     excluded = [scene.mesh.object_names.index(o) for o in (gt.exclude_objects if gt else ())]
     masks = []
@@ -146,7 +146,7 @@ def evaluation_masks(gt: GroundTruth | None, scene: Scene, fragments: Sequence) 
 def image_ground_truth(scene: Scene, fragments: Sequence) -> list[dict[str, np.ndarray]] | None:
     """Per view, {map: (H, W, C) file-space GT} from the views' `ground_truth` images (at the
     fragments' size), or None when no view has any. Views without one get {} (no metric)."""
-    from jaxdistill.problem import read_target, resize
+    from jaxdistill.io.view_images import read_target, resize
 
     if not any(v.ground_truth for v in scene.views):
         return None
@@ -253,7 +253,7 @@ def albedo_psnr(pred: Sequence[dict], gt: Sequence[dict], masks: Sequence[np.nda
 
 def read_baseline(scene: Scene, maps: Sequence[str], shapes: Sequence[tuple[int, int]]) -> list[dict] | None:
     """Per view, the scene's target images in file space (the per-view estimates), or None if any is missing."""
-    from jaxdistill.problem import read_target, resize
+    from jaxdistill.io.view_images import read_target, resize
 
     out = []
     for view, (h, w) in zip(scene.views, shapes):
@@ -273,7 +273,7 @@ def targets_are_ground_truth(scene: Scene, maps: Sequence[str]) -> list[str]:
 
 
 def write_renders(folder: Path, names: Sequence[str], views: Sequence[dict], threads: int = 2) -> None:
-    """renders/<map>/<view>.png in the maps' PNG encoding (`export.png_pixels`)."""
+    """renders/<map>/<view>.png in the maps' PNG encoding (`maps.png_pixels`)."""
     def write(job):
         path, name, image = job
         pixels, encode = png_pixels(name, image)

@@ -29,10 +29,10 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxdistill.cameras import quaternion_to_rotation
+from jaxdistill.scene.cameras import quaternion_to_rotation
 from jaxdistill.errors import InputError, ProblemList, read_json
-from jaxdistill.mesh import Mesh, load_mesh
-from jaxdistill.scene_paths import scene_file_path
+from jaxdistill.scene.mesh import Mesh, load_mesh
+from jaxdistill.scene.paths import scene_file_path
 
 CONFIG_FORMAT = "jaxdistill-scene-config"
 CONFIG_VERSION = 1

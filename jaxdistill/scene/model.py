@@ -54,13 +54,13 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from jaxdistill import MAP_NAMES
-from jaxdistill import imageio
-from jaxdistill.cameras import Camera, intrinsics_problems, pose_problems
+from jaxdistill.io import images as imageio
+from jaxdistill.scene.cameras import Camera, intrinsics_problems, pose_problems
 from jaxdistill.errors import InputError, ProblemList, read_json
-from jaxdistill.exposure import MAX_STOPS, scene_exposure
-from jaxdistill.mesh import Mesh, load_mesh, save_mesh  # noqa: F401  (re-exported: the scene's mesh type and I/O)
-from jaxdistill.scene_config import load_objects
-from jaxdistill.scene_paths import scene_json_path_problems
+from jaxdistill.io.exposure import MAX_STOPS, scene_exposure
+from jaxdistill.scene.mesh import Mesh, load_mesh, save_mesh  # noqa: F401  (re-exported: the scene's mesh type and I/O)
+from jaxdistill.scene.objects import load_objects
+from jaxdistill.scene.paths import scene_json_path_problems
 
 log = logging.getLogger(__name__)
 
@@ -147,7 +147,7 @@ def mesh_problems(mesh: Mesh, file: str, problems: ProblemList) -> None:
     bad = ~np.isfinite(uv).all(axis=(1, 2))
     if bad.any():
         problems.add(file, "uv", f"{bad.sum()} faces have NaN/inf UVs (first: face {np.argmax(bad)}; NaN = no "
-                     "texture coordinates): unwrap them with scripts/import_scene.py (or jaxdistill.unwrap.ensure_uvs)")
+                     "texture coordinates): unwrap them with scripts/import_scene.py (or jaxdistill.render.unwrap.ensure_uvs)")
     outside = ((uv < -UV_TOLERANCE) | (uv > 1 + UV_TOLERANCE)).any(axis=(1, 2)) & ~bad
     if outside.any():
         problems.add(file, "uv", f"{outside.sum()} faces have UVs outside [0, 1] (first: face "

@@ -20,7 +20,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdistill import MAP_NAMES
-from jaxdistill.cameras import rgbx_camera_rotation  # noqa: F401  (the step's per-view normal rotation)
 
 CHANNELS = {"albedo": 3, "normal": 3, "roughness": 1, "metallic": 1, "irradiance": 3}
 INITIAL_VALUE = {"albedo": 0.0, "normal": 0.0, "roughness": 1.0, "metallic": -1.0, "irradiance": 0.0}
@@ -83,3 +82,13 @@ def model_to_file(name: str, values) -> np.ndarray:
         length = np.linalg.norm(values, axis=-1, keepdims=True)
         return np.where(length > 1e-6, values / np.maximum(length, 1e-6), 0.0).astype(np.float32)
     return np.clip(0.5 * (values + 1.0), 0.0, 1.0).astype(np.float32)
+
+
+def png_pixels(name: str, page: np.ndarray) -> tuple[np.ndarray, bool]:
+    """(pixels in what write_image expects, encode_srgb) for the PNG of one map page."""
+    page = np.nan_to_num(page, nan=0.0, posinf=1.0, neginf=0.0)
+    if name in ("albedo", "irradiance"):
+        return np.clip(page, 0.0, 1.0), True  # linear, sRGB-encoded by write_image
+    if name == "normal":
+        return np.clip((page + 1.0) * 0.5, 0.0, 1.0), False
+    return np.clip(page, 0.0, 1.0), False  # roughness / metallic: grey values as they are

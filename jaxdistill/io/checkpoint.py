@@ -32,7 +32,7 @@ from etils import epath
 from orbax.checkpoint.path import atomicity_types
 from orbax.checkpoint.path import step as step_lib
 
-from .errors import InputError, ProblemList
+from jaxdistill.errors import InputError, ProblemList
 
 DEFAULT_IGNORE = ("steps", "resume", "ckpt_every", "out_dir")
 _ADVICE = "use the same flags, or a new --out_dir, or drop --resume to start over"

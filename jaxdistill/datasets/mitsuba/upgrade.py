@@ -118,7 +118,7 @@ class Upgrade:
     def to_string(self) -> str:
         """The upgraded XML, with the change list as a comment at its top."""
         root = copy.deepcopy(self.root)
-        note = "\n".join([f" Upgraded by jaxdistill.mitsuba_upgrade from Mitsuba {self.source_version} to "
+        note = "\n".join([f" Upgraded by jaxdistill.datasets.mitsuba.upgrade from Mitsuba {self.source_version} to "
                           f"{TARGET_VERSION}; {len(self.changes)} changes:"]
                          + ["   " + str(c).replace("--", "- -") for c in self.changes]) + "\n"
         root.insert(0, ET.Comment(note))

@@ -11,7 +11,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from jaxdistill import imageio
+from jaxdistill.io import images as imageio
 
 
 def resize(image: np.ndarray, height: int, width: int) -> np.ndarray:

@@ -33,9 +33,10 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from jaxdistill import align as align_lib
-from jaxdistill.config import DistillConfig
-from jaxdistill.maps import MapChannels
+from jaxdistill.engine import gains as align_lib
+from jaxdistill.engine.config import DistillConfig
+from jaxdistill.engine.priors import Prior
+from jaxdistill.scene.maps import MapChannels
 from jaxdistill.render.gather_plan import GatherPlan
 from jaxdistill.render.sampler import render
 
@@ -72,6 +73,15 @@ class StepSettings:
     align_strength: float = DistillConfig.align_strength
     num_train_timesteps: int = 1000
     latent_factor: int = 8
+
+    @classmethod
+    def from_config(cls, config: DistillConfig, channels: MapChannels, height: int, width: int,
+                    num_train_timesteps: int) -> "StepSettings":
+        """The step's settings: every field the config shares by name, plus the problem's shapes and
+        the prior's number of diffusion timesteps (`Prior.num_train_timesteps`)."""
+        shared = {f.name: getattr(config, f.name) for f in dataclasses.fields(cls) if hasattr(config, f.name)}
+        return cls(channels=channels, height=height, width=width, total_steps=config.steps,
+                   num_train_timesteps=num_train_timesteps, **shared)
 
 
 def learning_rate(lr: float, schedule: str = "constant", total_steps: int = 1):
@@ -164,7 +174,7 @@ def weighted_square_error(features: dict, targets: dict, weights, sample_weights
     return sum(terms.values()), terms
 
 
-def make_step(prior, settings: StepSettings, optimizer: optax.GradientTransformation,
+def make_step(prior: Prior, settings: StepSettings, optimizer: optax.GradientTransformation,
               align_optimizer: optax.GradientTransformation | None = None) -> Callable:
     """The pure step: (state, batch, frozen) → (state, metrics). Not jitted (see `jit_step`).
 

@@ -23,10 +23,10 @@ import numpy as np
 from absl import logging
 from tqdm.auto import tqdm
 
-from jaxdistill import imageio
+from jaxdistill.io import images as imageio
 from jaxdistill.models import prior as rgbx
 from jaxdistill.render.fragments import default_cache_dir
-from jaxdistill.view_images import read_target, resize
+from jaxdistill.io.view_images import read_target, resize
 
 ESTIMATE_STEPS = 50          # the authors' demo
 BATCH = 16                   # views per sampling call

@@ -19,15 +19,35 @@ Two priors:
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import Any, Protocol
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdistill.maps import GREY_MAPS, MapChannels
+from jaxdistill.scene.maps import GREY_MAPS, MapChannels
 from jaxdistill.models import scheduler as sched
 from jaxdistill.models.prior import Guidance, RgbxPrior as LoadedPrior, TextEmbedding, encode_photo, predict_x0
+
+
+class Prior(Protocol):
+    """What the step needs of a prior (`ViewsPrior`, `RgbxPrior`); see the module docstring."""
+
+    name: str
+    latent_space: bool
+
+    @property
+    def num_train_timesteps(self) -> int:
+        """T: timesteps are drawn from [0, T - 1] (the diffusion schedule's length)."""
+
+    def view_data(self, view_ids) -> dict[str, np.ndarray]:
+        """Host arrays for a batch of views (the step's batch["prior"])."""
+
+    def features(self, frozen, images: dict, key) -> dict:
+        """The differentiated quantity the loss compares: the renders, or their latents."""
+
+    def targets(self, frozen, features: dict, data: dict, t, key) -> dict:
+        """x_pred per map (forward only, under stop_gradient)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -38,6 +58,10 @@ class ViewsPrior:
     target_images: np.ndarray = dataclasses.field(hash=False, compare=False)
     name: str = "views"
     latent_space: bool = False
+
+    @property
+    def num_train_timesteps(self) -> int:
+        return 1000           # t is drawn (and reported as t_mean) but unused by the targets
 
     def view_data(self, view_ids) -> dict[str, np.ndarray]:
         return {"target": self.target_images[np.asarray(view_ids)]}
@@ -67,6 +91,10 @@ class RgbxPrior:
     sample_latent: bool = False
     latent_space: bool = False
     name: str = "rgbx"
+
+    @property
+    def num_train_timesteps(self) -> int:
+        return self.scheduler.num_train_timesteps
 
     def view_data(self, view_ids) -> dict[str, np.ndarray]:
         return {"photo_latent": self.photo_latents[np.asarray(view_ids)]}

@@ -67,9 +67,9 @@ from typing import Sequence
 import numpy as np
 from tqdm.auto import tqdm
 
-from jaxdistill.cameras import Camera
+from jaxdistill.scene.cameras import Camera
 from jaxdistill.errors import InputError, ProblemList
-from jaxdistill.scene import Mesh
+from jaxdistill.scene.model import Mesh
 
 log = logging.getLogger(__name__)
 

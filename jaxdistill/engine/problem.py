@@ -19,20 +19,20 @@ import numpy as np
 from absl import logging
 from tqdm.auto import tqdm
 
-from jaxdistill import imageio
-from jaxdistill.cameras import Camera
-from jaxdistill.config import RGBX_DIR_ENV, DistillConfig, rgbx_dir
+from jaxdistill.io import images as imageio
+from jaxdistill.scene.cameras import Camera
+from jaxdistill.engine.config import RGBX_DIR_ENV, DistillConfig, rgbx_dir
 from jaxdistill.errors import InputError, ProblemList
-from jaxdistill.cameras import rgbx_camera_rotation
-from jaxdistill.maps import INITIAL_VALUE, MapChannels, file_to_model
+from jaxdistill.scene.cameras import rgbx_camera_rotation
+from jaxdistill.scene.maps import INITIAL_VALUE, MapChannels, file_to_model
 from jaxdistill.render import fragments as fr
 from jaxdistill.render.gather_plan import TexelSpace, build_gather_plans, build_texel_space
 from jaxdistill.render.layout import make_layout
 from jaxdistill.render.visibility import (check_coverage, hit_fractions, pixel_weights, texel_evidence,
                                          view_counts)
-from jaxdistill.scene import Scene
-from jaxdistill.scene_paths import resolve_scene_path  # noqa: F401  (--scene as a path; scripts use it from here)
-from jaxdistill.view_images import read_mask, read_target, resize
+from jaxdistill.scene.model import Scene
+from jaxdistill.scene.paths import resolve_scene_path  # noqa: F401  (--scene as a path; scripts use it from here)
+from jaxdistill.io.view_images import read_mask, read_target, resize
 
 def rgbx_hint() -> str:
     """How to obtain the RGB<->X weights, and their licence."""
@@ -182,7 +182,7 @@ def read_view_targets(scene: Scene, maps: Sequence[str], height: int, width: int
 
 
 def _views_prior(scene, channels, height, width):
-    from jaxdistill.priors import ViewsPrior
+    from jaxdistill.engine.priors import ViewsPrior
 
     return ViewsPrior(channels=channels, target_images=read_view_targets(scene, channels.maps, height, width)), {}
 
@@ -192,7 +192,7 @@ def _rgbx_prior(config: DistillConfig, choice: PriorChoice, scene, channels, hei
 
     from jaxdistill.models import convert
     from jaxdistill.models import prior as rgbx
-    from jaxdistill.priors import make_rgbx_prior
+    from jaxdistill.engine.priors import make_rgbx_prior
 
     dtype = {"float32": jnp.float32, "bfloat16": jnp.bfloat16}[config.prior_dtype]
     loaded = convert.load_rgbx(choice.folder, dtype=dtype, cache_dir=config.convert_cache)

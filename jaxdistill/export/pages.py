@@ -26,10 +26,11 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from jaxdistill import MAP_NAMES
-from jaxdistill import imageio
-from jaxdistill.cameras import Camera, to_opengl
+from jaxdistill.io import images as imageio
+from jaxdistill.scene.cameras import Camera, to_opengl
+from jaxdistill.scene.maps import png_pixels
 from jaxdistill.render.sampler import compact
-from jaxdistill.scene import Mesh
+from jaxdistill.scene.model import Mesh
 
 MAP_CHANNELS = {"albedo": 3, "normal": 3, "roughness": 1, "metallic": 1, "irradiance": 3}
 FLAT_NORMAL = np.array([0.5, 0.5, 1.0], np.float32)  # tangent-space (0, 0, 1) encoded (t + 1) / 2
@@ -114,16 +115,6 @@ def page_names(object_names: Sequence[str], object_page: Sequence[int]) -> list[
         used.add(name)
         names.append(name)
     return names
-
-
-def png_pixels(name: str, page: np.ndarray) -> tuple[np.ndarray, bool]:
-    """(pixels in what write_image expects, encode_srgb) for the PNG of one map page."""
-    page = np.nan_to_num(page, nan=0.0, posinf=1.0, neginf=0.0)
-    if name in ("albedo", "irradiance"):
-        return np.clip(page, 0.0, 1.0), True  # linear, sRGB-encoded by write_image
-    if name == "normal":
-        return np.clip((page + 1.0) * 0.5, 0.0, 1.0), False
-    return np.clip(page, 0.0, 1.0), False  # roughness / metallic: grey values as they are
 
 
 def page_file(root, name: str, stems: Sequence[str], page: int, suffix: str) -> Path:

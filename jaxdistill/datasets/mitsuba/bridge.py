@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from jaxdistill.cameras import Camera
+from jaxdistill.scene.cameras import Camera
 
 VARIANT = "scalar_rgb"
 SQUARE_PIXEL_TOLERANCE = 1e-6

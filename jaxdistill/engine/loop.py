@@ -1,0 +1,262 @@
+"""The step loop: the state set up (or restored), steps run with checkpoints, stopped cleanly.
+
+`run_loop` is the middle of the main job (`jaxdistill.pipeline.run`). The loop is thin: view ids
+for a step are a function of (seed, step); the host assembles that batch while the device runs
+the previous step (JAX dispatch is asynchronous); metrics are fetched every --log_every steps,
+before an evaluation and before a checkpoint.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+from pathlib import Path
+from typing import Callable
+
+import jax
+import numpy as np
+from absl import logging
+from tqdm.auto import tqdm
+
+from jaxdistill.engine.config import DistillConfig, resumable_flags
+from jaxdistill.engine.problem import Problem
+from jaxdistill.engine.step import (DistillState, StepSettings, data_mesh, init_state, initial_align, initial_reused,
+                                    jit_step, make_optimizer, make_step)
+from jaxdistill.errors import InputError
+from jaxdistill.io import checkpoint
+
+
+class NonFiniteLoss(RuntimeError):
+    """The loss or gradient became NaN/inf; the last good state was checkpointed."""
+
+
+def step_settings(config: DistillConfig, problem: Problem) -> StepSettings:
+    """The step's static settings for this problem (`StepSettings.from_config`)."""
+    return StepSettings.from_config(config, problem.channels, problem.height, problem.width,
+                                    problem.prior.num_train_timesteps)
+
+
+def batch_views(problem: Problem, config: DistillConfig, step: int) -> np.ndarray:
+    """The views of `step`: a function of (seed, step // reuse_steps), so the steps that reuse one
+    x_pred see the views it was computed for, and a resumed run samples the same."""
+    return problem.view_ids(step // config.reuse_steps, config.views_per_step, config.seed)
+
+
+def _history_path(out: Path) -> Path:
+    return out / "checkpoints" / "history.json"
+
+
+# flags added after checkpoints were first written, at the values that keep the earlier
+# behaviour: a checkpoint that does not record them resumes when the run leaves them so
+ADDED_FLAG_DEFAULTS = {"reuse_steps": 1, "align": "none", "align_strength": DistillConfig.align_strength}
+
+
+def recorded_config(config: DistillConfig, prior_kind: str) -> dict:
+    """The flags saved with a checkpoint, plus the prior --prior=auto resolved to."""
+    return {**config.as_dict(), "prior_kind": prior_kind}
+
+
+def _save(store, state, recorded: dict, history: dict, out: Path) -> None:
+    step = int(jax.device_get(state.step))
+    store.save(step, state, recorded)
+    _history_path(out).write_text(json.dumps(history))
+
+
+def check_before_compute(config: DistillConfig, out: Path, choice) -> int | None:
+    """Flag problems found without any compute: the RGB<->X folder (layout, in_channels, every
+    weights file's header), device split, --resume (the checkpoint must read back), an existing
+    run. Returns the checkpoint step to resume from (None for a fresh run)."""
+    if choice.kind == "rgbx":
+        from jaxdistill.models import convert
+
+        convert.check_rgbx_folder(choice.folder, "--rgbx_dir")
+    devices = jax.devices()
+    if config.views_per_step % len(devices):
+        raise InputError.single("flags", "--views_per_step", f"{config.views_per_step} does not split over "
+                                f"{len(devices)} devices; use a multiple of {len(devices)}")
+    if choice.kind == "views" and config.loss_space == "latent":
+        raise InputError.single("flags", "--loss_space", "latent needs the rgbx prior, but the views prior was "
+                                f"chosen ({choice.reason}); use --loss_space=image or give --rgbx_dir")
+    directory = out / "checkpoints"
+    if not config.resume:
+        if directory.exists():
+            steps = checkpoint.CheckpointStore(directory).latest_step()
+            if steps is not None:
+                raise InputError.single("flags", "--out_dir", f"{out} already holds a run (checkpoint at step {steps})"
+                                        "; pass --resume to continue it, or choose another --out_dir")
+        return None
+    with checkpoint.CheckpointStore(directory) as store:
+        latest = _readable_checkpoint(store)
+        if latest is None:
+            raise InputError.single("flags", "--resume", f"no complete checkpoint in {directory}; "
+                                    "run without --resume to start")
+        checkpoint.check_compatible(store.read_config(latest), recorded_config(config, choice.kind), directory,
+                                    ignore=resumable_flags(config), defaults=ADDED_FLAG_DEFAULTS)
+    if latest > config.steps:
+        raise InputError.single("flags", "--steps", f"{config.steps} is below the checkpoint's step {latest} in "
+                                f"{directory}; give --steps >= {latest}")
+    return latest
+
+
+def _readable_checkpoint(store: checkpoint.CheckpointStore) -> int | None:
+    """The newest complete checkpoint whose files read back, or None when there is none. Newer
+    ones that do not read (damaged after their commit) are moved aside with a warning; when
+    none reads, InputError naming each step folder and how to start fresh."""
+    steps = store.all_steps()
+    damaged = []
+    for step in reversed(steps):
+        reason = store.damage(step)
+        if reason is None:
+            for bad, why in damaged:
+                moved = store.set_aside(bad)
+                logging.warning("%s: checkpoint of step %d is damaged (%s); moved it to %s and resuming from the "
+                                "previous committed step %d", store.directory / str(bad), bad, why, moved, step)
+            return step
+        damaged.append((step, reason))
+    if damaged:
+        raise InputError([(str(store.directory / str(step)), f"step {step}", f"checkpoint is damaged ({why})")
+                          for step, why in damaged] + [
+            (str(store.directory), "--resume", "no committed checkpoint reads back, so there is nothing to resume; to "
+             f"start fresh, move {store.directory} away (or choose another --out_dir) and run without --resume")])
+    return None
+
+
+@dataclasses.dataclass
+class LoopResult:
+    """Where the loop ended: the state, the loss history, the step it started from, its time, how
+    often the step was traced, and the signal that stopped it early (None when it finished)."""
+
+    state: DistillState
+    history: dict
+    start_step: int
+    seconds: float
+    traces: int
+    stopped_by: str | None = None
+    exit_status: int | None = None
+
+
+class _Checkpoints:
+    """The run's checkpoint store with what each save records beside the state."""
+
+    def __init__(self, config: DistillConfig, out: Path, recorded: dict):
+        self.out, self.recorded = out, recorded
+        self.store = checkpoint.CheckpointStore(out / "checkpoints", max_to_keep=config.keep_checkpoints or None)
+
+    def save(self, state, history: dict) -> None:
+        _save(self.store, state, self.recorded, history, self.out)
+
+    def restore(self, step: int, state) -> tuple[DistillState, dict]:
+        """The state of checkpoint `step` and the history up to it (empty history when none was saved)."""
+        state, _ = self.store.restore(step, state)
+        history = _empty_history()
+        if _history_path(self.out).is_file():
+            history = json.loads(_history_path(self.out).read_text())
+            for key, at in (("loss", "step"), ("albedo_psnr", "eval_step")):
+                keep = [i for i, s in enumerate(history[at]) if s <= step]
+                history[key] = [history[key][i] for i in keep]
+                history[at] = [history[at][i] for i in keep]
+        logging.info("resumed from step %d in %s", step, self.out / "checkpoints")
+        return state, history
+
+
+def _empty_history() -> dict:
+    return {"step": [], "loss": [], "eval_step": [], "albedo_psnr": []}
+
+
+def run_loop(config: DistillConfig, problem: Problem, recorded: dict, latest: int | None, *,
+             evaluate: Callable[[DistillState], float] | None = None, progress: bool = True) -> LoopResult:
+    """Steps from `latest` (a checkpoint step, None for a fresh run) to --steps, checkpointing every
+    --ckpt_every steps and at the end; `evaluate(state)` (albedo PSNR) every --eval_every steps.
+    SIGINT/SIGTERM stop it after the current step with a checkpoint (`LoopResult.stopped_by`)."""
+    mesh = data_mesh(jax.devices())
+    optimizer = make_optimizer(config.lr, config.weight_decay, config.lr_schedule, config.steps)
+    align_optimizer = (make_optimizer(config.lr, 0.0, config.lr_schedule, config.steps) if config.align == "gain"
+                       else None)
+    settings = step_settings(config, problem)
+    first = problem.batch(batch_views(problem, config, 0))
+    texels = problem.initial_texels()
+    state = init_state(texels, optimizer, config.seed,
+                       initial_reused(problem.prior, settings, texels, first, problem.frozen),
+                       initial_align(problem.num_views, problem.channels, align_optimizer))
+    checkpoints = _Checkpoints(config, Path(config.out_dir), recorded)
+    history = _empty_history()
+    if latest is not None:
+        state, history = checkpoints.restore(latest, state)
+    step_fn, traces = jit_step(make_step(problem.prior, settings, optimizer, align_optimizer), mesh, first, state,
+                               problem.frozen)
+    replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
+    by_view = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("data"))
+    state = jax.device_put(state, replicated)
+    frozen = jax.device_put(problem.frozen, replicated)
+
+    start_step = int(jax.device_get(state.step))
+    pending = []           # (step, metrics on device) not yet fetched
+    stopped_by = None
+    loop_start = time.perf_counter()
+    with checkpoint.StopSignals() as stop, tqdm(total=config.steps, initial=start_step, unit="step", desc="distil",
+                                                dynamic_ncols=True, disable=not progress,
+                                                smoothing=0) as bar:   # steps run asynchronously: average rate
+        for step in range(start_step, config.steps):
+            batch = jax.device_put(problem.batch(batch_views(problem, config, step)), by_view)
+            state, step_metrics = step_fn(state, batch, frozen)
+            pending.append((step, step_metrics))
+            done = step + 1
+            evaluating = bool(config.eval_every and done % config.eval_every == 0 and evaluate is not None)
+            saving = bool(config.ckpt_every and done % config.ckpt_every == 0 and done < config.steps)
+            if done % config.log_every == 0 or done == config.steps or stop.requested or evaluating or saving:
+                _drain(pending, history, bar, state, checkpoints)   # the history matches an eval or a checkpoint
+            traces.check(1)
+            bar.update()
+            if evaluating:
+                history["eval_step"].append(done)
+                history["albedo_psnr"].append(evaluate(state))
+                _show(bar, history)
+            if saving:
+                checkpoints.save(state, history)
+            if stop.requested:
+                stopped_by = stop.signal_name
+                break
+        _drain(pending, history, bar, state, checkpoints)
+    seconds = time.perf_counter() - loop_start
+    checkpoints.save(state, history)
+    checkpoints.store.close()
+    result = LoopResult(state, history, start_step, seconds, traces.traces)
+    if stopped_by:
+        logging.warning("stopped by %s at step %d; checkpoint saved. Continue with the same flags and --resume. "
+                        "Exiting with status %d (128 + signal number): the run did not finish.",
+                        stopped_by, int(jax.device_get(state.step)), stop.exit_status)
+        result = dataclasses.replace(result, stopped_by=stopped_by, exit_status=stop.exit_status)
+    return result
+
+
+def _drain(pending: list, history: dict, bar, state, checkpoints: _Checkpoints) -> None:
+    """Fetches pending step metrics into the history; stops the run on a non-finite step."""
+    fetched = jax.device_get([m for _, m in pending])
+    for (step, _), values in zip(pending, fetched):
+        if not values["finite"]:
+            checkpoints.save(state, history)
+            checkpoints.store.close()
+            raise NonFiniteLoss(
+                f"the loss or its gradient became NaN/inf at step {step}; the state before that step is saved in "
+                f"{checkpoints.out / 'checkpoints'} (step {step}). Try a smaller --lr, --prior_dtype=float32, or "
+                "check the photos and targets for NaN/inf; resume with --resume.")
+        history["step"].append(step + 1)
+        history["loss"].append(float(values["loss"]))
+    pending.clear()
+    if fetched:
+        bar.t_mean = float(fetched[-1]["t_mean"])
+        _show(bar, history)
+
+
+def _show(bar, history: dict) -> None:
+    """The progress bar's postfix: last loss and mean t, and the last eval's albedo PSNR (--eval_every)."""
+    shown = {}
+    if history["loss"]:
+        shown["loss"] = f"{history['loss'][-1]:.4g}"
+    if getattr(bar, "t_mean", None) is not None:
+        shown["t"] = f"{bar.t_mean:.0f}"
+    if history["albedo_psnr"] and math.isfinite(history["albedo_psnr"][-1]):
+        shown["albedo_psnr"] = f"{history['albedo_psnr'][-1]:.2f}dB@{history['eval_step'][-1]}"
+    bar.set_postfix(shown, refresh=False)

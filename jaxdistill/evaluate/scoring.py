@@ -1,0 +1,122 @@
+"""Scoring a run: the views at the photos' native size, their ground truth and masks (built
+once), the per-view estimates a run is compared with, and the scores of a set of renders."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from jaxdistill.engine.config import DistillConfig
+from jaxdistill.engine.problem import Problem
+from jaxdistill.evaluate import ground_truth as evaluation, metrics
+from jaxdistill.models import estimates as model_estimates
+from jaxdistill.render.gather_plan import GatherPlan, build_gather_plans
+
+
+@dataclasses.dataclass(frozen=True)
+class EvalContext:
+    """Native-resolution fragments, cameras, GT maps and masks, plans and seams, built once."""
+
+    gt: object
+    fragments: list
+    cameras: list
+    gt_maps: list | None
+    masks: list
+    plan: GatherPlan
+    seams: list
+
+
+def training_plan(problem: Problem) -> GatherPlan:
+    """The gather plans of all views at the render size the run trains at."""
+    return GatherPlan(index=problem.plan_index, weight=problem.plan_weight, hit=problem.plan_hit,
+                      chain=problem.frozen["chain"], height=problem.height, width=problem.width)
+
+
+def evaluation_context(config: DistillConfig, problem: Problem) -> EvalContext:
+    """What evaluating at the photos' native size needs, built once: plans at native size (the
+    training plans when the run renders at native size), GT maps and masks (None without GT)."""
+    scene = problem.scene
+    cameras = [v.camera for v in scene.views]
+    native = all((c.height, c.width) == (problem.height, problem.width) for c in cameras)
+    frags = problem.native_fragments
+    plan = training_plan(problem) if native else build_gather_plans(frags, problem.space, config.sampler)
+    gt, gt_maps = evaluation.view_ground_truth(scene, frags)
+    masks = evaluation.evaluation_masks(gt, scene, frags)
+    owner = evaluation.dominant_views(problem.plan_index, problem.plan_weight, problem.space.pyramid_size)
+    seams = [metrics.seam_pairs(region, f.object_id, m)
+             for region, f, m in zip(evaluation.seam_regions(plan, frags, owner), frags, masks)]
+    return EvalContext(gt, frags, cameras, gt_maps, masks, plan, seams)
+
+
+def quick_psnr(state, problem: Problem, ctx: EvalContext) -> float:
+    """Albedo PSNR (dB, sRGB, masked) of the state's renders against GT at native size; NaN
+    when albedo is not distilled."""
+    if "albedo" not in problem.channels.maps:
+        return math.nan
+    texels = np.asarray(jax.device_get(state.texels))
+    pred = evaluation.render_views(texels, ctx.plan, ctx.cameras, problem.channels)
+    return evaluation.albedo_psnr(pred, ctx.gt_maps, ctx.masks)
+
+
+@dataclasses.dataclass(frozen=True)
+class Baseline:
+    """The per-view estimates a run is scored against (and anchored to): per view {map: (H, W, C)
+    file-space image} at the evaluation size, where they come from, and the cache folder of the
+    model's estimates (None for the views prior's targets)."""
+
+    views: list[dict] | None
+    source: str
+    folder: Path | None = None
+
+
+def per_view_baseline(config: DistillConfig, problem: Problem, shapes: list[tuple[int, int]]) -> Baseline:
+    """The rgbx prior's baseline is the model's own per-view estimates (computed once, cached);
+    the views prior's is the scene's per-view targets (None when the scene has none)."""
+    scene, channels = problem.scene, problem.channels
+    if problem.rgbx_model is None:
+        return Baseline(evaluation.read_baseline(scene, channels.maps, shapes), "the scene's per-view target images")
+    folder = model_estimates.cached_estimates(
+        problem.rgbx_model, [(v.name, v.photo, v.exposure) for v in scene.views], channels.maps, problem.height,
+        problem.width, dtype=config.prior_dtype, seed=config.seed)
+    views = model_estimates.read_estimates(folder, [v.name for v in scene.views], channels.maps, shapes)
+    return Baseline(views, f"the model's own per-view estimates ({model_estimates.ESTIMATE_STEPS} DDIM steps, "
+                    f"{folder})", folder)
+
+
+def improvement(ours: dict, baseline: dict) -> dict:
+    """ours - baseline for every metric both have (positive is better for PSNR/SSIM, worse for errors)."""
+    return {k: ours[k] - baseline[k] for k in ours if k in baseline and k != "num_views" and not k.endswith("_gt")}
+
+
+def score(pred: list[dict], problem: Problem, ctx: EvalContext, baseline: Baseline) -> dict:
+    """metrics.json's scores: `ours` (and the baseline's, and their difference) against the scene's
+    ground truth, with a note where there is nothing to score."""
+    channels = problem.channels
+    if ctx.gt_maps is None:
+        return {"ours": None, "note": ("the scene has no ground truth (neither gt.json in jaxdistill-gt format nor "
+                                       "views' ground_truth images): no metrics against GT")}
+    result = {}
+    covered = sorted({m for per_view in ctx.gt_maps for m in per_view} & set(channels.maps))
+    if not covered:
+        result["note"] = (f"the scene's ground truth covers none of the distilled maps ({', '.join(channels.maps)})"
+                          ": no metrics against GT")
+    with ThreadPoolExecutor(2) as pool:          # the metrics are NumPy: two threads, two cores
+        ours = pool.submit(evaluation.evaluate, pred, ctx.gt_maps, ctx.masks, ctx.seams)
+        base = (pool.submit(evaluation.evaluate, baseline.views, ctx.gt_maps, ctx.masks, ctx.seams)
+                if baseline.views else None)
+        result["ours"] = ours.result()
+        if base is not None:
+            result["baseline_per_view_estimates"] = base.result()
+            result["baseline_source"] = baseline.source
+            result["improvement"] = improvement(result["ours"], result["baseline_per_view_estimates"])
+            same = ([] if problem.rgbx_model is not None
+                    else evaluation.targets_are_ground_truth(problem.scene, channels.maps))
+            if same:
+                result["baseline_note"] = (f"the per-view targets of {', '.join(same)} are the ground truth "
+                                           "files: their baseline is GT scored against itself")
+    return result

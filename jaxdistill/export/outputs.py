@@ -1,0 +1,119 @@
+"""A finished run's files: maps/ and scene.glb, renders/, evidence/, loss.png, contact sheets."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from jaxdistill import MAP_NAMES
+from jaxdistill.engine.config import DistillConfig
+from jaxdistill.engine.problem import Problem
+from jaxdistill.evaluate import ground_truth as evaluation
+from jaxdistill.evaluate import scoring
+from jaxdistill.evaluate.scoring import Baseline, EvalContext, training_plan
+from jaxdistill.export import pages as export, run_dir as run_files
+from jaxdistill.io import images as imageio
+from jaxdistill.io.view_images import resize
+from jaxdistill.render.sampler import expand
+from jaxdistill.render.visibility import texel_view_statistics
+from jaxdistill.scene.cameras import rgbx_camera_rotation
+
+
+def texel_trust(problem: Problem) -> np.ndarray:
+    """(N,) float32 in [0, 1]: how far each texel's distilled value is kept in the exported pages
+    (`export.texel_trust`: its evidence, inside its object's UV charts)."""
+    coverage = export.chart_coverage(problem.scene.mesh, problem.space.layout.object_page,
+                                     problem.space.layout.page_sizes)
+    return export.texel_trust(problem.evidence, coverage, problem.space)
+
+
+def write_map_files(out: Path, problem: Problem, texels: np.ndarray, trust: np.ndarray) -> list[Path]:
+    """maps/ (one map at a time: full float pages of all maps at once would be 20 GiB at 30 pages
+    of 4096²) and scene.glb with the views as cameras; returns the map files written."""
+    scene, channels, space = problem.scene, problem.channels, problem.space
+    written, layers = [], {}
+    for m in [m for m in MAP_NAMES if m in channels.maps]:
+        pages = run_files.map_pages(m, texels, channels, space, trust)
+        written += export.write_maps(out, {m: pages}, scene.mesh.object_names, space.layout.object_page)
+        layer = export.material_layers(m, pages, scene.mesh, space.layout.object_page)
+        if layer is not None:
+            layers[m] = layer
+        del pages
+    export.write_gltf_images(out / "scene.glb", scene.mesh, space.layout.object_page,
+                             export.combine_material_layers(layers, space.layout.num_pages),
+                             [(v.name, v.camera) for v in scene.views])
+    return written
+
+
+def write_evidence(out: Path, problem: Problem, ctx: EvalContext, baseline: list[dict] | None) -> list[Path]:
+    """evidence/: per texel the view count V of the training plans (`visibility`) and, for each
+    map with per-view estimates, how much they disagree (`disagreement_<map>`: RMS deviation of
+    the views' values from their mean, in file space, normals in world space; NaN where fewer
+    than two views see the texel), both as the fusion sees them: through the training plans, the
+    estimates at the render size. Where the fusion had little or conflicting evidence."""
+    space, channels = problem.space, problem.channels
+    pages = {"visibility": expand(problem.counts.astype(np.float32)[:, None], space, 0.0, dilation=0)}
+    if baseline:
+        maps = list(channels.maps)
+        images = []
+        for camera, per_view in zip(ctx.cameras, baseline):
+            parts = {m: resize(per_view[m], problem.height, problem.width) for m in maps}
+            if "normal" in parts:           # estimates are in RGB<->X camera space; texels are world space
+                parts["normal"] = parts["normal"] @ rgbx_camera_rotation(camera.c2w).T.astype(np.float32)
+            images.append(np.concatenate([parts[m] for m in maps], axis=-1))
+        count, _, variance = texel_view_statistics(training_plan(problem), images, space.num_texels)
+        for m in maps:
+            spread = np.sqrt(variance[:, channels.slice(m)].sum(axis=1))
+            spread = np.where(count >= 2, spread, np.nan).astype(np.float32)
+            pages[f"disagreement_{m}"] = expand(spread[:, None], space, np.nan, dilation=0)
+    return export.write_evidence(out, pages, problem.scene.mesh.object_names, space.layout.object_page)
+
+
+def write_contact_sheets(out: Path, config: DistillConfig, problem: Problem, pred: list[dict], ctx: EvalContext,
+                         baseline: list[dict] | None) -> None:
+    """contact_<map>.png: photo, per-view estimate, ours and GT for --contact_views evenly spaced views."""
+    scene = problem.scene
+    names = [v.name for v in scene.views]
+    picks = np.linspace(0, len(names) - 1, min(config.contact_views, len(names))).round().astype(int)
+    if not len(picks):
+        return
+    photos = [imageio.read_photo_srgb(scene.views[i].photo, scene.views[i].exposure) for i in picks]
+    for m in problem.channels.maps:
+        rows = []
+        for j, i in enumerate(picks):
+            gt = ctx.gt_maps[i][m] if ctx.gt_maps is not None and m in ctx.gt_maps[i] else None
+            rows.append([photos[j], evaluation.display_image(m, baseline[i][m]) if baseline else None,
+                         evaluation.display_image(m, pred[i][m]),
+                         evaluation.display_image(m, gt) if gt is not None else None])
+        export.write_contact_sheet(out / f"contact_{m}.png", rows, ["photo", "per-view estimate", "ours", "GT"],
+                                   [names[i] for i in picks])
+
+
+def write_loss_plot(out: Path, problem: Problem, history: dict) -> None:
+    """loss.png: the loss over the steps run (and the albedo PSNR of --eval_every)."""
+    if not history["step"]:
+        return
+    extra = {"albedo PSNR (dB)": (history["eval_step"], history["albedo_psnr"])} if history["eval_step"] else None
+    export.write_loss_plot(out / "loss.png", history["step"], history["loss"], extra=extra,
+                           title=f"{problem.scene.name}: {problem.choice.kind} prior, {len(problem.channels.maps)} maps")
+
+
+def write_outputs(config: DistillConfig, problem: Problem, texels: np.ndarray, history: dict,
+                  ctx: EvalContext, trust: np.ndarray, baseline: Baseline) -> dict:
+    """maps/, scene.glb, renders/, evidence/, loss.png, contact sheets; returns the metrics part
+    of metrics.json. trust: (N,) each texel's weight in the exported pages (`texel_trust`);
+    baseline: what the run is scored against (`scoring.per_view_baseline`)."""
+    out = Path(config.out_dir)
+    written = write_map_files(out, problem, texels, trust)
+    pred = evaluation.render_views(texels, ctx.plan, ctx.cameras, problem.channels)
+    if config.renders:
+        evaluation.write_renders(out / "renders", [v.name for v in problem.scene.views], pred)
+    result = {"estimates_folder": str(baseline.folder)} if baseline.folder is not None else {}
+    written += write_evidence(out, problem, ctx, baseline.views)
+    result["maps_written"] = [str(p.relative_to(out)) for p in written]
+    result.update(scoring.score(pred, problem, ctx, baseline))
+    write_loss_plot(out, problem, history)
+    write_contact_sheets(out, config, problem, pred, ctx, baseline.views)
+    result["history"] = history
+    return result

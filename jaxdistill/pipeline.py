@@ -1,0 +1,94 @@
+"""The main job, read top to bottom: check the inputs → build the problem → run the step loop →
+score against the per-view estimates and ground truth → anchor → write the outputs.
+
+`run(config)` is what `python -m jaxdistill.main` (and `jaxdistill distill`) calls; each stage is
+a function of a lower layer (`engine`, `evaluate`, `export`), so experiments and benchmarks call
+the same pieces instead of copying the loop.
+"""
+
+from __future__ import annotations
+
+import json
+import resource
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+from absl import logging
+
+from jaxdistill.engine import gains as align_lib
+from jaxdistill.engine.config import DistillConfig, check_views_per_step
+from jaxdistill.engine import loop as loop_lib
+from jaxdistill.engine.problem import build_problem, choose_prior
+from jaxdistill.evaluate import ground_truth as evaluation, scoring
+from jaxdistill.evaluate.summary import summary_table
+from jaxdistill.export import anchor as anchor_lib, run_dir as run_files
+from jaxdistill.export.outputs import texel_trust, write_outputs
+from jaxdistill.export.run_dir import json_safe
+from jaxdistill.models.shipped import model_info
+
+
+def run(config: DistillConfig, *, progress: bool = True) -> dict:
+    """Runs the distillation described by `config`; returns the metrics written to metrics.json
+    (or, when a signal stopped the loop, where it stopped)."""
+    wall_start = time.perf_counter()
+    out = Path(config.out_dir)
+    latest = loop_lib.check_before_compute(config, out, choose_prior(config))
+    problem = build_problem(config, check_scene=lambda scene: (
+        check_views_per_step(config, len(scene.views), config.scene), evaluation.read_ground_truth(scene)))
+    recorded = loop_lib.recorded_config(config, problem.choice.kind)
+    banner = f"PRIOR: {problem.choice.kind.upper()} -- {problem.choice.reason}"
+    logging.warning("%s\n%s\n%s", "=" * len(banner), banner, "=" * len(banner))
+
+    out.mkdir(parents=True, exist_ok=True)
+    trust = texel_trust(problem)                   # once: the texel space file and the exported pages
+    run_files.write_texel_space(out, problem.space, trust, problem.channels.maps, json_safe(recorded))
+    ctx = scoring.evaluation_context(config, problem)
+    evaluate = (lambda state: scoring.quick_psnr(state, problem, ctx)) if ctx.gt_maps is not None else None
+    loop = loop_lib.run_loop(config, problem, recorded, latest, evaluate=evaluate, progress=progress)
+    if loop.stopped_by:
+        return {"stopped_by": loop.stopped_by, "step": int(jax.device_get(loop.state.step)),
+                "exit_status": loop.exit_status}
+
+    texels = np.asarray(jax.device_get(loop.state.texels))
+    baseline = scoring.per_view_baseline(config, problem, [f.shape for f in ctx.fragments])
+    texels, anchor = anchor_lib.anchor_to_baseline(config, problem, texels, ctx, baseline)
+    summary = write_outputs(config, problem, texels, loop.history, ctx, trust, baseline)
+    summary.update(run_record(config, problem, loop, wall_start))
+    summary["anchor"] = anchor
+    if loop.state.align is not None:          # the learned per-view gains (geometric mean 1 per channel)
+        gains = np.exp(np.asarray(jax.device_get(align_lib.centred(loop.state.align["log_gains"]))))
+        summary["align"] = {"maps": list(align_lib.aligned_maps(problem.channels)),
+                            "gains": {v.name: g.round(4).tolist() for v, g in zip(problem.scene.views, gains)}}
+    (out / "metrics.json").write_text(json.dumps(json_safe(summary), indent=1))
+    logging.info("wrote %s", out / "metrics.json")
+    print(summary_table(json_safe(summary), out), flush=True)
+    return summary
+
+
+def run_record(config: DistillConfig, problem, loop, wall_start: float) -> dict:
+    """metrics.json's account of the run: steps, times, prior, device, memory, size, the flags."""
+    devices = jax.devices()
+    steps_run = config.steps - loop.start_step
+    return {
+        "steps": config.steps, "steps_this_run": steps_run,
+        "resumed_from": loop.start_step if config.resume else None,
+        "wall_seconds": time.perf_counter() - wall_start, "loop_seconds": loop.seconds,
+        "seconds_per_step": loop.seconds / max(steps_run, 1), "setup_timings": problem.timings,
+        "prior": {"kind": problem.choice.kind, "reason": problem.choice.reason, "folder": problem.choice.folder,
+                  "model": model_info(problem.choice.folder) if problem.choice.folder else None},
+        "device": {"backend": jax.default_backend(), "devices": [str(d) for d in devices],
+                   "kind": devices[0].device_kind},
+        "peak_host_memory_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+        "peak_device_memory_mb": _peak_device_memory_mb(devices),
+        "parameters": {"texels": problem.space.num_texels, "channels": problem.channels.num_channels,
+                       "page_sizes": list(problem.space.layout.page_sizes)},
+        "traces": loop.traces, "config": loop_lib.recorded_config(config, problem.choice.kind),
+    }
+
+
+def _peak_device_memory_mb(devices) -> float | None:
+    stats = [d.memory_stats() for d in devices if hasattr(d, "memory_stats")]
+    peaks = [s.get("peak_bytes_in_use") for s in stats if s]
+    return max(peaks) / 2 ** 20 if peaks and all(p is not None for p in peaks) else None
