@@ -16,6 +16,7 @@ from typing import Any
 from absl import flags
 
 from jaxdistill import MAP_NAMES
+from jaxdistill.engine.photo import PHOTO_LOSSES, PHOTO_SCALES, PHOTO_SPACES
 from jaxdistill.errors import InputError, ProblemList
 from jaxdistill.render.gather_plan import SAMPLERS
 
@@ -64,6 +65,12 @@ class DistillConfig:
     align: str = "none"
     align_strength: float = 0.01
     anchor: str = "auto"
+    photo_weight: float = 0.0
+    photo_size: int = 0
+    photo_space: str = "log"
+    photo_loss: str = "charbonnier"
+    photo_scale: str = "batch"
+    irradiance_smoothness: float = 0.0
     render_size: int = 0
     texture_size: str = "auto"
     max_texture_size: int = 4096
@@ -136,6 +143,21 @@ def define_flags(fv: flags.FlagValues = flags.FLAGS, *, main_module: bool = Fals
                       "the per-view estimates': the model's own with the rgbx prior, the scene's targets with views), "
                       "none (as distilled), or auto: estimates with the rgbx prior, none with views (a fusion already "
                       "has its targets' scale)", **where)
+    flags.DEFINE_float("photo_weight", d.photo_weight, "weight of the re-rendering term: every view's photo rendered "
+                       "back from the texels as albedo x irradiance and compared with the photo (0: off, the "
+                       "prior alone)", **where)
+    flags.DEFINE_integer("photo_size", d.photo_size, "longer side in pixels at which the photos are re-rendered; "
+                         "0 = the photos' own size", **where)
+    flags.DEFINE_enum("photo_space", d.photo_space, PHOTO_SPACES, "where photo and re-rendering are compared: log "
+                      "(relative errors) or linear", **where)
+    flags.DEFINE_enum("photo_loss", d.photo_loss, PHOTO_LOSSES, "penalty of the re-rendering residual: charbonnier "
+                      "(robust to highlights and noise) or l2", **where)
+    flags.DEFINE_enum("photo_scale", d.photo_scale, PHOTO_SCALES, "the photos' scale against albedo x irradiance: "
+                      "fitted per batch, per view (auto-exposed captures) or none (irradiance in the exposed "
+                      "photo's units)", **where)
+    flags.DEFINE_float("irradiance_smoothness", d.irradiance_smoothness, "weight of a penalty on log-irradiance "
+                       "differences between neighbouring pixels of the re-rendered photos (with --photo_weight > 0)",
+                       **where)
     flags.DEFINE_integer("reuse_steps", d.reuse_steps, "rgbx prior: take K AdamW steps on the same views towards "
                          "one x_pred before the prior runs again (1 = a new x_pred every step, the thesis; K > 1 costs "
                          "1/K of the prior per step, like Instruct-NeRF2NeRF's iterative dataset update)", **where)
@@ -218,6 +240,18 @@ def validate(config: DistillConfig) -> DistillConfig:
         bad("align", "per-view gains scale images, but --loss_space=latent compares latents; use --loss_space=image")
     if c.align != "none" and not {"albedo", "irradiance"} & set(c.maps):
         bad("align", "aligns the albedo and irradiance maps, and --maps has neither; use --align=none")
+    if not c.photo_weight >= 0:
+        bad("photo_weight", f"must be >= 0, got {c.photo_weight}")
+    elif c.photo_weight > 0 and not {"albedo", "irradiance"} <= set(c.maps):
+        missing = " and ".join(m for m in ("albedo", "irradiance") if m not in c.maps)
+        bad("photo_weight", f"re-renders the photos as albedo x irradiance, and --maps lacks {missing}; add it, or "
+            "use --photo_weight=0")
+    elif c.photo_weight > 0 and c.loss_space == "latent":
+        bad("photo_weight", "the re-rendering term is an image-space loss; use --loss_space=image")
+    if c.photo_size < 0 or (c.photo_size and c.photo_size < 8):
+        bad("photo_size", f"must be 0 (the photos' size) or >= 8, got {c.photo_size}")
+    if not c.irradiance_smoothness >= 0:
+        bad("irradiance_smoothness", f"must be >= 0, got {c.irradiance_smoothness}")
     if c.reuse_steps < 1:
         bad("reuse_steps", f"must be >= 1, got {c.reuse_steps}")
     elif c.reuse_steps > 1 and c.prior == "views":

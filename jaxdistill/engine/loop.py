@@ -35,7 +35,7 @@ class NonFiniteLoss(RuntimeError):
 def step_settings(config: DistillConfig, problem: Problem) -> StepSettings:
     """The step's static settings for this problem (`StepSettings.from_config`)."""
     return StepSettings.from_config(config, problem.channels, problem.height, problem.width,
-                                    problem.prior.num_train_timesteps)
+                                    problem.prior.num_train_timesteps, problem.photo_shape)
 
 
 def batch_views(problem: Problem, config: DistillConfig, step: int) -> np.ndarray:
@@ -50,7 +50,10 @@ def _history_path(out: Path) -> Path:
 
 # flags added after checkpoints were first written, at the values that keep the earlier
 # behaviour: a checkpoint that does not record them resumes when the run leaves them so
-ADDED_FLAG_DEFAULTS = {"reuse_steps": 1, "align": "none", "align_strength": DistillConfig.align_strength}
+ADDED_FLAG_DEFAULTS = {"reuse_steps": 1, "align": "none", "align_strength": DistillConfig.align_strength,
+                       "photo_weight": 0.0, "photo_size": 0, "photo_space": DistillConfig.photo_space,
+                       "photo_loss": DistillConfig.photo_loss, "photo_scale": DistillConfig.photo_scale,
+                       "irradiance_smoothness": 0.0}
 
 
 def recorded_config(config: DistillConfig, prior_kind: str) -> dict:

@@ -32,7 +32,7 @@ from jaxdistill.render.visibility import (check_coverage, hit_fractions, pixel_w
                                          view_counts)
 from jaxdistill.scene.model import Scene
 from jaxdistill.scene.paths import resolve_scene_path  # noqa: F401  (--scene as a path; scripts use it from here)
-from jaxdistill.io.view_images import read_mask, read_target, resize
+from jaxdistill.io.view_images import read_mask, read_photo_linear, read_target, resize
 
 def rgbx_hint() -> str:
     """How to obtain the RGB<->X weights, and their licence."""
@@ -81,21 +81,21 @@ def choose_prior(config: DistillConfig) -> PriorChoice:
 
 # ----------------------------------------------------------------------------- view resampling
 
-def render_shape(scene: Scene, render_size: int, multiple: int = 1) -> tuple[int, int]:
+def render_shape(scene: Scene, render_size: int, multiple: int = 1, flag: str = "--render_size") -> tuple[int, int]:
     """(height, width) every view is rendered at: the photos' size, or longer side = render_size
-    (the shorter side rounded to `multiple`). All views must agree."""
+    (the shorter side rounded to `multiple`). All views must agree. `flag` names the setting."""
     sizes = {(v.camera.height, v.camera.width) for v in scene.views}
     if render_size == 0:
         if len(sizes) > 1:
-            raise InputError.single("flags", "--render_size", f"the views have different sizes {sorted(sizes)}; "
-                                    "set --render_size to render them all at one size")
+            raise InputError.single("flags", flag, f"the views have different sizes {sorted(sizes)}; "
+                                    f"set {flag} to render them all at one size")
         h, w = sizes.pop()
         if h % multiple or w % multiple:
-            raise InputError.single("flags", "--render_size", f"the photos are {w}x{h}, not multiples of {multiple} "
-                                    "(the rgbx prior's VAE needs that); set --render_size")
+            raise InputError.single("flags", flag, f"the photos are {w}x{h}, not multiples of {multiple} "
+                                    f"(the rgbx prior's VAE needs that); set {flag}")
         return h, w
     if render_size % multiple:
-        raise InputError.single("flags", "--render_size", f"{render_size} is not a multiple of {multiple} "
+        raise InputError.single("flags", flag, f"{render_size} is not a multiple of {multiple} "
                                 "(the rgbx prior's VAE needs that)")
     h, w = max(sizes, key=lambda s: s[0] * s[1])
     scale = render_size / max(h, w)
@@ -112,6 +112,26 @@ def scaled_camera(camera: Camera, height: int, width: int) -> Camera:
 
 
 # ----------------------------------------------------------------------------- the problem
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class PhotoData:
+    """What the re-rendering term needs (`photo.py`), per view at (height, width): gather plans
+    index (V, P, T) int32, weight (V, P, T) float32, hit (V, P) bool; photos (V, H, W, 3) float32
+    linear and exposed; pixel_weight (V, H, W) float32: the visibility weights times the view's
+    mask times the photo's usable pixels."""
+
+    height: int
+    width: int
+    index: np.ndarray
+    weight: np.ndarray
+    hit: np.ndarray
+    photos: np.ndarray
+    pixel_weight: np.ndarray
+
+    def batch(self, ids: np.ndarray) -> dict:
+        return {"photo_index": self.index[ids], "photo_tap_weight": self.weight[ids], "photo_hit": self.hit[ids],
+                "photo": self.photos[ids], "photo_pixel_weight": self.pixel_weight[ids]}
+
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class Problem:
@@ -142,6 +162,7 @@ class Problem:
     normal_rotation: np.ndarray
     timings: dict
     rgbx_model: Any = None            # the loaded RgbxPrior (rgbx prior only): per-view estimates use it
+    photos: PhotoData | None = None   # --photo_weight > 0: the re-rendering term's plans and photos
 
     @property
     def num_views(self) -> int:
@@ -153,9 +174,17 @@ class Problem:
     def batch(self, view_ids) -> dict:
         """Host arrays of one step for `view_ids` (B,)."""
         ids = np.asarray(view_ids)
-        return {"index": self.plan_index[ids], "weight": self.plan_weight[ids], "hit": self.plan_hit[ids],
-                "pixel_weight": self.pixel_weight[ids], "normal_rotation": self.normal_rotation[ids],
-                "view": ids.astype(np.int32), "prior": self.prior.view_data(ids)}
+        batch = {"index": self.plan_index[ids], "weight": self.plan_weight[ids], "hit": self.plan_hit[ids],
+                 "pixel_weight": self.pixel_weight[ids], "normal_rotation": self.normal_rotation[ids],
+                 "view": ids.astype(np.int32), "prior": self.prior.view_data(ids)}
+        if self.photos is not None:
+            batch.update(self.photos.batch(ids))
+        return batch
+
+    @property
+    def photo_shape(self) -> tuple[int, int]:
+        """(height, width) of the re-rendered photos; (0, 0) without the re-rendering term."""
+        return (self.photos.height, self.photos.width) if self.photos is not None else (0, 0)
 
     def view_ids(self, step: int, batch_size: int, seed: int) -> np.ndarray:
         """The views of `step`: a function of (seed, step) only, so a resumed run samples the same."""
@@ -270,6 +299,7 @@ def _build_problem(config: DistillConfig, *, cache_dir=None, check_scene=None) -
     native = all((v.camera.height, v.camera.width) == (height, width) for v in scene.views)
     native_frags = frags if native else fr.compute_fragments(scene.mesh, [v.camera for v in scene.views],
                                                              cache_dir=cache_dir)
+    photo_frags = _photo_fragments(config, scene, (height, width), frags, native_frags, cache_dir)
     timings["fragments_s"] = time.perf_counter() - t0
     scene_file = os.fspath(scene.root / "scene.json") if scene.root and (scene.root / "scene.json").is_file() \
         else config.scene
@@ -278,10 +308,14 @@ def _build_problem(config: DistillConfig, *, cache_dir=None, check_scene=None) -
     t0 = time.perf_counter()
     trilinear = config.sampler == "trilinear"
     size = config.texture_size if config.texture_size == "auto" else int(config.texture_size)
-    layout = make_layout(scene.num_objects, scene.texture_layout, size, frags, max_size=config.max_texture_size,
-                         mipmaps=trilinear)
+    # pages resolve what the finest fragments the loss sees resolve: the photos' with the re-rendering term
+    layout = make_layout(scene.num_objects, scene.texture_layout, size, photo_frags or frags,
+                         max_size=config.max_texture_size, mipmaps=trilinear)
     # evaluation renders at the photos' size: its texels must exist too (they get no gradient)
-    space = build_texel_space(frags if native else list(frags) + list(native_frags), layout, config.sampler)
+    seen = list(frags) + ([] if native else list(native_frags))
+    if photo_frags is not None and photo_frags is not frags and photo_frags is not native_frags:
+        seen += list(photo_frags)
+    space = build_texel_space(frags if len(seen) == len(frags) else seen, layout, config.sampler)
     check_state_fits(space.num_texels, channels.num_channels, config, layout.full_size())
     plan = build_gather_plans(frags, space, config.sampler)
     counts = view_counts(plan, space.num_texels)
@@ -290,11 +324,10 @@ def _build_problem(config: DistillConfig, *, cache_dir=None, check_scene=None) -
         weights = np.asarray(pixel_weights(plan, counts), np.float32)
     else:
         weights = np.asarray(plan.hit, np.float32).reshape(len(frags), height, width)
-    if any(view.mask is not None for view in scene.views):   # emitters, anonymised faces, unfilled pixels
-        weights = np.array(weights)                            # writable (a device array's view is not)
-        for v, view in enumerate(scene.views):
-            if view.mask is not None:
-                weights[v] *= read_mask(view.mask, height, width)
+    weights = _masked(weights, scene, height, width)
+    photos = None
+    if photo_frags is not None:
+        photos = _photo_data(config, scene, photo_frags, space, counts)
     timings["plans_s"] = time.perf_counter() - t0
     logging.info("texels: %d parameters x %d channels (%s pages, %.1fx fewer than full pages), %d observed",
                  space.num_texels, channels.num_channels, list(layout.page_sizes),
@@ -314,7 +347,50 @@ def _build_problem(config: DistillConfig, *, cache_dir=None, check_scene=None) -
                    fragments=frags, native_fragments=native_frags, height=height, width=width, plan_index=np.asarray(plan.index),
                    plan_weight=np.asarray(plan.weight), plan_hit=np.asarray(plan.hit), pixel_weight=weights,
                    counts=counts, evidence=evidence, normal_rotation=rotations, timings=timings,
-                   rgbx_model=model)
+                   rgbx_model=model, photos=photos)
+
+
+def _masked(weights, scene: Scene, height: int, width: int) -> np.ndarray:
+    """(V, H, W) pixel weights times each view's mask (emitters, anonymised faces, unfilled pixels)."""
+    if all(view.mask is None for view in scene.views):
+        return weights
+    weights = np.array(weights)                            # writable (a device array's view is not)
+    for v, view in enumerate(scene.views):
+        if view.mask is not None:
+            weights[v] *= read_mask(view.mask, height, width)
+    return weights
+
+
+def _photo_fragments(config: DistillConfig, scene: Scene, render: tuple[int, int], frags, native_frags,
+                     cache_dir) -> list | None:
+    """The fragments the re-rendering term renders the photos at (--photo_size), or None when
+    --photo_weight is 0. Reuses the render-size or native fragments when the size is theirs."""
+    if config.photo_weight <= 0:
+        return None
+    shape = render_shape(scene, config.photo_size, flag="--photo_size")
+    if shape == render:
+        return frags
+    if all((v.camera.height, v.camera.width) == shape for v in scene.views):
+        return native_frags
+    return fr.compute_fragments(scene.mesh, [scaled_camera(v.camera, *shape) for v in scene.views],
+                                cache_dir=cache_dir)
+
+
+def _photo_data(config: DistillConfig, scene: Scene, photo_frags, space: TexelSpace, counts) -> PhotoData:
+    """The re-rendering term's plans, photos and pixel weights (`PhotoData`), at the photo fragments' size."""
+    plan = build_gather_plans(photo_frags, space, config.sampler)
+    height, width = plan.height, plan.width
+    if config.visibility_weighting:
+        weights = np.asarray(pixel_weights(plan, counts), np.float32)
+    else:
+        weights = np.asarray(plan.hit, np.float32).reshape(len(photo_frags), height, width)
+    weights = np.array(_masked(weights, scene, height, width))
+    photos = np.zeros((len(scene.views), height, width, 3), np.float32)
+    for v, view in enumerate(tqdm(scene.views, desc="photos", unit="view", dynamic_ncols=True)):
+        photos[v], usable = read_photo_linear(view.photo, view.exposure, height, width)
+        weights[v] *= usable
+    return PhotoData(height=height, width=width, index=np.asarray(plan.index), weight=np.asarray(plan.weight),
+                     hit=np.asarray(plan.hit), photos=photos, pixel_weight=weights)
 
 
 def initial_file_values(maps: Sequence[str]) -> dict[str, float]:

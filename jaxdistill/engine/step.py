@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from jaxdistill.engine import gains as align_lib
+from jaxdistill.engine import gains as align_lib, photo as photo_lib
 from jaxdistill.engine.config import DistillConfig
 from jaxdistill.engine.priors import Prior
 from jaxdistill.scene.maps import MapChannels
@@ -73,15 +73,24 @@ class StepSettings:
     align_strength: float = DistillConfig.align_strength
     num_train_timesteps: int = 1000
     latent_factor: int = 8
+    photo_weight: float = 0.0          # the re-rendering term (photo.py); 0: off, nothing of it is traced
+    photo_space: str = DistillConfig.photo_space
+    photo_loss: str = DistillConfig.photo_loss
+    photo_scale: str = DistillConfig.photo_scale
+    irradiance_smoothness: float = 0.0
+    photo_height: int = 0
+    photo_width: int = 0
 
     @classmethod
     def from_config(cls, config: DistillConfig, channels: MapChannels, height: int, width: int,
-                    num_train_timesteps: int) -> "StepSettings":
-        """The step's settings: every field the config shares by name, plus the problem's shapes and
-        the prior's number of diffusion timesteps (`Prior.num_train_timesteps`)."""
+                    num_train_timesteps: int, photo_shape: tuple[int, int] = (0, 0)) -> "StepSettings":
+        """The step's settings: every field the config shares by name, plus the problem's shapes
+        (renders; photos for the re-rendering term) and the prior's number of diffusion timesteps
+        (`Prior.num_train_timesteps`)."""
         shared = {f.name: getattr(config, f.name) for f in dataclasses.fields(cls) if hasattr(config, f.name)}
         return cls(channels=channels, height=height, width=width, total_steps=config.steps,
-                   num_train_timesteps=num_train_timesteps, **shared)
+                   num_train_timesteps=num_train_timesteps, photo_height=photo_shape[0], photo_width=photo_shape[1],
+                   **shared)
 
 
 def learning_rate(lr: float, schedule: str = "constant", total_steps: int = 1):
@@ -223,6 +232,12 @@ def make_step(prior: Prior, settings: StepSettings, optimizer: optax.GradientTra
         (loss, terms), (grad_features, grad_gains) = jax.value_and_grad(objective, argnums=(0, 1), has_aux=True)(
             features, log_gains)
         (grad,) = pullback(grad_features)
+        photo_metrics = {}
+        if settings.photo_weight > 0:       # the photos re-rendered from the texels (photo.py)
+            (photo_value, photo_metrics), photo_grad = jax.value_and_grad(
+                _photo_fn(settings, batch, frozen), has_aux=True)(state.texels)
+            loss = loss + settings.photo_weight * photo_value
+            grad = grad + settings.photo_weight * photo_grad
         updates, opt_state = optimizer.update(grad, state.opt_state, state.texels)
         texels = optax.apply_updates(state.texels, updates)
         finite = jnp.isfinite(loss) & jnp.all(jnp.isfinite(grad)) & jnp.all(jnp.isfinite(grad_gains))
@@ -241,7 +256,7 @@ def make_step(prior: Prior, settings: StepSettings, optimizer: optax.GradientTra
                                          else state.reused), align=new_align)
         per_map = {f"loss_{m}": term for m, term in terms.items()}
         metrics = {"loss": loss, "finite": ok.astype(jnp.int32), "grad_norm": optax.tree.norm(grad),
-                   "t_mean": jnp.mean(t.astype(jnp.float32)), **per_map}
+                   "t_mean": jnp.mean(t.astype(jnp.float32)), **per_map, **photo_metrics}
         if aligned:
             metrics["gain_spread"] = jnp.std(align_lib.centred(new_align["log_gains"]))
         return new_state, metrics
@@ -259,6 +274,23 @@ def _features_fn(prior, settings: StepSettings, batch: dict, frozen: dict, key) 
         return prior.features(frozen["prior"], images, key)
 
     return features_of
+
+
+def _photo_fn(settings: StepSettings, batch: dict, frozen: dict) -> Callable:
+    """texels → (L_photo, metrics) of the batch's photos (`photo.photo_loss`), rendered through
+    the photo-sized gather plans."""
+    plan = GatherPlan(index=batch["photo_index"], weight=batch["photo_tap_weight"], hit=batch["photo_hit"],
+                      chain=frozen["chain"], height=settings.photo_height, width=settings.photo_width)
+    hit = batch["photo_hit"].reshape(-1, settings.photo_height, settings.photo_width)
+    ratio = settings.height * settings.width / (settings.photo_height * settings.photo_width)
+
+    def photo_of(texels):
+        images = settings.channels.split(render(texels, plan))
+        return photo_lib.photo_loss(images, batch["photo"], batch["photo_pixel_weight"], hit,
+                                    loss=settings.photo_loss, space=settings.photo_space, scale=settings.photo_scale,
+                                    pixel_ratio=ratio, smooth=settings.irradiance_smoothness)
+
+    return photo_of
 
 
 def initial_reused(prior, settings: StepSettings, texels, batch: dict, frozen: dict) -> Any:

@@ -37,3 +37,23 @@ def read_mask(path: Path, height: int, width: int) -> np.ndarray:
     """(height, width) bool: True where the view's mask image (first channel, resampled) is >= 0.5."""
     values = imageio.read_image(path, linear=False)[..., :1]
     return resize(values, height, width)[..., 0] >= 0.5
+
+
+CLIPPED_LDR = 254.5 / 255.0   # an 8-bit channel at 255 (or a float LDR value this high) is clipped
+
+
+def read_photo_linear(path: Path, exposure: float, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """((height, width, 3) float32 linear photo x 2**exposure, negatives clamped to 0; (height,
+    width) float32 1 where the pixel is usable, 0 where it is not): LDR files (PNG/JPG, sRGB-encoded)
+    are decoded with the inverse sRGB curve and their clipped pixels (any channel at 255) dropped,
+    with every resampled pixel that a clipped one touches; HDR files are used as they are."""
+    values = imageio.read_image(path, linear=False)[..., :3]
+    if imageio.is_linear_format(path):
+        linear = values
+        valid = np.ones(values.shape[:2], np.float32)
+    else:
+        linear = imageio.srgb_to_linear(values)
+        valid = np.all(values < CLIPPED_LDR, axis=-1).astype(np.float32)
+    linear = np.maximum(np.nan_to_num(linear, nan=0.0, posinf=0.0), 0.0) * np.float32(2.0 ** exposure)
+    valid = resize(valid[..., None], height, width)[..., 0] >= 1.0 - 1e-4
+    return resize(linear.astype(np.float32), height, width), valid.astype(np.float32)

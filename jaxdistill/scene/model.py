@@ -73,6 +73,7 @@ MAX_NOTES = 10                          # note lines logged; the rest are counte
 NOTE_DETAILS = 5                        # images named per note line
 EXPOSURE_NOTE_STOPS = 1.0              # HDR photos without exposure: warn when the rule is this far from 0
 NEGATIVE_NOISE = 1e-3                   # photo negatives above -this x its 99th percentile: noise (info only)
+MIN_LIT_FRACTION = 0.5                  # a photo needs at least this share of its finite pixels above zero
 
 
 @dataclasses.dataclass(frozen=True)
@@ -229,6 +230,11 @@ def image_problems(path: Path, field: str, cam: Camera | None, file: str, proble
     except OSError as err:
         problems.add(file, field, f"{err}; re-export or re-download it")
         return
+    if role == "photo":
+        dark = dark_photo_problem(pixels[..., :3])
+        if dark:
+            problems.add(file, field, f"{path} {dark}")
+            return
     if not imageio.is_linear_format(path):
         return
     bad = ~np.isfinite(pixels)
@@ -247,6 +253,22 @@ def image_problems(path: Path, field: str, cam: Camera | None, file: str, proble
                        "2**exposure clipped to [0, 1]")
             notes.append(Note(file, field, message, f"{Path(path).name}: {int(negative.sum())}, min {low:.3g}",
                               logging.INFO if noise else logging.WARNING))
+
+
+def dark_photo_problem(rgb: np.ndarray) -> str | None:
+    """What is wrong with a photo that cannot be the evidence of a room (no pixel above zero, or
+    most of its finite pixels zero or negative), or None. The re-rendering term and the prior's
+    condition both read the photo, so such a file is refused rather than clamped."""
+    finite = np.isfinite(rgb).all(axis=-1)
+    lit = finite & (np.where(finite[..., None], rgb, 0.0).max(axis=-1) > 0)
+    if not lit.any():
+        return "has no pixel above zero (all black, or all negative): it shows nothing; re-export or re-render it"
+    share = lit.sum() / max(int(finite.sum()), 1)
+    if share < MIN_LIT_FRACTION:
+        return (f"has only {100 * share:.0f}% of its pixels above zero (at least {100 * MIN_LIT_FRACTION:.0f}% "
+                "expected): mostly black or negative, it is not a usable photo; check its exposure and encoding, or "
+                "mask what is missing with the view's mask")
+    return None
 
 
 def log_notes(notes: Sequence[Note]) -> None:

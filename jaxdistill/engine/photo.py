@@ -1,0 +1,133 @@
+"""The re-rendering term: each photo rendered back from the texels and compared with the photo.
+
+On a diffuse surface the exposed linear photo is albedo x irradiance (irradiance = E/pi, the
+map's own units), so the photo fixes the product of the two maps pixel by pixel at the photos'
+resolution, finer than the prior's renders, while the prior (SDS on both maps) decides the split
+between them. Per view b and pixel p of the photo-sized gather plan (`--photo_size`):
+
+    d = a ⊙ E,  a = (x_albedo + 1) / 2,  E = (x_irradiance + 1) / 2   (file space, linear light)
+    r = log(photo + eps) − log(s·d + eps)   (--photo_space=log; linear: photo − s·d)
+    L_photo = (1/B) Σ_b (H·W / (Hp·Wp)) Σ_p W_bp (1 − m_bp) Σ_c ρ(r_bpc)
+
+with W the visibility weights and masks the SDS term uses (at the photo size), times the photo's
+valid pixels (clipped LDR pixels dropped), m the metallic map (held fixed here: a metal's
+colour comes from reflections, not from albedo x irradiance, so metal pixels drop out instead of
+pulling metallic towards 0), ρ the Charbonnier penalty sqrt(r² + δ²) − δ (robust to the
+highlights and the path-tracing noise no diffuse product explains) or the square, and s the
+photo's scale against the maps: the least-squares value given the current maps (held fixed,
+closed form) over the batch, per view (auto-exposed LDR captures), or 1. A free scale leaves the
+maps' overall brightness to the prior, as RGB<->X's irradiance has no absolute unit. The factor
+H·W / (Hp·Wp) gives one photo the pixel budget of one map of the prior's renders, so
+--photo_weight=1 weighs the photo like one distilled map.
+
+`--irradiance_smoothness` adds λ_s Σ W ρ(Δ log E) over neighbouring covered pixels of the same
+render: the classic prior that shading varies slowly where albedo changes (Retinex), pushing
+texture detail into albedo.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+PHOTO_EPS = 0.01            # log(x + eps): relative errors above eps, absolute below (dark noise)
+CHARBONNIER_DELTA = 0.05    # ρ is quadratic below this residual, linear above
+PHOTO_SPACES = ("log", "linear")
+PHOTO_LOSSES = ("charbonnier", "l2")
+PHOTO_SCALES = ("batch", "view", "none")
+
+
+def penalty(r, loss: str):
+    """ρ(r) elementwise: Charbonnier sqrt(r² + δ²) − δ, or r²."""
+    if loss == "l2":
+        return jnp.square(r)
+    return jnp.sqrt(jnp.square(r) + CHARBONNIER_DELTA ** 2) - CHARBONNIER_DELTA
+
+
+def diffuse_photo(images: dict) -> jax.Array:
+    """(B, H, W, 3) the diffuse image albedo ⊙ irradiance in linear file units, from model-space
+    renders {map: (B, H, W, C)} (values below 0 count as 0)."""
+    albedo = jnp.maximum(0.5 * (images["albedo"] + 1.0), 0.0)
+    irradiance = jnp.maximum(0.5 * (images["irradiance"] + 1.0), 0.0)
+    return albedo * irradiance
+
+
+def pixel_weights(images: dict, weights) -> jax.Array:
+    """(B, H, W) the photo term's pixel weights: W times 1 − metallic (held fixed) when metallic
+    is distilled."""
+    if "metallic" not in images:
+        return weights
+    metal = jnp.clip(0.5 * (jax.lax.stop_gradient(images["metallic"][..., 0]) + 1.0), 0.0, 1.0)
+    return weights * (1.0 - metal)
+
+
+SCALE_ITERATIONS = 4        # fixed-point steps of the log-space scale (each shrinks its error by Σ w·eps/(s·d + eps) / Σ w)
+
+
+def log_scale(photo, rendered, weights, mode: str, space: str) -> jax.Array:
+    """(B, 1, 1, 1) log s, the photo's scale against the rendered image (held fixed): the weighted
+    least-squares value over the batch ("batch") or per view ("view"), or 0 ("none"). In log space
+    it solves Σ w (log(photo + eps) − log(s·d + eps)) = 0 by fixed-point steps from the ratio of
+    the means; in linear space s = Σ w·photo·d / Σ w·d²."""
+    if mode == "none":
+        return jnp.zeros((photo.shape[0], 1, 1, 1), jnp.float32)
+    axes = (1, 2, 3) if mode == "view" else (0, 1, 2, 3)
+    w = jnp.broadcast_to(weights[..., None], photo.shape)
+    if space == "log":
+        total = jnp.maximum(jnp.sum(w, axis=axes, keepdims=True), 1e-12)
+        target = jnp.log(photo + PHOTO_EPS)
+        value = jnp.sum(w * (target - jnp.log(rendered + PHOTO_EPS)), axis=axes, keepdims=True) / total
+        for _ in range(SCALE_ITERATIONS):
+            value = value + jnp.sum(w * (target - jnp.log(jnp.exp(value) * rendered + PHOTO_EPS)), axis=axes,
+                                    keepdims=True) / total
+    else:
+        num = jnp.sum(w * photo * rendered, axis=axes, keepdims=True)
+        den = jnp.sum(w * rendered * rendered, axis=axes, keepdims=True)
+        value = jnp.log(jnp.maximum(num, 1e-12) / jnp.maximum(den, 1e-12))
+    value = jnp.broadcast_to(value, (photo.shape[0], 1, 1, 1))
+    return jax.lax.stop_gradient(value)
+
+
+def residual(photo, rendered, log_s, space: str) -> jax.Array:
+    """(B, H, W, 3) photo − its rendering s·d, in log or linear space (`log_s` the photo's scale)."""
+    if space == "log":
+        return jnp.log(photo + PHOTO_EPS) - jnp.log(jnp.exp(log_s) * rendered + PHOTO_EPS)
+    return photo - jnp.exp(log_s) * rendered
+
+
+def smoothness(irradiance, weights, hit, loss: str) -> jax.Array:
+    """(B,) Σ over horizontally and vertically neighbouring covered pixels of the mean of their
+    weights times ρ(Δ log E), summed over channels (`irradiance` model space)."""
+    log_e = jnp.log(jnp.maximum(0.5 * (irradiance + 1.0), 0.0) + PHOTO_EPS)
+    total = 0.0
+    for axis in (1, 2):
+        n = log_e.shape[axis]
+        first = [slice(None)] * 4
+        second = [slice(None)] * 4
+        first[axis], second[axis] = slice(0, n - 1), slice(1, n)
+        diff = log_e[tuple(second)] - log_e[tuple(first)]
+        pair = (hit[tuple(second[:3])] & hit[tuple(first[:3])]).astype(jnp.float32)
+        w = 0.5 * (weights[tuple(second[:3])] + weights[tuple(first[:3])]) * pair
+        total = total + jnp.sum(w * jnp.sum(penalty(diff, loss), axis=-1), axis=(1, 2))
+    return total
+
+
+def photo_loss(images: dict, photo, weights, hit, *, loss: str, space: str, scale: str, pixel_ratio: float,
+               smooth: float = 0.0) -> tuple[jax.Array, dict]:
+    """(L_photo (+ the smoothness term), metrics) for renders {map: (B, Hp, Wp, C)} of a batch,
+    photos (B, Hp, Wp, 3) linear and exposed, weights (B, Hp, Wp) (visibility x masks x valid),
+    hit (B, Hp, Wp) bool; `pixel_ratio` = H·W / (Hp·Wp) (the module docstring)."""
+    rendered = diffuse_photo(images)
+    w = pixel_weights(images, weights)
+    log_s = log_scale(photo, rendered, w, scale, space)
+    r = residual(photo, rendered, log_s, space)
+    per_view = jnp.sum(w * jnp.sum(penalty(r, loss), axis=-1), axis=(1, 2))
+    batch = photo.shape[0]
+    total = pixel_ratio * jnp.sum(per_view) / batch
+    metrics = {"loss_photo": total, "photo_log_scale": jnp.mean(log_s)}
+    if smooth > 0:
+        term = smooth * pixel_ratio * jnp.sum(smoothness(images["irradiance"], weights, hit, loss)) / batch
+        metrics["loss_smooth"] = term
+        total = total + term
+    return total, metrics
+

@@ -1,0 +1,281 @@
+"""The re-rendering term (engine/photo.py): its value against a NumPy formula, where its gradient
+goes, that --photo_weight=0 is today's step exactly, LDR photos, and photos refused before compute."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxdistill import pipeline
+from jaxdistill.engine import config as config_lib, loop, photo
+from jaxdistill.engine.config import DistillConfig
+from jaxdistill.engine.problem import build_problem
+from jaxdistill.engine.step import StepSettings, _photo_fn, init_state, make_optimizer, make_step
+from jaxdistill.errors import InputError
+from jaxdistill.io import images as imageio
+from jaxdistill.io.view_images import read_photo_linear
+from jaxdistill.scene.maps import MapChannels
+from tiny_scene import write_tiny_scene
+from tolerance import assert_close
+
+
+@pytest.fixture(scope="module")
+def tiny_scene(tmp_path_factory):
+    return write_tiny_scene(tmp_path_factory.mktemp("tiny_photo"))
+
+
+@pytest.fixture(autouse=True)
+def fragment_cache(tmp_path_factory, monkeypatch):
+    monkeypatch.setenv("JAXDISTILL_CACHE", str(tmp_path_factory.getbasetemp() / "fragment_cache"))
+
+
+def tiny_config(scene, out, **kw) -> DistillConfig:
+    base = dict(scene=str(scene), out_dir=str(out), steps=4, views_per_step=2, prior="views", log_every=2,
+                renders=False, contact_views=0, lr=0.05)
+    base.update(kw)
+    return config_lib.validate(DistillConfig(**base))
+
+
+# ----------------------------------------------------------------------------- the formula
+
+
+def numpy_photo_loss(images, photo, weights, *, loss, space, scale, ratio):
+    """The module docstring's L_photo, written out in float64 NumPy."""
+    a = np.maximum(0.5 * (np.asarray(images["albedo"], np.float64) + 1), 0)
+    e = np.maximum(0.5 * (np.asarray(images["irradiance"], np.float64) + 1), 0)
+    d = a * e
+    w = np.asarray(weights, np.float64)
+    if "metallic" in images:
+        w = w * (1 - np.clip(0.5 * (np.asarray(images["metallic"][..., 0], np.float64) + 1), 0, 1))
+    p = np.asarray(photo, np.float64)
+    eps = 0.01
+    total = 0.0
+    groups = [slice(i, i + 1) for i in range(p.shape[0])] if scale == "view" else [slice(None)]
+    for g in groups:
+        ww = np.broadcast_to(w[g][..., None], p[g].shape)
+        if scale == "none":
+            log_s = 0.0
+        elif space == "log":       # the root of Σ w (log(p + eps) − log(s d + eps)) = 0, by bisection
+            lo, hi = -20.0, 20.0
+            for _ in range(80):
+                mid = 0.5 * (lo + hi)
+                f = np.sum(ww * (np.log(p[g] + eps) - np.log(np.exp(mid) * d[g] + eps)))
+                lo, hi = (mid, hi) if f > 0 else (lo, mid)
+            log_s = 0.5 * (lo + hi)
+        else:
+            log_s = np.log(np.sum(ww * p[g] * d[g]) / np.sum(ww * d[g] ** 2))
+        if space == "log":
+            r = np.log(p[g] + eps) - np.log(np.exp(log_s) * d[g] + eps)
+        else:
+            r = p[g] - np.exp(log_s) * d[g]
+        rho = r ** 2 if loss == "l2" else np.sqrt(r ** 2 + 0.05 ** 2) - 0.05
+        total += np.sum(ww * rho)
+    return ratio * total / p.shape[0]
+
+
+@pytest.mark.parametrize("space,loss,scale", [("log", "charbonnier", "batch"), ("linear", "l2", "view"),
+                                              ("log", "l2", "none"), ("linear", "charbonnier", "batch")])
+def test_the_photo_loss_is_the_documented_formula(space, loss, scale):
+    rng = np.random.default_rng(3)
+    b, h, w = 3, 5, 7
+    images = {"albedo": rng.uniform(-1, 1, (b, h, w, 3)), "irradiance": rng.uniform(-1, 1, (b, h, w, 3)),
+              "metallic": rng.uniform(-1, 1, (b, h, w, 1)), "normal": rng.normal(size=(b, h, w, 3))}
+    photo_img = rng.uniform(0, 1.5, (b, h, w, 3))
+    weights = rng.uniform(0, 1, (b, h, w))
+    hit = np.ones((b, h, w), bool)
+    got, metrics = photo.photo_loss({k: jnp.asarray(v, jnp.float32) for k, v in images.items()},
+                                    jnp.asarray(photo_img, jnp.float32), jnp.asarray(weights, jnp.float32),
+                                    jnp.asarray(hit), loss=loss, space=space, scale=scale, pixel_ratio=0.25)
+    want = numpy_photo_loss(images, photo_img, weights, loss=loss, space=space, scale=scale, ratio=0.25)
+    assert_close(float(got), want, rtol=2e-5)
+    assert_close(float(metrics["loss_photo"]), want, rtol=2e-5)
+
+
+def test_a_photo_that_is_the_product_scaled_costs_nothing_with_a_fitted_scale():
+    """photo = 3 x albedo x irradiance exactly: the fitted scale is log 3 and the loss 0."""
+    rng = np.random.default_rng(0)
+    images = {"albedo": jnp.asarray(rng.uniform(-0.8, 0.8, (2, 4, 4, 3)), jnp.float32),
+              "irradiance": jnp.asarray(rng.uniform(-0.8, 0.8, (2, 4, 4, 3)), jnp.float32)}
+    product = photo.diffuse_photo(images)
+    for space in photo.PHOTO_SPACES:
+        value, metrics = photo.photo_loss(images, 3.0 * product, jnp.ones((2, 4, 4)), jnp.ones((2, 4, 4), bool),
+                                          loss="l2", space=space, scale="batch", pixel_ratio=1.0)
+        assert float(value) < 1e-8
+        assert_close(float(metrics["photo_log_scale"]), np.log(3.0), rtol=1e-4)
+
+
+def test_the_smoothness_term_counts_only_pairs_of_covered_pixels():
+    """Δ log E over horizontal and vertical neighbours, weighted by the pair's mean weight, only
+    where both pixels are covered (NumPy reference)."""
+    rng = np.random.default_rng(1)
+    irr = rng.uniform(-1, 1, (2, 4, 5, 3))
+    weights = rng.uniform(0, 1, (2, 4, 5))
+    hit = rng.uniform(size=(2, 4, 5)) > 0.3
+    got = photo.smoothness(jnp.asarray(irr, jnp.float32), jnp.asarray(weights, jnp.float32), jnp.asarray(hit), "l2")
+    log_e = np.log(np.maximum(0.5 * (irr + 1), 0) + 0.01)
+    want = np.zeros(2)
+    for b in range(2):
+        for y in range(4):
+            for x in range(5):
+                for dy, dx in ((0, 1), (1, 0)):
+                    yy, xx = y + dy, x + dx
+                    if yy < 4 and xx < 5 and hit[b, y, x] and hit[b, yy, xx]:
+                        wpair = 0.5 * (weights[b, y, x] + weights[b, yy, xx])
+                        want[b] += wpair * np.sum((log_e[b, yy, xx] - log_e[b, y, x]) ** 2)
+    assert_close(np.asarray(got), want, rtol=2e-5)
+
+
+# ----------------------------------------------------------------------------- in the step
+
+
+def photo_problem(scene, tmp_path, **kw):
+    config = tiny_config(scene, tmp_path / "out", photo_weight=1.0, **kw)
+    return config, build_problem(config)
+
+
+def test_the_gradient_reaches_albedo_and_irradiance_only_where_the_views_see_them(tiny_scene, tmp_path):
+    config, problem = photo_problem(tiny_scene, tmp_path, photo_scale="none")   # a fitted scale is held fixed
+    settings = loop.step_settings(config, problem)
+    ids = np.array([0, 2])
+    batch = problem.batch(ids)
+    rng = np.random.default_rng(0)
+    texels = jnp.asarray(problem.initial_texels() + rng.uniform(-0.3, 0.3, (problem.space.num_texels,
+                                                                              problem.channels.num_channels)),
+                         jnp.float32)
+    (value, _), grad = jax.value_and_grad(_photo_fn(settings, batch, problem.frozen), has_aux=True)(texels)
+    grad = np.asarray(grad)
+    channels = problem.channels
+    moved = np.abs(grad) > 0
+    for m in channels.maps:
+        if m not in ("albedo", "irradiance"):
+            assert not moved[:, channels.slice(m)].any(), f"the photo term moved {m}"
+    # the texels any tap of the batch's photo plans reads with a non-zero weight, at mip level 0
+    # or (trilinear) above it: nothing outside them gets a gradient, and most of them do
+    index = np.asarray(batch["photo_index"]).reshape(-1)
+    tap = (np.asarray(batch["photo_tap_weight"]).reshape(-1) > 0) & np.repeat(
+        np.asarray(batch["photo_hit"]).reshape(-1), batch["photo_index"].shape[-1])
+    read = np.zeros(problem.space.pyramid_size, bool)
+    read[index[tap]] = True
+    level0 = read[:problem.space.num_texels]
+    colour = moved[:, channels.slice("albedo")].any(axis=1) | moved[:, channels.slice("irradiance")].any(axis=1)
+    if problem.space.pyramid_size == problem.space.num_texels:     # bilinear: no mips above level 0
+        assert not (colour & ~level0).any()
+        assert colour[level0].mean() > 0.9
+    # a view outside the batch adds nothing: the gradient of the other two views differs
+    (_, _), other = jax.value_and_grad(_photo_fn(settings, problem.batch(np.array([1, 3])), problem.frozen),
+                                       has_aux=True)(texels)
+    assert not np.allclose(np.asarray(other), grad)
+    # one texel against a central finite difference (a step large enough for float32)
+    t = int(np.argmax(np.abs(grad[:, channels.slice("albedo").start])))
+    c = channels.slice("albedo").start
+    h = 3e-3
+
+    def value_at(delta):
+        moved_texels = texels.at[t, c].add(delta)
+        return float(_photo_fn(settings, batch, problem.frozen)(moved_texels)[0])
+
+    finite_difference = (value_at(h) - value_at(-h)) / (2 * h)
+    assert_close(finite_difference, grad[t, c], rtol=0.05)
+    assert np.isfinite(float(value))
+
+
+def test_photo_weight_zero_is_todays_step_exactly(tiny_scene, tmp_path):
+    """--photo_weight=0 traces the very program today's step traces (the same jaxpr: the same
+    XLA computation, bit for bit), batches carry no photo arrays, and whole runs with the other
+    photo flags changed write identical texels and metrics."""
+    config = tiny_config(tiny_scene, tmp_path / "a")
+    problem = build_problem(config)
+    assert problem.photos is None and problem.photo_shape == (0, 0)
+    batch = problem.batch(np.array([0, 1]))
+    assert not any(k.startswith("photo") for k in batch)
+    before = StepSettings(channels=problem.channels, height=problem.height, width=problem.width,
+                          total_steps=config.steps, t_min=config.t_min, t_max=config.t_max, anneal=config.anneal,
+                          t_weighting=config.t_weighting, p_keep=config.p_keep,
+                          num_train_timesteps=1000, reuse_steps=config.reuse_steps, align=config.align,
+                          align_strength=config.align_strength)       # how the loop built it before the term
+    odd = dataclasses.replace(config, photo_space="linear", photo_loss="l2", photo_scale="none",
+                              irradiance_smoothness=2.0, photo_size=16)
+    now = loop.step_settings(odd, problem)
+    optimizer = make_optimizer(config.lr, 0.0)
+    state = init_state(problem.initial_texels(), optimizer, 0)
+
+    def jaxpr(settings):
+        return str(jax.make_jaxpr(make_step(problem.prior, settings, optimizer))(state, batch, problem.frozen))
+
+    assert jaxpr(now) == jaxpr(before)
+    first = pipeline.run(config, progress=False)
+    second = pipeline.run(dataclasses.replace(odd, out_dir=str(tmp_path / "b")), progress=False)
+    assert first["history"]["loss"] == second["history"]["loss"]
+    assert first["ours"] == second["ours"]
+    a = np.load(tmp_path / "a" / "texel_space.npz")
+    b = np.load(tmp_path / "b" / "texel_space.npz")
+    assert all(np.array_equal(a[k], b[k]) for k in a.files if k != "config")
+
+
+def test_a_run_with_the_term_reports_it_and_moves_the_colour_maps(tiny_scene, tmp_path):
+    summary = pipeline.run(tiny_config(tiny_scene, tmp_path / "on", photo_weight=1.0, irradiance_smoothness=0.1),
+                           progress=False)
+    assert summary["config"]["photo_weight"] == 1.0
+    assert all(np.isfinite(summary["history"]["loss"]))
+
+
+# ----------------------------------------------------------------------------- photos
+
+
+def srgb_decode(v):
+    """IEC 61966-2-1, written independently of the package."""
+    v = np.asarray(v, np.float64)
+    return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
+
+
+def test_an_ldr_photo_is_decoded_and_its_clipped_pixels_dropped(tmp_path):
+    values = np.full((8, 10, 3), 0.5, np.float32)
+    values[2, 3] = [1.0, 0.2, 0.2]                # one clipped channel
+    values[6, 8] = [0.3, 0.3, 0.3]
+    path = tmp_path / "photo.png"
+    imageio.write_image(path, values, encode_srgb=False)
+    stored = imageio.read_image(path, linear=False)
+    linear, usable = read_photo_linear(path, 1.0, 8, 10)
+    assert_close(linear, 2.0 * srgb_decode(stored), rtol=1e-5)
+    assert usable[2, 3] == 0 and usable.sum() == 8 * 10 - 1
+    small, usable_small = read_photo_linear(path, 0.0, 4, 5)
+    rows, cols = np.nonzero(usable_small == 0)       # the pixels whose filter footprint holds it, and only those
+    assert usable_small[1, 1] == 0 and set(rows) <= {0, 1, 2} and set(cols) <= {1, 2} and usable_small.sum() >= 15
+
+
+def test_an_hdr_photo_is_exposed_and_its_negatives_clamped(tmp_path):
+    values = np.full((4, 4, 3), 0.25, np.float32)
+    values[0, 0] = [-0.01, 2.0, 0.5]
+    path = tmp_path / "photo.exr"
+    imageio.write_image(path, values)
+    linear, usable = read_photo_linear(path, -1.0, 4, 4)
+    assert_close(linear[0, 0], [0.0, 1.0, 0.25], rtol=1e-6)
+    assert usable.all()
+
+
+def test_a_black_photo_is_refused_before_compute_naming_the_file(tmp_path, monkeypatch):
+    scene = write_tiny_scene(tmp_path / "scene")
+    photo_path = sorted((tmp_path / "scene" / "photos").glob("*.exr"))[0]
+    shape = imageio.read_image(photo_path).shape
+    imageio.write_image(photo_path, np.zeros(shape, np.float32))
+    monkeypatch.setattr(pipeline, "run_record", lambda *a, **k: pytest.fail("computed before refusing"))
+    with pytest.raises(InputError, match=rf"{photo_path.name}.*no pixel above zero"):
+        pipeline.run(tiny_config(scene, tmp_path / "out", photo_weight=1.0), progress=False)
+    dark = np.zeros(shape, np.float32)
+    dark[: shape[0] // 4] = 0.5                   # a quarter lit
+    imageio.write_image(photo_path, dark)
+    with pytest.raises(InputError, match=r"only 25% of its pixels above zero"):
+        pipeline.run(tiny_config(scene, tmp_path / "out2"), progress=False)
+
+
+def test_the_photo_flags_are_checked_naming_the_flag(tiny_scene, tmp_path):
+    with pytest.raises(InputError, match=r"--photo_weight.*lacks irradiance"):
+        tiny_config(tiny_scene, tmp_path / "o", maps=("albedo", "normal"), photo_weight=1.0)
+    with pytest.raises(InputError, match=r"--photo_weight: must be >= 0"):
+        tiny_config(tiny_scene, tmp_path / "o", photo_weight=-1.0)
+    with pytest.raises(InputError, match=r"--photo_size"):
+        tiny_config(tiny_scene, tmp_path / "o", photo_size=4)
