@@ -22,6 +22,7 @@ from jaxdistill.engine.config import DistillConfig, check_views_per_step
 from jaxdistill.engine import loop as loop_lib
 from jaxdistill.engine.problem import build_problem, choose_prior
 from jaxdistill.evaluate import ground_truth as evaluation, scoring
+from jaxdistill.evaluate.rerender import rerender_scores
 from jaxdistill.evaluate.summary import summary_table
 from jaxdistill.export import anchor as anchor_lib, run_dir as run_files
 from jaxdistill.export.outputs import texel_trust, write_outputs
@@ -55,6 +56,7 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
     baseline = scoring.per_view_baseline(config, problem, [f.shape for f in ctx.fragments])
     texels, anchor = anchor_lib.anchor_to_baseline(config, problem, texels, ctx, baseline)
     summary = write_outputs(config, problem, texels, loop.history, ctx, trust, baseline)
+    summary["rerender"] = rerender_scores(texels, problem, ctx.plan, ctx.cameras)
     summary.update(run_record(config, problem, loop, wall_start))
     summary["anchor"] = anchor
     if loop.state.align is not None:          # the learned per-view gains (geometric mean 1 per channel)

@@ -54,6 +54,11 @@ def summary_table(result: dict, out: Path) -> str:
         lines += [f"{label:<{width}}  {_number(o):>10}  {_number(b):>10}  {better}" for label, o, b, better in rows]
     else:
         lines.append(result.get("note", "no metrics against ground truth"))
+    rerender = result.get("rerender")
+    if rerender:
+        worst = min(rerender["per_view"], key=rerender["per_view"].get)
+        lines.append(f"photos re-rendered from the maps (albedo x irradiance): {rerender['psnr_db']:.2f} dB PSNR, mean "
+                     f"of {len(rerender['per_view'])} views (worst {worst}: {rerender['per_view'][worst]:.2f} dB)")
     anchor = result.get("anchor")
     if anchor:
         lines.append(f"overall scale anchored to {anchor['to']}: gains " + "; ".join(
