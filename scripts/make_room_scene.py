@@ -48,6 +48,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from jaxdistill import MAP_NAMES
 from jaxdistill.io import exposure, images as imageio
 from jaxdistill.evaluate import metrics
+from jaxdistill.evaluate.consistency import (DIFFUSE_COSINE, DIFFUSE_ROUGHNESS, consistency, diffuse_mask,  # noqa: F401
+                                             view_cosine)
 from jaxdistill.datasets.mitsuba import bridge as mb
 from jaxdistill.scene.model import Scene, View, read_scene, write_scene  # noqa: E402
 
@@ -58,49 +60,6 @@ from make_rgbx_data import render_linear, room_seed  # noqa: E402
 ROOM_FILE = "room.json"
 ROOM_FORMAT = "jaxdistill-room-scene"
 SETTINGS = ("split", "index", "views", "width", "height", "spp", "max_depth")
-DIFFUSE_ROUGHNESS = 0.5          # consistency pixels: metallic 0, roughness >= this,
-DIFFUSE_COSINE = 0.85            # and seen within about 30 degrees of the normal (`diffuse_mask`)
-
-
-# ----------------------------------------------------------------------------- consistency
-
-
-def consistency(photos, albedos, irradiances, masks) -> dict:
-    """photo against albedo x irradiance (all linear, same units) over the masked pixels of all
-    views: brightness ratios (0.3 R + 0.59 G + 0.11 B) per pixel, their median and 10th/90th
-    percentiles, and the ratio of the sums."""
-    got, want = [], []
-    for p, a, e, m in zip(photos, albedos, irradiances, masks):
-        got.append(exposure.brightness(p)[m])
-        want.append(exposure.brightness(a[..., :3] * e[..., :3])[m])
-    got, want = np.concatenate(got), np.concatenate(want)
-    keep = want > 1e-6
-    ratio = got[keep] / want[keep]
-    if not ratio.size:
-        return {"pixels": 0, "median_ratio": float("nan"), "p10": float("nan"), "p90": float("nan"),
-                "sum_ratio": float("nan")}
-    return {"pixels": int(ratio.size), "median_ratio": float(np.median(ratio)), "p10": float(np.percentile(ratio, 10)),
-            "p90": float(np.percentile(ratio, 90)), "sum_ratio": float(got[keep].sum() / want[keep].sum())}
-
-
-def view_cosine(camera, normal) -> np.ndarray:
-    """(H, W) cosine between each pixel's RGB<->X camera-space normal (x right, y up, z towards the
-    camera) and the direction from its surface point to the camera."""
-    u, v = np.meshgrid(np.arange(camera.width) + 0.5, np.arange(camera.height) + 0.5)
-    rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(camera.K).T      # OpenCV, z forward
-    to_camera = rays * [-1.0, 1.0, 1.0]
-    to_camera /= np.linalg.norm(to_camera, axis=-1, keepdims=True)
-    return np.sum(normal[..., :3] * to_camera, -1)
-
-
-def diffuse_mask(valid, roughness, metallic, cosine) -> np.ndarray:
-    """(H, W) bool: valid pixels where the principled BSDF is closest to Lambertian: dielectric
-    (metallic 0), rough (>= DIFFUSE_ROUGHNESS) and seen within about 30 degrees of the normal
-    (cosine >= DIFFUSE_COSINE; at grazing views its diffuse lobe's retro-reflection and the
-    specular Fresnel make the photo up to 1.6x albedo x irradiance)."""
-    return valid & (metallic[..., 0] == 0) & (roughness[..., 0] >= DIFFUSE_ROUGHNESS) & (cosine >= DIFFUSE_COSINE)
-
-
 # ----------------------------------------------------------------------------- generation
 
 

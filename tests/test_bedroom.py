@@ -150,7 +150,7 @@ def test_committed_bedroom_is_complete_and_untouched():
     for digest, name in lines:
         assert hashlib.sha256((folder / name).read_bytes()).hexdigest() == digest, name
     size = sum((folder / name).stat().st_size for name in files)
-    assert size < 25 * 2**20
+    assert size < 30 * 2**20                  # photos, targets and irradiance GT about 5 MiB each
     gt = json.loads((folder / "gt.json").read_text())
     for textures in gt["textures"].values():
         assert list(textures) == list(scene.mesh.object_names)

@@ -151,9 +151,11 @@ INTRINSIC_INTEGRATOR = "jaxdistill_intrinsic"
 IRRADIANCE_CHANNELS = slice(3, 6)
 
 
-def intrinsic_integrator(max_depth: int = 6) -> dict:
+def intrinsic_integrator(max_depth: int = 6, *, photo: bool = True) -> dict:
     """An integrator dict whose render is (H, W, 6): the path-traced photo (RGB) and the diffuse
     irradiance over pi at the first hit (RGB, the `IRRADIANCE_CHANNELS`), in one pass.
+    photo=False leaves the photo channels 0 and skips its path (the irradiance alone, about half
+    the time); the irradiance is the same estimator either way.
 
     Irradiance/pi is what a white Lambertian surface at the hit would reflect:
     photo_diffuse = albedo * (E / pi), the intrinsic-image convention (Hypersim's diffuse
@@ -174,14 +176,18 @@ def intrinsic_integrator(max_depth: int = 6) -> dict:
         def __init__(self, props):
             super().__init__(props)
             self.path = mi.load_dict({"type": "path", "max_depth": props.get("max_depth", 6)})
+            self.photo = props.get("photo", True)
 
         def aov_names(self):
             return ["irradiance.R", "irradiance.G", "irradiance.B"]
 
         def sample(self, scene, sampler, ray, medium=None, active=True):
-            photo, valid, _ = self.path.sample(scene, sampler, ray, medium, active)
             si = scene.ray_intersect(ray, active)
             hit = active & si.is_valid()
+            if self.photo:
+                photo, valid, _ = self.path.sample(scene, sampler, ray, medium, active)
+            else:
+                photo, valid = mi.Spectrum(0.0), mi.Bool(active)
             n = dr.select(dr.dot(si.n, ray.d) > 0, -si.n, si.n)
             # emitter sampling
             ds, weight = scene.sample_emitter_direction(si, sampler.next_2d(), True, hit)
@@ -205,4 +211,51 @@ def intrinsic_integrator(max_depth: int = 6) -> dict:
             return photo, valid, [e[0], e[1], e[2]]
 
     mi.register_integrator(INTRINSIC_INTEGRATOR, lambda props: Intrinsic(props))
-    return {"type": INTRINSIC_INTEGRATOR, "max_depth": int(max_depth)}
+    return {"type": INTRINSIC_INTEGRATOR, "max_depth": int(max_depth), "photo": bool(photo)}
+
+
+def render_irradiance(scene, cameras, *, spp: int, seeds, max_depth: int = 5, progress: bool = False) -> list:
+    """Per camera (H, W, 3) float32 diffuse irradiance E / pi at the first hit of a loaded Mitsuba
+    `scene` (0 on misses), in the scene's units: `intrinsic_integrator(max_depth, photo=False)`
+    with `spp` samples per pixel (box filter) and `seeds[i]` for camera i.
+
+    max_depth is the length of the paths traced on from the first hit: a scene whose photos were
+    path traced with max depth D has its diffuse pixels equal to albedo x E / pi for D - 1.
+    """
+    from tqdm import tqdm
+
+    mi = load_mitsuba()
+    integrator = mi.load_dict(intrinsic_integrator(max_depth, photo=False))
+    out = []
+    for cam, seed in tqdm(list(zip(cameras, seeds)), desc=f"irradiance ({spp} spp)", unit="view", disable=not progress):
+        image = render(scene, cam, spp=spp, seed=int(seed), integrator=integrator)
+        out.append(np.ascontiguousarray(image[..., IRRADIANCE_CHANNELS]))
+    return out
+
+
+def principled_shapes(mesh, pages: dict, *, emitters: dict | None = None, object_ids=None,
+                      two_sided: bool = False) -> dict:
+    """{object name: Mitsuba mesh} of a page-textured mesh (`Mesh`: vertices, faces, per-corner
+    uv, face_object, object_names), each object with a `principled` BSDF whose base_color,
+    roughness and metallic are its pages (pages[map][k], linear, row 0 on top; bilinear lookup
+    through the mesh's UVs); `emitters` {object name: linear RGB radiance} makes those objects area
+    lights; `object_ids` limits the shapes to these objects (default: every object with faces).
+    The principled BSDF is one-sided (black from behind): two_sided=True wraps it in `twosided`
+    for meshes whose faces do not all face the viewer (boxes modelled from outside, imports).
+    """
+    emitters = emitters or {}
+    out = {}
+    ids = range(len(mesh.object_names)) if object_ids is None else object_ids
+    for k in ids:
+        name = mesh.object_names[k]
+        sel = mesh.face_object == k
+        if not sel.any():
+            continue
+        bsdf = {"type": "principled", "base_color": bitmap(pages["albedo"][k]),
+                "roughness": bitmap(pages["roughness"][k]), "metallic": bitmap(pages["metallic"][k])}
+        if two_sided:
+            bsdf = {"type": "twosided", "material": bsdf}
+        radiance = emitters.get(name)
+        emitter = {"type": "area", "radiance": {"type": "rgb", "value": list(radiance)}} if radiance is not None else None
+        out[name] = mesh_shape(name, mesh.vertices, mesh.faces[sel], mesh.uv[sel], bsdf=bsdf, emitter=emitter)
+    return out
