@@ -38,6 +38,7 @@ from jaxdistill.io import checkpoint, images as imageio
 from jaxdistill.evaluate import ground_truth as evaluation
 from jaxdistill.models import estimates as model_estimates
 from jaxdistill import pipeline
+from jaxdistill.export import run_dir
 from jaxdistill.engine import loop
 from jaxdistill.engine.config import DistillConfig, validate
 from jaxdistill.datasets import ImportOptions, open_scene
@@ -188,7 +189,8 @@ def main(argv=None) -> int:
                 path.parent.mkdir(parents=True, exist_ok=True)
                 path.write_text(json.dumps(run_dir.json_safe(result), indent=1))
             result = json.loads(path.read_text())
-            rows[run] = dict(row(result.get("ours")), seconds=result.get("seconds"))
+            rows[run] = dict(row(result.get("ours")), seconds=result.get("seconds"),
+                             rerender_psnr=(result.get("rerender") or {}).get("psnr_db"))
     doc = {"model": model_info(model_dir), "table": table}
     (args.out / "table.json").write_text(json.dumps(doc, indent=1))
     (args.out / "table.md").write_text(markdown(table))

@@ -284,8 +284,11 @@ def _photo_fn(settings: StepSettings, batch: dict, frozen: dict) -> Callable:
     hit = batch["photo_hit"].reshape(-1, settings.photo_height, settings.photo_width)
     ratio = settings.height * settings.width / (settings.photo_height * settings.photo_width)
 
+    used = MapChannels(tuple(m for m in ("albedo", "irradiance", "metallic") if m in settings.channels.maps))
+    columns = np.concatenate([np.arange(settings.channels.num_channels)[settings.channels.slice(m)] for m in used.maps])
+
     def photo_of(texels):
-        images = settings.channels.split(render(texels, plan))
+        images = used.split(render(texels[:, columns], plan))     # only the maps the photo is made of
         return photo_lib.photo_loss(images, batch["photo"], batch["photo_pixel_weight"], hit,
                                     loss=settings.photo_loss, space=settings.photo_space, scale=settings.photo_scale,
                                     pixel_ratio=ratio, smooth=settings.irradiance_smoothness)
