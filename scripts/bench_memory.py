@@ -14,7 +14,7 @@ Every case runs the library's real job, `jaxdistill.engine.loop.run(config)` (wh
   bedroom                  configs/bedroom.cfg as it is: the default run (pages auto-sized, capped
                            at 512; trilinear; all five maps; 32 views of 320x240 per step).
   bedroom_4096             the same with --texture_size=4096 --max_texture_size=4096 (every one of
-                           the 30 pages 4096^2), the run issue 6 asks about.
+                           the 30 pages 4096^2), the case of docs/benchmarks.md §5.
   bedroom_4096_bilinear_no_outputs
                            4096^2 pages with --sampler=bilinear, and write_outputs replaced by a
                            stub (the outputs of 30 pages of 4096^2 write ~150 large image files).

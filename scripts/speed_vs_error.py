@@ -1,4 +1,4 @@
-r"""Speed vs error: the curve users choose a configuration from (issue 6, part 2).
+r"""Speed vs error: the curve users choose a configuration from (docs/benchmarks.md §2, §3).
 
     python scripts/speed_vs_error.py                      # the full sweep: about 45 min on 2 idle cores
     python scripts/speed_vs_error.py --quick              # smoke version: 3 points, 4 steps (~2 min)

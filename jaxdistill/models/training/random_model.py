@@ -16,7 +16,7 @@ import numpy as np
 
 from jaxdistill.models.convert import MODEL_INDEX
 
-# The real RGB↔X sizes (shared/DESIGN.md §3), for scripts that time real-size networks.
+# The real RGB↔X sizes (docs/design.md §5), for scripts that time real-size networks.
 RGBX_UNET = dict(
     sample_size=96, in_channels=8, out_channels=4, block_out_channels=(320, 640, 1280, 1280), layers_per_block=2,
     norm_num_groups=32, attention_head_dim=(5, 10, 20, 20), cross_attention_dim=1024, use_linear_projection=True,
