@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from jaxdistill.scene.model import Mesh
+from jaxdistill.scene.mesh import Mesh, join_objects
 
 
 def quad_patch(origin, edge_u, edge_v, subdivisions: int = 1):
@@ -30,22 +30,15 @@ def mesh_from_patches(patches, atlas: bool = False) -> Mesh:
     atlas=True packs the patches' UVs into the cells of a square grid (with a margin of 1/16
     cell) so that all objects can share one texture page (`texture_layout="atlas"`).
     """
-    vertices, faces, uvs, face_object, names = [], [], [], [], []
-    offset = 0
+    parts = []
     grid = int(np.ceil(np.sqrt(len(patches))))
-    for object_id, (name, origin, edge_u, edge_v, n) in enumerate(patches):
+    for object_id, (_, origin, edge_u, edge_v, n) in enumerate(patches):
         v, f, uv = quad_patch(origin, edge_u, edge_v, n)
         if atlas:
             cell = np.array([object_id % grid, object_id // grid], np.float64)
             uv = (cell + 1 / 16 + uv * (1 - 2 / 16)) / grid
-        vertices.append(v)
-        faces.append(f + offset)
-        uvs.append(uv)
-        face_object.append(np.full(len(f), object_id, np.int32))
-        names.append(name)
-        offset += len(v)
-    return Mesh(vertices=np.concatenate(vertices), faces=np.concatenate(faces).astype(np.int64),
-                uv=np.concatenate(uvs), face_object=np.concatenate(face_object), object_names=tuple(names))
+        parts.append((v, f, uv))
+    return join_objects(parts, [name for name, *_ in patches])
 
 
 def box_patches(name: str, lo, hi, subdivisions: int = 1):
