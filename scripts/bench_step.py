@@ -46,9 +46,6 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests"))
-
 ALL_MAPS = ("albedo", "normal", "roughness", "metallic", "irradiance")
 STAGES = ("render", "vae_encode", "unet", "vae_decode", "loss_grad", "optimizer")
 TORCH_STAGES = ("render", "photo_encode", "vae_encode", "unet", "vae_decode", "loss_grad", "optimizer")
@@ -461,9 +458,9 @@ def main(argv=None) -> int:
         print(json.dumps(rows))
         return 0
     if args.size == "tiny":
-        import tiny_rgbx
+        from jaxdistill.models.training.random_model import write_tiny_rgbx
 
-        folder = str(tiny_rgbx.write_tiny_rgbx(Path(tempfile.mkdtemp()) / "rgb-to-x"))
+        folder = str(write_tiny_rgbx(Path(tempfile.mkdtemp()) / "rgb-to-x"))
     rows = []
     for fw in args.frameworks:
         for dtype in (args.dtypes if fw == "jax" else ["float32"]):

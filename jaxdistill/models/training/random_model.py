@@ -1,10 +1,13 @@
-"""A tiny random RGB↔X folder in the real diffusers format, for parity tests.
+"""Random-weight RGB↔X folders in the real diffusers format (nothing downloaded).
 
 `write_tiny_rgbx(folder)` creates UNet2DConditionModel / AutoencoderKL / CLIPTextModel with
 diffusers and transformers (PyTorch CPU, seeded), `save_pretrained`s them as safetensors in
-the zheng95z/rgb-to-x layout, with a tiny CLIP vocabulary and RGB↔X's scheduler config.
-The structure is the real one (4 UNet blocks, 3 with cross-attention, linear projection,
-upcast attention, per-block head counts, in_channels 8; 23→2 text layers); only widths shrink.
+the zheng95z/rgb-to-x layout, with the tiny CLIP vocabulary (`vocabulary.py`) and RGB↔X's
+scheduler config. The structure is the real one (4 UNet blocks, 3 with cross-attention, linear
+projection, upcast attention, per-block head counts, in_channels 8; 23→2 text layers); only
+widths shrink, or with the `RGBX_*` sizes nothing does (`scripts/make_random_rgbx.py --size=full`).
+Used by the parity tests, `scripts/check_parity.py` and the benchmarks; needs the test extras
+(torch, diffusers, transformers). `nchw` / `nhwc` move images between the two layouts.
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxdistill.models.convert import MODEL_INDEX
+from jaxdistill.models.training.vocabulary import write_tiny_clip_tokenizer
 
 # The real RGB↔X sizes (docs/design.md §5), for scripts that time real-size networks.
 RGBX_UNET = dict(
@@ -82,8 +86,6 @@ def write_tiny_rgbx(folder: str | Path, seed: int = 0, pad_token: str = "!", une
                     text=None) -> Path:
     """Write the tiny random RGB↔X folder (or other sizes: diffusers/transformers config dicts
     for `unet`, `vae`, `text`); returns its path. The tokenizer is always the tiny one."""
-    from tiny_clip_vocab import write_tiny_clip_tokenizer
-
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     write_tiny_clip_tokenizer(folder / "tokenizer", pad_token=pad_token)
@@ -100,16 +102,11 @@ def write_tiny_rgbx(folder: str | Path, seed: int = 0, pad_token: str = "!", une
     return folder
 
 
-def rel_err(ours, ref) -> float:
-    """max |ours − ref| / max |ref| (float64), after checking the shapes agree."""
-    ours, ref = np.asarray(ours, np.float64), np.asarray(ref, np.float64)
-    assert ours.shape == ref.shape, (ours.shape, ref.shape)
-    return float(np.abs(ours - ref).max() / np.abs(ref).max())
-
-
 def nchw(x) -> np.ndarray:
+    """(B, H, W, C) -> (B, C, H, W), contiguous (JAX's image layout to PyTorch's)."""
     return np.ascontiguousarray(np.asarray(x).transpose(0, 3, 1, 2))
 
 
 def nhwc(x) -> np.ndarray:
+    """(B, C, H, W) -> (B, H, W, C), contiguous (PyTorch's image layout to JAX's)."""
     return np.ascontiguousarray(np.asarray(x).transpose(0, 2, 3, 1))
