@@ -20,7 +20,7 @@ from jaxdistill.scene.model import read_scene
 mi = pytest.importorskip("mitsuba")
 pytest.importorskip("xatlas")
 from jaxdistill.datasets.mitsuba import importer as imp
-from jaxdistill.render import unwrap
+from jaxdistill.render import uv_checks
 
 REPO = Path(__file__).resolve().parents[1]
 # Bitterli's "Modern Hall" (CC-BY 3.0, tests/data/staircase2/LICENSE.txt): the copy in tests/data (so CI
@@ -258,16 +258,16 @@ def test_reconstruction_uvs(evaluator):
     assert mesh.uv.min() >= 0 and mesh.uv.max() <= 1
     np.testing.assert_array_equal(mesh.triangles(), np.concatenate([o.vertices[o.faces] for o in source.objects]))
     floor = mesh.uv[mesh.face_object == mesh.object_names.index("floor")]
-    assert unwrap.uv_overlap_fraction(floor) == 0.0
+    assert uv_checks.uv_overlap_fraction(floor) == 0.0
 
 
 def test_uv_problems():
     tri = np.array([[[0, 0, 0], [1, 0, 0], [0, 1, 0]]] * 2, float)
     uv = np.array([[[0, 0], [1, 0], [0, 1]]] * 2, float)
-    assert unwrap.uv_problem(uv[:1], tri[:1]) is None
-    assert "overlapping" in unwrap.uv_problem(uv, tri)
-    assert "tiled" in unwrap.uv_problem(uv * 2, tri)
-    assert "collapsed" in unwrap.uv_problem(uv * 0, tri)
+    assert uv_checks.uv_problem(uv[:1], tri[:1]) is None
+    assert "overlapping" in uv_checks.uv_problem(uv, tri)
+    assert "tiled" in uv_checks.uv_problem(uv * 2, tri)
+    assert "collapsed" in uv_checks.uv_problem(uv * 0, tri)
 
 
 def test_unsupported_plugins_are_listed_together(tmp_path):
