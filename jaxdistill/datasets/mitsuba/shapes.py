@@ -18,7 +18,8 @@ from tqdm.auto import tqdm
 
 from jaxdistill.datasets.mitsuba import bridge as mb
 from jaxdistill.datasets.mitsuba.materials import GTMaterial
-from jaxdistill.render.unwrap import UVDecision, unwrap_object, uv_problem
+from jaxdistill.render.unwrap import UVDecision, unwrap_object
+from jaxdistill.render.uv_checks import uv_problem
 from jaxdistill.scene.model import Mesh
 
 ANALYTIC_SHAPES = ("disk", "sphere", "cylinder")
@@ -137,7 +138,7 @@ def reconstruction_mesh(objects: Sequence[SourceObject], *, progress: bool = Fal
                         source_file: str = "mitsuba scene") -> tuple[Mesh, list[UVDecision]]:
     """Our Mesh (same triangles, in order) with UVs in [0, 1] per object, and the UV decisions.
 
-    Objects are checked with `unwrap.uv_problem` and re-unwrapped with `unwrap.unwrap_object`
+    Objects are checked with `uv_checks.uv_problem` and re-unwrapped with `unwrap.unwrap_object`
     (no cameras yet: about a DEFAULT_RESOLUTION page each; cache_dir as there, off by default);
     an object too large to unwrap is an InputError naming `source_file`.
     """
