@@ -44,12 +44,11 @@ from jaxdistill.datasets import ImportOptions, open_scene
 from jaxdistill.models import convert
 from jaxdistill.models import prior as rgbx
 from jaxdistill.models.shipped import model_info, shipped_folder
+from jaxdistill.models.training.heldout import trivial_linear
 from jaxdistill.engine.problem import render_shape
 from jaxdistill.render import fragments as fr
 from jaxdistill.scene.model import write_scene
 from jaxdistill.io.view_images import read_target, resize
-
-from eval_rgbx_model import trivial_linear     # scripts/: the same trivial baseline
 
 MAPS = ("albedo", "normal", "roughness", "metallic", "irradiance")
 RENDER_SIZE = 128

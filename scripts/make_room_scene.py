@@ -4,10 +4,11 @@
         [--width=128 --height=96] [--spp=64] [--max_depth=5] [--variant=auto]
     python scripts/make_room_scene.py --split=heldout --index=0 --out=DIR --targets_from=ESTIMATE_OUT
 
-The room is `procedural_rooms.random_room(seed)` with seed = `make_rgbx_data.room_seed(split,
-index)`, rendered exactly as the prior's training data is (`make_rgbx_data.render_linear`: the
-same textures, cameras placed by the same rule, Mitsuba's `intrinsic_integrator` giving the
-photo and the irradiance E / pi in one pass, isolated fireflies removed), but kept linear.
+The room is `procedural_rooms.random_room(seed)` with seed = `shards.room_seed(split, index)`
+(`jaxdistill/models/training/`), rendered exactly as the prior's training data is
+(`room_render.render_linear`: the same textures, cameras placed by the same rule, Mitsuba's
+`intrinsic_integrator` giving the photo and the irradiance E / pi in one pass, isolated
+fireflies removed), but kept linear.
 Only held-out rooms (seeds 1_000_000 + index) are written: the training rooms are the prior's
 training data. DIR gets:
 
@@ -20,7 +21,7 @@ training data. DIR gets:
 - `ground_truth/irradiance/<view>.exr`: E / pi, linear, in the photos' units (each view's
   `ground_truth`), so photo = albedo x irradiance on diffuse surfaces;
 - `targets/<map>/<view>.png`: stand-ins for a monocular estimator, made as the bedroom's
-  (`make_bedroom.estimate_view`), parameters in `estimates.json`; or, with `--targets_from`,
+  (`standins.estimate_view`), parameters in `estimates.json`; or, with `--targets_from`,
   the images `python -m jaxdistill.estimate --scene=DIR --out_dir=ESTIMATE_OUT` wrote
   (ESTIMATE_OUT/<map>/<view>.png; referenced in place when inside DIR, else copied to
   DIR/estimates/). On a folder this script already made with the same settings,
@@ -43,17 +44,16 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
 from jaxdistill import MAP_NAMES
-from jaxdistill.io import exposure, images as imageio
-from jaxdistill.evaluate import metrics
 from jaxdistill.datasets.mitsuba import bridge as mb
-from jaxdistill.scene.model import Scene, View, read_scene, write_scene  # noqa: E402
-
-from make_bedroom import (EXR_TIMESTAMP, MAP_FILES, estimate_view, write_gt_json, write_map,  # noqa: E402
-                          write_preview, write_texture_pages)
-from make_rgbx_data import render_linear, room_seed  # noqa: E402
+from jaxdistill.evaluate import metrics
+from jaxdistill.io import exposure, images as imageio
+from jaxdistill.models.training.room_render import render_linear
+from jaxdistill.models.training.scene_files import (EXR_TIMESTAMP, MAP_FILES, write_gt_json, write_map, write_preview,
+                                                    write_texture_pages)
+from jaxdistill.models.training.shards import room_seed
+from jaxdistill.models.training.standins import estimate_view
+from jaxdistill.scene.model import Scene, View, read_scene, write_scene
 
 ROOM_FILE = "room.json"
 ROOM_FORMAT = "jaxdistill-room-scene"
