@@ -232,6 +232,7 @@ def child_run(args, flag_argv) -> int:
     import jax
     import numpy as np
 
+    from jaxdistill import datasets as datasets_mod
     from jaxdistill.engine import problem as problem_mod
     from jaxdistill import pipeline
     from jaxdistill.engine import loop
@@ -244,8 +245,8 @@ def child_run(args, flag_argv) -> int:
     channels = MapChannels(tuple(config.maps)).num_channels
     limit = args.max_gb * 2**30
 
-    after(problem_mod, "read_scene", lambda r, a, k: rec.mark("read scene", faces=r.mesh.num_faces,
-                                                                 views=len(r.views)))
+    after(datasets_mod, "open_scene", lambda r, a, k: rec.mark("read scene", faces=r.mesh.num_faces,
+                                                                  views=len(r.views)))
     after(fragments_mod, "compute_fragments", lambda r, a, k: rec.mark("fragments"))
 
     def on_space(space, a, k):
