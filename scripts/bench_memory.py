@@ -367,20 +367,18 @@ def child_prep(args) -> int:
     """Writes the synthetic >= 1M-triangle room as a scene folder (mesh.glb, photos, targets)."""
     import numpy as np
 
-    sys.path.insert(0, str(ROOT / "scripts"))
-    from bench_render import room_cameras
-
     from jaxdistill.io import images as imageio
-    from jaxdistill.scene import shapes as synthetic
-    from jaxdistill.evaluate.ground_truth import camera_normals, face_normals
     from jaxdistill.render import fragments as fr
+    from jaxdistill.scene import shapes as synthetic
+    from jaxdistill.scene.cameras import camera_normals
+    from jaxdistill.scene.mesh import face_normals
     from jaxdistill.scene.model import Scene, View, write_scene
 
     folder = Path(args.scene_dir)
     n = args.faces_per_side
     mesh = synthetic.box_room((6.0, 3.0, 5.0), subdivisions=n, furniture=True,
                               furniture_subdivisions=max(1, n // 8), atlas=False)
-    cams = room_cameras(args.views, resolution=args.resolution)
+    cams = synthetic.room_cameras(args.views, resolution=args.resolution)
     frags = fr.compute_fragments(mesh, cams, cache_dir=False, progress=False)
     rng = np.random.default_rng(0)
     objects = len(mesh.object_names)
