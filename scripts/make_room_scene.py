@@ -142,7 +142,7 @@ def generate(out: Path, settings: dict, command: str) -> dict:
         views.append(View(name=name, camera=cam, photo=out / "photos" / f"{name}.exr", targets=targets,
                           exposure=stops, ground_truth={"irradiance": out / "ground_truth" / "irradiance" / f"{name}.exr"}))
     write_scene(Scene(name=f"room_{seed}", mesh=r.mesh, views=tuple(views), texture_layout="pages"), out)
-    (out / "estimates.json").write_text(json.dumps({"seed": seed, "model": "make_bedroom.estimate_view",
+    (out / "estimates.json").write_text(json.dumps({"seed": seed, "model": "standins.estimate_view",
                                                     "views": params}, indent=1))
     dielectric = [v & (r.gt["metallic"][i][..., 0] == 0) for i, v in enumerate(valid)]
     diffuse = [diffuse_mask(v, r.gt["roughness"][i], r.gt["metallic"][i], view_cosine(cam, r.gt["normal"][i]))
@@ -208,7 +208,7 @@ def readme(info: dict) -> str:
                                    f"{len(info['emitters'])} emitting objects" if info["emitters"] else "") if x)
     targets = info["targets"]
     if targets["source"] == "stand-ins":
-        target_text = ("stand-ins for a monocular estimator, made as the bedroom's (`make_bedroom.estimate_view`: "
+        target_text = ("stand-ins for a monocular estimator, made as the bedroom's (`standins.estimate_view`: "
                        "GT corrupted by gain, shading leak, blur, noise, offsets, tilted normals; parameters in "
                        "`estimates.json`). They are not a learned model's estimates. Replace them with\n\n"
                        f"    python -m jaxdistill.estimate --prior_dir=... --scene=DIR --out_dir=ESTIMATE_OUT\n"
@@ -225,7 +225,7 @@ def readme(info: dict) -> str:
 (`make_rgbx_data.py`; its `--split={info['split']}` room {info['index']}, never a training room):
 {info['objects']} objects, {info['faces']} triangles, room {' x '.join(f'{x:g}' for x in info['room_size'])} m,
 light: {lights}. {info['views']} views of {info['width']}x{info['height']}, path traced by Mitsuba 3
-(`{info['variant']}`, `make_rgbx_data.render_linear`: intrinsic integrator, max depth {info['max_depth']},
+(`{info['variant']}`, `room_render.render_linear`: intrinsic integrator, max depth {info['max_depth']},
 {info['spp']} spp, box pixel filter, isolated fireflies removed), photo and irradiance E/pi in one pass.
 
     {info['command']}
