@@ -1,7 +1,10 @@
-"""The distillation job: `python -m jaxdistill.main --flagfile=configs/bedroom.cfg`.
+"""The distillation job: `python -m jaxdistill.main --flagfile=configs/bedroom.cfg`, or from any
+folder of an installed package `jaxdistill distill --config=bedroom`.
 
-Flags (see jaxdistill/engine/config.py or --helpfull) are parsed once into a frozen DistillConfig;
-train.run does the rest. Bad input stops with a message naming the file and field before any
+`--config=NAME` names a config shipped in the package (jaxdistill/configs/NAME.cfg: bedroom,
+smoke, thesis) and stands for `--flagfile=` that file, in its place on the command line, so
+flags after it override its values. Flags (see jaxdistill/engine/config.py or --helpfull) are
+parsed once into a frozen DistillConfig; pipeline.run does the rest. Bad input stops with a message naming the file and field before any
 compute; a NaN loss stops with the last good checkpoint kept (status 3); SIGINT/SIGTERM save a
 checkpoint and exit with 130/143, so a scheduler can tell a stopped run from a finished one.
 """
@@ -10,6 +13,7 @@ from __future__ import annotations
 
 import logging as std_logging
 import sys
+from pathlib import Path
 
 from absl import app, flags, logging
 
@@ -17,6 +21,7 @@ from jaxdistill.engine import config as config_lib
 from jaxdistill.errors import InputError
 
 FLAGS = flags.FLAGS
+CONFIGS_DIR = Path(__file__).resolve().parent / "configs"
 
 
 class QuietLibraries(std_logging.Filter):
@@ -30,6 +35,9 @@ def main(argv) -> None:
     logging.get_absl_handler().addFilter(QuietLibraries())
     if len(argv) > 1:
         raise app.UsageError(f"unexpected arguments {argv[1:]}; every setting is a --flag")
+    if FLAGS.config is not None:         # only a --config inside a flagfile reaches here unexpanded
+        raise app.UsageError(f"--config={FLAGS.config} inside a flagfile: give --config on the command line, or "
+                             f"--flagfile={config_path(FLAGS.config)} in the flagfile")
     from jaxdistill import pipeline
     from jaxdistill.engine.loop import NonFiniteLoss
 
@@ -56,6 +64,39 @@ def main(argv) -> None:
         sys.exit(summary["exit_status"])
 
 
+def config_names() -> list[str]:
+    """The names of the configs shipped in the package (jaxdistill/configs/*.cfg)."""
+    return sorted(p.stem for p in CONFIGS_DIR.glob("*.cfg"))
+
+
+def config_path(name: str) -> Path:
+    """The flagfile of the shipped config `name`; SystemExit naming the shipped ones when there is none."""
+    path = CONFIGS_DIR / f"{name}.cfg"
+    if not name or Path(name).name != name or not path.is_file():
+        sys.exit(f"--config={name}: no such config in this installation; the configs are "
+                 f"{', '.join(config_names())} (or give a file with --flagfile=PATH)")
+    return path
+
+
+def expand_configs(argv: list[str]) -> list[str]:
+    """argv with each `--config=NAME` (or `--config NAME`) replaced by `--flagfile=<its file>` in place."""
+    out, args = [], iter(argv)
+    for arg in args:
+        if arg in ("--config", "-config"):
+            arg = f"--config={next(args, '')}"
+        if arg.startswith(("--config=", "-config=")):
+            arg = f"--flagfile={config_path(arg.split('=', 1)[1])}"
+        out.append(arg)
+    return out
+
+
+def define_config_flag(fv) -> None:
+    flags.DEFINE_string("config", None, f"a config shipped with the package, by name ({', '.join(config_names())}; "
+                        "bedroom is the default run): the same as --flagfile=<the package's configs/NAME.cfg>, "
+                        "read where it stands, so flags after it override its values", flag_values=fv,
+                        module_name=sys.argv[0])
+
+
 def define_view_flags(fv) -> None:
     flags.DEFINE_bool("view", False, "serve the browser viewer of this run (needs the view extra) and keep "
                       "serving after it ends, until Ctrl-C; maps refresh at each checkpoint (--ckpt_every)",
@@ -77,5 +118,6 @@ def start_viewer(config):
 
 if __name__ == "__main__":
     config_lib.define_flags(FLAGS, main_module=True)
+    define_config_flag(FLAGS)
     define_view_flags(FLAGS)
-    app.run(main)
+    app.run(main, argv=expand_configs(sys.argv))

@@ -14,7 +14,7 @@ Every case runs the library's real job, `jaxdistill.engine.loop.run(config)` (wh
   bedroom                  configs/bedroom.cfg as it is: the default run (pages auto-sized, capped
                            at 512; trilinear; all five maps; 32 views of 320x240 per step).
   bedroom_4096             the same with --texture_size=4096 --max_texture_size=4096 (every one of
-                           the 30 pages 4096^2), the run issue 6 asks about.
+                           the 30 pages 4096^2), the case of docs/benchmarks.md §5.
   bedroom_4096_bilinear_no_outputs
                            4096^2 pages with --sampler=bilinear, and write_outputs replaced by a
                            stub (the outputs of 30 pages of 4096^2 write ~150 large image files).
@@ -232,6 +232,7 @@ def child_run(args, flag_argv) -> int:
     import jax
     import numpy as np
 
+    from jaxdistill import datasets as datasets_mod
     from jaxdistill.engine import problem as problem_mod
     from jaxdistill import pipeline
     from jaxdistill.engine import loop
@@ -244,8 +245,8 @@ def child_run(args, flag_argv) -> int:
     channels = MapChannels(tuple(config.maps)).num_channels
     limit = args.max_gb * 2**30
 
-    after(problem_mod, "read_scene", lambda r, a, k: rec.mark("read scene", faces=r.mesh.num_faces,
-                                                                 views=len(r.views)))
+    after(datasets_mod, "open_scene", lambda r, a, k: rec.mark("read scene", faces=r.mesh.num_faces,
+                                                                  views=len(r.views)))
     after(fragments_mod, "compute_fragments", lambda r, a, k: rec.mark("fragments"))
 
     def on_space(space, a, k):
@@ -366,20 +367,18 @@ def child_prep(args) -> int:
     """Writes the synthetic >= 1M-triangle room as a scene folder (mesh.glb, photos, targets)."""
     import numpy as np
 
-    sys.path.insert(0, str(ROOT / "scripts"))
-    from bench_render import room_cameras
-
     from jaxdistill.io import images as imageio
-    from jaxdistill.scene import shapes as synthetic
-    from jaxdistill.evaluate.ground_truth import camera_normals, face_normals
     from jaxdistill.render import fragments as fr
+    from jaxdistill.scene import shapes as synthetic
+    from jaxdistill.scene.cameras import camera_normals
+    from jaxdistill.scene.mesh import face_normals
     from jaxdistill.scene.model import Scene, View, write_scene
 
     folder = Path(args.scene_dir)
     n = args.faces_per_side
     mesh = synthetic.box_room((6.0, 3.0, 5.0), subdivisions=n, furniture=True,
                               furniture_subdivisions=max(1, n // 8), atlas=False)
-    cams = room_cameras(args.views, resolution=args.resolution)
+    cams = synthetic.room_cameras(args.views, resolution=args.resolution)
     frags = fr.compute_fragments(mesh, cams, cache_dir=False, progress=False)
     rng = np.random.default_rng(0)
     objects = len(mesh.object_names)

@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdistill.scene import cameras, shapes as synthetic
+from jaxdistill.scene import shapes as synthetic
 from jaxdistill.render import fragments as fr
 from jaxdistill.render.gather_plan import build_gather_plans, build_texel_space
 from jaxdistill.render.layout import make_layout
@@ -38,19 +38,6 @@ def median_time(fn, repeats: int) -> float:
         jax.block_until_ready(fn())
         times.append(time.perf_counter() - start)
     return float(np.median(times))
-
-
-def room_cameras(num_views: int, size=(6.0, 3.0, 5.0), resolution=512):
-    """Cameras inside the room at varied heights looking at varied points (fx for ~70 deg fov)."""
-    rng = np.random.default_rng(0)
-    sx, sy, sz = size
-    K = np.array([[resolution * 0.7, 0, resolution / 2], [0, resolution * 0.7, resolution / 2], [0, 0, 1.0]])
-    cams = []
-    for _ in range(num_views):
-        eye = rng.uniform([0.2 * sx, 0.3 * sy, 0.4 * sz], [0.5 * sx, 0.8 * sy, 0.9 * sz])
-        target = rng.uniform([0.0, 0.0, 0.0], [sx, sy, sz])
-        cams.append(cameras.look_at(eye, target, np.array([0.0, 1.0, 0.0]), K, resolution, resolution))
-    return cams
 
 
 def bench_fragments(mesh, cams):
@@ -115,7 +102,7 @@ def main(argv=None):
     print(f"jax {jax.__version__} on {jax.devices()[0].device_kind}, {os.cpu_count()} cores")
     mesh = synthetic.box_room((6.0, 3.0, 5.0), subdivisions=args.faces_per_side, furniture=True,
                               furniture_subdivisions=args.faces_per_side // 8, atlas=True)
-    cams = room_cameras(args.views)
+    cams = synthetic.room_cameras(args.views)
     print(f"\n[1] fragments: {mesh.num_faces / 1e6:.2f}M triangles, {args.views} views of 512x512")
     frag_stats, frags = bench_fragments(mesh, cams)
     casts = frag_stats.pop("casts")

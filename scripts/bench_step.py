@@ -9,8 +9,8 @@
 One run measures, side by side, for every render size (longer side; the bedroom is 4:3) and
 number of maps per step:
 
-- **jax** (ours, one child process per prior dtype): the real step (`distill.make_step` +
-  `jit_step`, what `python -m jaxdistill.main` runs; rgbx prior, w_t = w_i = 1 so one UNet branch,
+- **jax** (ours, one child process per prior dtype): the real step (`engine.loop.setup_step`,
+  what `python -m jaxdistill.main` runs; rgbx prior, w_t = w_i = 1 so one UNet branch,
   photo latents encoded once at setup, all maps of a view in one network call), and its stages
   jitted one by one on the same inputs: gather-render, VAE encode, UNet (noise + guided x̂0),
   VAE decode, loss + gradient (the transpose of the gather), AdamW. FLOPs per step from XLA's
@@ -45,9 +45,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests"))
 
 ALL_MAPS = ("albedo", "normal", "roughness", "metallic", "irradiance")
 STAGES = ("render", "vae_encode", "unet", "vae_decode", "loss_grad", "optimizer")
@@ -148,13 +145,12 @@ def jax_worker(args, folder: str, dtype_name: str) -> list[dict]:
     import jax.numpy as jnp
     import optax
 
-    from jaxdistill.engine.step import (data_mesh, init_state, jit_step, make_optimizer, make_step, render_maps,
-                                    sample_timesteps, weighted_square_error)
+    from jaxdistill.engine import loop
+    from jaxdistill.engine.step import render_maps, sample_timesteps, weighted_square_error
     from jaxdistill.models import convert
     from jaxdistill.models import prior as rgbx
     from jaxdistill.engine.priors import make_rgbx_prior
     from jaxdistill.render.gather_plan import GatherPlan
-    from jaxdistill.engine.loop import step_settings
 
     t0 = time.perf_counter()
     dtype = {"float32": jnp.float32, "bfloat16": jnp.bfloat16}[dtype_name]
@@ -174,18 +170,13 @@ def jax_worker(args, folder: str, dtype_name: str) -> list[dict]:
         batch_host = problem.batch(ids)
         batch_host["prior"] = prior.view_data(np.arange(len(ids)))
         problem = dataclasses.replace(problem, prior=prior, frozen=frozen)
-        settings = step_settings(config, problem)
-        optimizer = make_optimizer(config.lr, config.weight_decay)
-        mesh = data_mesh()
-        replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
-        by_view = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("data"))
-        frozen = jax.device_put(frozen, replicated)
-        batch = jax.device_put(batch_host, by_view)
 
-        # --- the whole step, as the main job runs it
-        state = init_state(problem.initial_texels(), optimizer, config.seed)
-        step, traces = jit_step(make_step(prior, settings, optimizer), mesh, batch, state, frozen)
-        state = jax.device_put(state, replicated)
+        # --- the whole step, set up by the main job's own `setup_step` and run as its loop runs it
+        stepper = loop.setup_step(config, problem, batch_host)
+        settings, optimizer, step, traces = stepper.settings, stepper.optimizer, stepper.step_fn, stepper.traces
+        frozen = jax.device_put(frozen, stepper.replicated)
+        batch = jax.device_put(batch_host, stepper.by_view)
+        state = jax.device_put(stepper.state, stepper.replicated)
         t0 = time.perf_counter()
         compiled = step.lower(state, batch, frozen).compile()
         compile_s = time.perf_counter() - t0
@@ -461,9 +452,9 @@ def main(argv=None) -> int:
         print(json.dumps(rows))
         return 0
     if args.size == "tiny":
-        import tiny_rgbx
+        from jaxdistill.models.training.random_model import write_tiny_rgbx
 
-        folder = str(tiny_rgbx.write_tiny_rgbx(Path(tempfile.mkdtemp()) / "rgb-to-x"))
+        folder = str(write_tiny_rgbx(Path(tempfile.mkdtemp()) / "rgb-to-x"))
     rows = []
     for fw in args.frameworks:
         for dtype in (args.dtypes if fw == "jax" else ["float32"]):

@@ -72,7 +72,7 @@ def main(argv=None) -> int:
     parser.add_argument("--one_object", action="store_true", help="one object (a scan) instead of six walls")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args(argv)
-    from jaxdistill.render import unwrap
+    from jaxdistill.render import unwrap, uv_checks
 
     rows = []
     cams = room_cameras(args.views)
@@ -89,7 +89,7 @@ def main(argv=None) -> int:
         finally:
             shutil.rmtree(cache, ignore_errors=True)
         assert np.array_equal(out.uv, again.uv) and all(d.cached for d in cached)
-        overlap = max(unwrap.uv_overlap_fraction(out.uv[out.face_object == o], 1024) for o in range(len(out.object_names)))
+        overlap = max(uv_checks.uv_overlap_fraction(out.uv[out.face_object == o], 1024) for o in range(len(out.object_names)))
         row = {"faces": mesh.num_faces, "objects": len(mesh.object_names), "cold_s": round(cold, 2),
                "faces_per_s": round(mesh.num_faces / cold), "cached_s": round(warm, 3),
                "cold_over_cached": round(cold / max(warm, 1e-9), 1),

@@ -35,12 +35,11 @@ import platform
 import sys
 import time
 import traceback
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from tiny_rgbx import RGBX_TEXT, RGBX_UNET, RGBX_VAE, nchw, nhwc  # noqa: E402  (test helpers)
+from jaxdistill.models.training import random_model
+from jaxdistill.models.training.random_model import RGBX_TEXT, RGBX_UNET, RGBX_VAE, nchw, nhwc
 
 TOLERANCE = 1e-4
 NETWORKS = ("unet", "vae_encode", "vae_decode", "text_encoder")
@@ -143,14 +142,12 @@ class Checker:
         from jaxdistill.models.unet import UNet2DCondition
         from jaxdistill.models.vae import AutoencoderKL
 
-        import tiny_rgbx
-
-        self.args, self.jax, self.torch, self.tiny = args, jax, torch, tiny_rgbx
+        self.args, self.jax, self.torch, self.tiny = args, jax, torch, random_model
         torch.set_num_threads(args.threads)
         full = args.size == "full"
-        self.sizes = {"unet": RGBX_UNET if full else tiny_rgbx.TINY_UNET,
-                      "vae": RGBX_VAE if full else tiny_rgbx.TINY_VAE,
-                      "text": RGBX_TEXT if full else dict(tiny_rgbx.TINY_TEXT, vocab_size=600)}
+        self.sizes = {"unet": RGBX_UNET if full else random_model.TINY_UNET,
+                      "vae": RGBX_VAE if full else random_model.TINY_VAE,
+                      "text": RGBX_TEXT if full else dict(random_model.TINY_TEXT, vocab_size=600)}
         self.bos_eos = (49406, 49407) if full else (2, 2)
         # configs from weightless (meta-device) PyTorch models: one `abstract_params` for all parts
         with torch.device("meta"):
@@ -178,7 +175,7 @@ class Checker:
 
     # ---- PyTorch side -------------------------------------------------------------------------
     def build_torch(self, part: str):
-        """The random PyTorch model of `part` at the chosen size, via tests/tiny_rgbx.build_tiny_models
+        """The random PyTorch model of `part` at the chosen size, via `random_model.build_tiny_models`
         (1/sqrt(fan_in) weights; the other two parts are built tiny and dropped at once)."""
         t = self.tiny
         start = time.perf_counter()

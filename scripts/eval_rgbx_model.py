@@ -24,44 +24,14 @@ import jax
 import numpy as np
 from tqdm import tqdm
 
-from jaxdistill.io import images as imageio
 from jaxdistill.evaluate import metrics
 from jaxdistill.models import convert
 from jaxdistill.models import prior as rgbx
 from jaxdistill.models.shipped import model_info, shipped_folder
+from jaxdistill.models.training.heldout import shard_ground_truth, to_file_space, trivial
+from jaxdistill.models.training.shards import shard_paths
 
 MAPS = ("albedo", "normal", "roughness", "metallic", "irradiance")
-TRIVIAL_ROUGHNESS, TRIVIAL_METALLIC = 0.6, 0.05
-
-
-def ground_truth(z, i: int) -> dict:
-    """File-space GT maps of image i of a shard (uint8 arrays as make_rgbx_data writes them)."""
-    f = lambda k: z[k][i].astype(np.float32) / 255.0          # noqa: E731
-    return {"albedo": imageio.srgb_to_linear(f("albedo")), "normal": 2.0 * f("normal") - 1.0,
-            "roughness": f("roughness")[..., :1], "metallic": f("metallic")[..., :1],
-            "irradiance": imageio.srgb_to_linear(f("irradiance"))}
-
-
-def trivial(photo_srgb: np.ndarray) -> dict:
-    """The trivial baseline of an sRGB photo in [0, 1] (see `trivial_linear`)."""
-    return trivial_linear(imageio.srgb_to_linear(photo_srgb))
-
-
-def trivial_linear(linear: np.ndarray) -> dict:
-    """The trivial baseline of a linear photo in [0, 1]: the photo as albedo, the mean material,
-    normals facing the camera, the photo's luminance as irradiance."""
-    h, w = linear.shape[:2]
-    grey = linear @ np.array([0.2126, 0.7152, 0.0722], np.float32)
-    return {"albedo": linear, "normal": np.broadcast_to(np.float32([0, 0, 1]), (h, w, 3)),
-            "roughness": np.full((h, w, 1), TRIVIAL_ROUGHNESS, np.float32),
-            "metallic": np.full((h, w, 1), TRIVIAL_METALLIC, np.float32), "irradiance": np.repeat(grey[..., None], 3, -1)}
-
-
-def to_file_space(name: str, image: np.ndarray) -> np.ndarray:
-    """`estimate_batch(gamma=False)` output of one map → the file space metrics compare."""
-    if name == "normal":
-        return 2.0 * image - 1.0
-    return image[..., :1] if name in rgbx.GREY_MAPS else image
 
 
 def main(argv=None) -> int:
@@ -82,7 +52,7 @@ def main(argv=None) -> int:
     folder = args.rgbx_dir or shipped_folder()
     if folder is None:
         raise SystemExit("--rgbx_dir: no model given and none shipped in this installation")
-    shards = sorted(p for p in args.data.glob("room_*.npz") if ".tmp" not in p.name)
+    shards = shard_paths(args.data)
     if not shards:
         raise SystemExit(f"{args.data}: no room_*.npz shards; make them with scripts/make_rgbx_data.py --split=heldout")
     model = rgbx.load_prior(convert.load_rgbx(folder))
@@ -93,7 +63,7 @@ def main(argv=None) -> int:
     for path in shards:
         with np.load(path) as z:
             for i in range(len(z["photo"])):
-                images.append((f"{path.stem}/{i}", z["photo"][i].astype(np.float32) / 255.0, ground_truth(z, i),
+                images.append((f"{path.stem}/{i}", z["photo"][i].astype(np.float32) / 255.0, shard_ground_truth(z, i),
                                z["valid"][i][..., 0] > 0))
     images = images[:args.limit or None]
     for j in tqdm(range(0, len(images), 16), desc="estimates", unit="batch"):

@@ -19,38 +19,43 @@ the main job's own evaluation (`jaxdistill.evaluate.ground_truth`):
   `RUNS` (thesis: its settings except the number of steps; default: configs/bedroom.cfg's);
   ablations are more entries of `RUNS` or `--set`.
 
-Every run writes OUT/<scene>/<run>/metrics.json (a run that has one is skipped, so the script
-resumes); OUT/table.json and OUT/table.md gather them.
+Every run writes OUT/<scene>/<run>/metrics.json, recording the row's settings (scene, model,
+the run's settings) and the code version (a digest of the package's and this script's source;
+the git commit beside it, for reading). A row that has one is reused, so the script resumes,
+but only when both equal the current run's: otherwise the script stops, naming the row file
+and what differs (delete the file, or give another --out, to compute the row again).
+OUT/table.json and OUT/table.md gather the rows.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import hashlib
 import json
+import subprocess
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
+import jaxdistill
 from jaxdistill.io import checkpoint, images as imageio
 from jaxdistill.evaluate import ground_truth as evaluation
+from jaxdistill.export.run_dir import json_safe
 from jaxdistill.models import estimates as model_estimates
 from jaxdistill import pipeline
-from jaxdistill.export import run_dir
-from jaxdistill.engine import loop
 from jaxdistill.engine.config import DistillConfig, validate
 from jaxdistill.datasets import ImportOptions, open_scene
 from jaxdistill.models import convert
 from jaxdistill.models import prior as rgbx
 from jaxdistill.models.shipped import model_info, shipped_folder
+from jaxdistill.models.training.heldout import trivial_linear
 from jaxdistill.engine.problem import render_shape
 from jaxdistill.render import fragments as fr
 from jaxdistill.scene.model import write_scene
 from jaxdistill.io.view_images import read_target, resize
-
-from eval_rgbx_model import trivial_linear     # scripts/: the same trivial baseline
 
 MAPS = ("albedo", "normal", "roughness", "metallic", "irradiance")
 RENDER_SIZE = 128
@@ -128,6 +133,66 @@ def run_main(scene_path: Path, out: Path, model_dir: Path, settings: dict) -> di
     return result
 
 
+def code_version() -> dict:
+    """This code's version: `source_sha256`, a digest of every .py file of the package and of this
+    script (names and bytes), which rows are compared on; the package version and the git commit
+    (None outside a checkout) only for reading."""
+    package = Path(jaxdistill.__file__).resolve().parent
+    digest = hashlib.sha256()
+    for path in sorted(package.rglob("*.py")) + [Path(__file__).resolve()]:
+        name = path.relative_to(package.parent) if package.parent in path.parents else path.name
+        digest.update(f"{Path(name).as_posix()}\0".encode() + path.read_bytes() + b"\0")
+    try:
+        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=package.parent, capture_output=True, text=True,
+                                timeout=10).stdout.strip() or None
+    except (OSError, subprocess.SubprocessError):
+        commit = None
+    return {"source_sha256": digest.hexdigest(), "package": jaxdistill.__version__, "git_commit": commit}
+
+
+def row_settings(run: str, scene, model_dir: Path, runs: dict) -> dict:
+    """What a row's figures depend on, besides the code: the scene and, but for `trivial`, the
+    model and the run's settings (estimates: DDIM steps at the render size; main-job rows: the
+    DistillConfig fields this script sets)."""
+    settings = {"run": run, "scene": str(Path(scene.root).resolve())}
+    if run == "trivial":
+        return settings
+    settings["model"] = model_info(Path(model_dir).resolve())
+    if run in ("estimates", "estimates_mean"):
+        steps = 1 if run == "estimates_mean" else model_estimates.ESTIMATE_STEPS
+        return {**settings, "maps": list(MAPS), "render_size": RENDER_SIZE, "ddim_steps": steps}
+    config = {**COMMON, **runs[run], "views_per_step": min(runs[run]["views_per_step"], len(scene.views))}
+    if config["prior"] == "views":      # fused: the targets are the model's estimates
+        settings["estimates"] = {"render_size": RENDER_SIZE, "ddim_steps": model_estimates.ESTIMATE_STEPS}
+    return {**settings, "config": config}
+
+
+def differences(recorded, current, where: str = "") -> list[str]:
+    """'key: <recorded> in the row, <current> now' for every leaf where two JSON documents differ."""
+    if isinstance(recorded, dict) and isinstance(current, dict):
+        return [line for key in sorted(set(recorded) | set(current), key=str)
+                for line in differences(recorded.get(key, "(absent)"), current.get(key, "(absent)"),
+                                        f"{where}.{key}" if where else str(key))]
+    return [] if recorded == current else [f"{where}: {json.dumps(recorded)} in the row, {json.dumps(current)} now"]
+
+
+def check_reusable(path: Path, row_doc: dict, settings: dict, code: dict) -> None:
+    """SystemExit naming `path` and what differs, unless the row was made with these settings by
+    this code (the same source digest)."""
+    current = json.loads(json.dumps(json_safe(settings)))
+    if "code_version" not in row_doc or not isinstance(row_doc.get("settings"), dict):
+        problems = ["it records no settings and code version (written before rows recorded them)"]
+    else:
+        problems = differences(row_doc["settings"], current, "settings")
+        made_by = row_doc["code_version"].get("source_sha256")
+        if made_by != code["source_sha256"]:
+            problems.append(f"code version: source sha256 {made_by} (git {row_doc['code_version'].get('git_commit')}) "
+                            f"in the row, {code['source_sha256']} (git {code['git_commit']}) now")
+    if problems:
+        raise SystemExit(f"{path}: not reused, it was not made by this run's settings and code:\n  "
+                         + "\n  ".join(problems) + f"\ndelete {path} (or give another --out) to compute the row again")
+
+
 def row(metrics: dict | None) -> dict:
     keys = ("albedo_psnr", "albedo_ssim", "albedo_si_psnr", "albedo_si_ssim", "normal_angular_deg", "roughness_mse",
             "metallic_mse", "irradiance_si_psnr")
@@ -154,7 +219,7 @@ def main(argv=None) -> int:
         base = runs.setdefault(name, dict(runs.get(name.split("+")[0], {})))
         kind = type(DistillConfig.__dataclass_fields__[field].default)
         base[field] = (value.lower() in ("1", "true", "yes")) if kind is bool else kind(value)
-    table = {}
+    table, code = {}, code_version()
     for spec in args.scenes.split(","):
         scene = open_scene(spec, ImportOptions(allow_outside_paths=True))
         name = Path(spec).name
@@ -162,8 +227,13 @@ def main(argv=None) -> int:
         folder.mkdir(parents=True, exist_ok=True)
         rows = table.setdefault(name, {})
         for run in args.runs.split(","):
+            if run not in ("trivial", "estimates", "estimates_mean") and run not in runs:
+                raise SystemExit(f"--runs: unknown run {run!r}")
             path = folder / run / "metrics.json"
-            if not path.is_file():
+            settings = row_settings(run, scene, model_dir, runs)
+            if path.is_file():
+                check_reusable(path, json.loads(path.read_text()), settings, code)
+            else:
                 print(f"== {name}: {run}", flush=True)
                 start = time.perf_counter()
                 if run == "trivial":
@@ -173,21 +243,18 @@ def main(argv=None) -> int:
                     shapes = [(v.camera.height, v.camera.width) for v in scene.views]
                     result = {"ours": score(scene, model_estimates.read_estimates(
                         est, [v.name for v in scene.views], MAPS, shapes)), "folder": str(est)}
-                elif run in runs:
+                else:
                     scene_path = Path(scene.root)
                     if runs[run]["prior"] == "views":
                         scene_path = fusion_scene(scene, estimates_folder(scene, model_dir), folder / "fusion_scene")
-                    settings = dict(runs[run], views_per_step=min(runs[run]["views_per_step"], len(scene.views)))
-                    result = run_main(scene_path, folder / run, model_dir, settings)
+                    result = run_main(scene_path, folder / run, model_dir, settings["config"])
                     if result.get("stopped_by"):       # SIGINT/SIGTERM: checkpoint saved, the row is not done
                         print(f"== {name}: {run} stopped by {result['stopped_by']}; rerun to resume it", flush=True)
                         return result["exit_status"]
-                else:
-                    raise SystemExit(f"--runs: unknown run {run!r}")
                 result["seconds"] = time.perf_counter() - start
-                result["settings"] = runs.get(run)
+                result["settings"], result["code_version"] = settings, code
                 path.parent.mkdir(parents=True, exist_ok=True)
-                path.write_text(json.dumps(run_dir.json_safe(result), indent=1))
+                path.write_text(json.dumps(json_safe(result), indent=1))
             result = json.loads(path.read_text())
             rows[run] = dict(row(result.get("ours")), seconds=result.get("seconds"),
                              rerender_psnr=(result.get("rerender") or {}).get("psnr_db"))

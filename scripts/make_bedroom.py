@@ -43,137 +43,30 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from jaxdistill.scene import cameras
+from jaxdistill.datasets.mitsuba import bridge as mb
 from jaxdistill.io import images as imageio
 from jaxdistill.io.exposure import scene_exposure
-from jaxdistill.datasets.mitsuba import bridge as mb
 from jaxdistill.datasets.mitsuba import bedroom as bedroom_mitsuba
 from jaxdistill.datasets.mitsuba.bedroom import EMITTER_OBJECTS, EMITTERS
-from jaxdistill.evaluate.ground_truth import camera_normals, face_normals  # GT normals exactly as evaluation makes them
+from jaxdistill.models.training.room_geometry import Rect, box, build_scene_geometry, legs, preview, rect, rolled_camera, wall
+from jaxdistill.models.training.scene_files import (EXR_TIMESTAMP, MAP_FILES, write_gt_json, write_map, write_preview,
+                                                    write_texture_pages)
+from jaxdistill.models.training.standins import ESTIMATE_MODEL, estimate_view
+from jaxdistill.models.training.textures import gaussian_blur, grid, mix, smooth_noise, wood
 from jaxdistill.render import fragments as fr
 from jaxdistill.render.sampler import sample_pages
+from jaxdistill.scene import cameras
+from jaxdistill.scene.cameras import camera_normals       # GT normals exactly as evaluation makes them
+from jaxdistill.scene.mesh import face_normals
 from jaxdistill.scene.model import Mesh, Scene, View, write_scene
-from jaxdistill.scene.shapes import quad_patch
 
 ROOM = np.array([4.2, 2.6, 3.6])
-TEXELS_PER_METRE = 128
-GUTTER_TEXELS = 4
 PIXEL_FILTER_SIGMA = 0.5   # Gaussian pixel filter applied after Mitsuba's box-filtered render (see generate)
 IRRADIANCE_SPP = 32        # per-view irradiance ground truth (`write_irradiance`)
 IRRADIANCE_COMPRESSION = "dwaa:90"     # as the photos: lossy, below the Monte Carlo noise
-EXR_TIMESTAMP = "2026:11:21 00:00:00"   # fixed EXR capDate: files are byte-reproducible
 DEFAULT_OUT = Path(__file__).resolve().parents[1] / "jaxdistill" / "scenes" / "bedroom"
 
 # ----------------------------------------------------------------------------- geometry
-
-
-@dataclasses.dataclass
-class Rect:
-    """A planar rectangle origin + a*edge_u + b*edge_v (a, b in [0, 1]); normal edge_u x edge_v.
-
-    uv: fixed (u0, v0, du, dv) placement in the page, or None to be packed by `pack_rects`.
-    """
-
-    origin: np.ndarray
-    edge_u: np.ndarray
-    edge_v: np.ndarray
-    uv: tuple | None = None
-
-
-def rect(origin, edge_u, edge_v, uv=None) -> Rect:
-    return Rect(np.asarray(origin, float), np.asarray(edge_u, float), np.asarray(edge_v, float), uv)
-
-
-def box(lo, hi, skip=()) -> list[Rect]:
-    """Outward-facing rectangles of the box [lo, hi]; skip names faces to leave out ('-y', '+x', ...)."""
-    (x0, y0, z0), (x1, y1, z1) = lo, hi
-    dx, dy, dz = x1 - x0, y1 - y0, z1 - z0
-    faces = {
-        "-y": rect((x0, y0, z0), (dx, 0, 0), (0, 0, dz)),
-        "+y": rect((x0, y1, z1), (dx, 0, 0), (0, 0, -dz)),
-        "-z": rect((x1, y0, z0), (-dx, 0, 0), (0, dy, 0)),
-        "+z": rect((x0, y0, z1), (dx, 0, 0), (0, dy, 0)),
-        "-x": rect((x0, y0, z0), (0, 0, dz), (0, dy, 0)),
-        "+x": rect((x1, y0, z1), (0, 0, -dz), (0, dy, 0)),
-    }
-    return [r for name, r in faces.items() if name not in skip]
-
-
-def wall(origin, edge_u, edge_v, hole=None) -> list[Rect]:
-    """An inward-facing wall with planar UVs (u along edge_u, v up), optionally with a
-    rectangular opening hole = (a0, a1, b0, b1) in fractions of the edges."""
-    origin, eu, ev = (np.asarray(x, float) for x in (origin, edge_u, edge_v))
-    if hole is None:
-        return [rect(origin, eu, ev, (0.0, 0.0, 1.0, 1.0))]
-    a0, a1, b0, b1 = hole
-    cells = [(0, 1, 0, b0), (0, 1, b1, 1), (0, a0, b0, b1), (a1, 1, b0, b1)]
-    return [rect(origin + p0 * eu + q0 * ev, (p1 - p0) * eu, (q1 - q0) * ev, (p0, q0, p1 - p0, q1 - q0))
-            for p0, p1, q0, q1 in cells]
-
-
-def pack_rects(sizes: np.ndarray, gutter: float) -> tuple[np.ndarray, float]:
-    """Shelf-packs rectangles (n, 2) (width, height in metres) into the unit square.
-
-    Returns lower-left corners (n, 2) and the largest common scale s (uv units per metre) at
-    which all of them fit with `gutter` uv units between and around them.
-    """
-    order = np.argsort(-sizes[:, 1], kind="stable")
-
-    def place(s):
-        corners = np.zeros_like(sizes)
-        x, y, shelf = gutter, gutter, 0.0
-        for i in order:
-            w, h = sizes[i] * s
-            if x + w + gutter > 1.0:
-                x, y, shelf = gutter, y + shelf + gutter, 0.0
-            if x + w + gutter > 1.0 or y + h + gutter > 1.0:
-                return None
-            corners[i] = (x, y)
-            x, shelf = x + w + gutter, max(shelf, h)
-        return corners
-
-    lo, hi = 0.0, 1.0 / sizes.max()
-    for _ in range(40):
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if place(mid) is not None else (lo, mid)
-    return place(lo), lo
-
-
-def page_size_for(rects: list[Rect]) -> int:
-    """Power-of-two page side giving about TEXELS_PER_METRE over the object's area, in [64, 512]."""
-    area = sum(np.linalg.norm(np.cross(r.edge_u, r.edge_v)) for r in rects)
-    side = math.sqrt(area * 1.6) * TEXELS_PER_METRE
-    return int(np.clip(2 ** round(math.log2(max(side, 1.0))), 64, 512))
-
-
-def build_object(rects: list[Rect], size: int):
-    """(vertices, faces, corner uv) of one object; packed rects share one texel density."""
-    packed = [i for i, r in enumerate(rects) if r.uv is None]
-    placement = {}
-    if packed:
-        sizes = np.array([[np.linalg.norm(rects[i].edge_u), np.linalg.norm(rects[i].edge_v)] for i in packed])
-        corners, scale = pack_rects(sizes, GUTTER_TEXELS / size)
-        for k, i in enumerate(packed):
-            placement[i] = (*corners[k], *(sizes[k] * scale))
-    verts, faces, uvs, offset = [], [], [], 0
-    for i, r in enumerate(rects):
-        v, f, uv = quad_patch(r.origin, r.edge_u, r.edge_v, 1)
-        u0, v0, du, dv = r.uv if r.uv is not None else placement[i]
-        verts.append(v)
-        faces.append(f + offset)
-        uvs.append(np.stack([u0 + uv[..., 0] * du, v0 + uv[..., 1] * dv], -1))
-        offset += len(v)
-    return np.concatenate(verts), np.concatenate(faces), np.concatenate(uvs)
-
-
-def legs(x0, x1, z0, z1, height, thickness) -> list[Rect]:
-    """Four square legs under the rectangle [x0, x1] x [z0, z1]."""
-    t = thickness
-    out = []
-    for x in (x0, x1 - t):
-        for z in (z0, z1 - t):
-            out += box((x, 0.0, z), (x + t, height, z + t), skip=("-y", "+y"))
-    return out
 
 
 def bedroom_objects() -> list[tuple[str, list[Rect], str]]:
@@ -238,47 +131,6 @@ def bedroom_objects() -> list[tuple[str, list[Rect], str]]:
 
 
 # ----------------------------------------------------------------------------- textures
-
-
-def smooth_noise(rng, shape, sigma: float, aspect: float = 1.0) -> np.ndarray:
-    """Periodic Gaussian-filtered white noise of `shape` (int for square), zero mean, unit std;
-    sigma in texels across rows, sigma * aspect along rows."""
-    shape = (shape, shape) if np.isscalar(shape) else tuple(shape)
-    white = rng.standard_normal(shape)
-    gy, gx = np.meshgrid(np.fft.fftfreq(shape[0]), np.fft.fftfreq(shape[1]), indexing="ij")
-    kernel = np.exp(-2 * np.pi ** 2 * ((gy * sigma) ** 2 + (gx * sigma * aspect) ** 2))
-    out = np.real(np.fft.ifft2(np.fft.fft2(white) * kernel))
-    return (out - out.mean()) / (out.std() + 1e-12)
-
-
-def gaussian_blur(image: np.ndarray, sigma: float) -> np.ndarray:
-    """(H, W, C) image blurred with a separable Gaussian (edge-replicated borders)."""
-    if sigma <= 0:
-        return image
-    r = int(math.ceil(3 * sigma))
-    k = np.exp(-0.5 * (np.arange(-r, r + 1) / sigma) ** 2)
-    k /= k.sum()
-    out = np.pad(image, ((r, r), (r, r), (0, 0)), mode="edge")
-    out = sum(k[i] * out[i:i + image.shape[0]] for i in range(2 * r + 1))
-    return sum(k[i] * out[:, i:i + image.shape[1]] for i in range(2 * r + 1))
-
-
-def mix(a, b, t):
-    return np.asarray(a)[None, None] * (1 - t[..., None]) + np.asarray(b)[None, None] * t[..., None]
-
-
-def grid(size: int):
-    s = (np.arange(size) + 0.5) / size
-    return np.meshgrid(s, s, indexing="xy")          # (u, row) with row 0 on top
-
-
-def wood(rng, size, light, dark, rings=38.0):
-    u, v = grid(size)
-    warp = smooth_noise(rng, size, size / 10, aspect=0.25)
-    grain = 0.5 + 0.5 * np.sin(2 * np.pi * (v * rings + 0.8 * warp))
-    fine = smooth_noise(rng, size, 0.7, aspect=6.0)
-    t = np.clip(grain ** 3 + 0.12 * fine, 0, 1)
-    return mix(light, dark, t), t
 
 
 def albedo_and_maps(material: str, rng, size: int):
@@ -351,42 +203,11 @@ def albedo_and_maps(material: str, rng, size: int):
 # ----------------------------------------------------------------------------- scene
 
 
-def build_scene_geometry(objs) -> tuple[Mesh, list[int]]:
-    """The Mesh of all objects (one object id each) and each object's page size."""
-    verts, faces, uvs, face_object, sizes, offset = [], [], [], [], [], 0
-    for k, (name, rects, _) in enumerate(objs):
-        size = page_size_for(rects)
-        v, f, uv = build_object(rects, size)
-        verts.append(v)
-        faces.append(f + offset)
-        uvs.append(uv)
-        face_object.append(np.full(len(f), k, np.int32))
-        sizes.append(size)
-        offset += len(v)
-    mesh = Mesh(vertices=np.concatenate(verts), faces=np.concatenate(faces).astype(np.int64),
-                uv=np.concatenate(uvs), face_object=np.concatenate(face_object),
-                object_names=tuple(name for name, _, _ in objs))
-    return mesh, sizes
-
-
 def write_textures(objs, sizes, rng, folder: Path) -> dict[str, list[np.ndarray]]:
     """Writes 8-bit GT textures and returns what they decode to (the exact ground truth):
     albedo (S, S, 3) linear, roughness and metallic (S, S, 1) in [0, 1]."""
     maps = [albedo_and_maps(material, rng, size) for (_, _, material), size in zip(objs, sizes)]
     return write_texture_pages([name for name, _, _ in objs], maps, folder)
-
-
-def write_texture_pages(names, maps, folder: Path) -> dict[str, list[np.ndarray]]:
-    """Writes each object's (albedo linear, roughness, metallic) pages as 8-bit PNGs
-    folder/<map>/<name>.png (albedo sRGB-encoded) and returns what they decode to:
-    albedo (S, S, 3) linear, roughness and metallic (S, S, 1)."""
-    gt = {"albedo": [], "roughness": [], "metallic": []}
-    for name, (albedo, rough, metal) in zip(names, maps):
-        for key, values, srgb in (("albedo", albedo, True), ("roughness", rough, False), ("metallic", metal, False)):
-            path = folder / key / f"{name}.png"
-            imageio.write_image(path, values, encode_srgb=srgb)
-            gt[key].append(imageio.read_image(path, linear=srgb))
-    return gt
 
 
 def mitsuba_scene(mesh: Mesh, objs, gt):
@@ -451,91 +272,7 @@ def place_views(mesh: Mesh, rng, count: int, width: int, height: int) -> list[ca
     return out
 
 
-def rolled_camera(eye, target, K, width, height, roll: float) -> cameras.Camera:
-    """A camera at eye looking at target, rolled by `roll` radians from level."""
-    forward = (target - eye) / np.linalg.norm(target - eye)
-    side = np.cross(forward, [0.0, 1.0, 0.0])
-    side /= np.linalg.norm(side)
-    up = math.cos(roll) * np.cross(side, forward) + math.sin(roll) * side
-    return cameras.look_at(eye, target, up, K, width, height)
-
-
-def preview(caster, cam: cameras.Camera, factor: int) -> tuple[float, float]:
-    """(fraction of pixels that hit geometry, median hit depth) of `cam` at 1/factor resolution."""
-    small = cameras.Camera(np.diag([1 / factor, 1 / factor, 1.0]) @ cam.K, cam.c2w, cam.width // factor, cam.height // factor)
-    tri, _, depth = fr.cast_view(caster, small)[:3]
-    hit = tri >= 0
-    return float(hit.mean()), float(np.median(depth[hit])) if hit.any() else 0.0
-
-
-# ----------------------------------------------------------------------------- estimates
-
-ESTIMATE_MODEL = """\
-Per view v, with GT maps rendered by our sampler, photo P (linear) and shading
-S = lum(P) / max(lum(albedo_gt), 0.02) normalised by its median over hit pixels, clipped to [0.2, 5]:
-- albedo     = clip(gain_v * blur(albedo_gt, blur_px_v) * blur(S, 2 px)**leak_v + 0.02 * smooth_noise, 0, 1);
-               gain_v = exposure_v * tint_v (per channel, log-normal sigma 0.12 and 0.06).
-- roughness  = clip(blur(roughness_gt) + roughness_offset_v + 0.05 * smooth_noise, 0, 1).
-- metallic   = clip(blur(metallic_gt) * metallic_scale_v + metallic_offset_v + 0.03 * smooth_noise, 0, 1).
-- normal     = normalise(R_v blur(normal_gt) + 0.06 * smooth_noise), R_v a random rotation of normal_tilt_deg_v.
-- irradiance = clip(0.9 I / percentile_99(I), 0, 1), I = blur(P / max(albedo_gt, 0.02), blur_px_v + 1.5):
-               the shading layer (specular included), exposed into [0, 1] like RGB<->X's LDR output.
-smooth_noise: unit-std Gaussian-filtered noise, sigma 8 px, independent per view, map and channel.
-"""
-
-
-def luminance(x):
-    return x @ np.array([0.2126, 0.7152, 0.0722], np.float32)
-
-
-def estimate_view(rng, gt: dict[str, np.ndarray], photo: np.ndarray, hit: np.ndarray):
-    """Corrupted per-view maps standing in for a monocular estimator, and their parameters."""
-    h, w = hit.shape
-    p = {"exposure": float(np.exp(rng.normal(0, 0.12))), "tint": np.exp(rng.normal(0, 0.06, 3)).round(6).tolist(),
-         "leak": float(rng.uniform(0.1, 0.3)), "blur_px": float(rng.uniform(0.5, 1.5)),
-         "roughness_offset": float(rng.normal(0, 0.1)), "metallic_scale": float(rng.uniform(0.5, 1.0)),
-         "metallic_offset": float(rng.uniform(0.0, 0.08)), "normal_tilt_deg": float(abs(rng.normal(0, 4.0))),
-         }
-
-    def noise(c):
-        return np.stack([smooth_noise(rng, (h, w), 8.0) for _ in range(c)], -1)
-
-    m = hit[..., None]
-    albedo = gt["albedo"]
-    shading = luminance(photo) / np.maximum(luminance(albedo), 0.02)
-    shading = np.clip(shading / np.median(shading[hit]), 0.2, 5.0)[..., None]
-    smooth_shading = gaussian_blur(shading, 2.0)
-    gain = p["exposure"] * np.asarray(p["tint"])
-    est = {"albedo": np.clip(gain * gaussian_blur(albedo, p["blur_px"]) * smooth_shading ** p["leak"] + 0.02 * noise(3), 0, 1)}
-    est["roughness"] = np.clip(gaussian_blur(gt["roughness"], p["blur_px"]) + p["roughness_offset"] + 0.05 * noise(1), 0, 1)
-    est["metallic"] = np.clip(gaussian_blur(gt["metallic"], p["blur_px"]) * p["metallic_scale"] + p["metallic_offset"]
-                              + 0.03 * noise(1), 0, 1)
-    axis = rng.normal(size=3)
-    axis /= np.linalg.norm(axis)
-    a = math.radians(p["normal_tilt_deg"])
-    cross = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    rot = np.eye(3) + math.sin(a) * cross + (1 - math.cos(a)) * cross @ cross
-    n = gaussian_blur(gt["normal"], p["blur_px"]) @ rot.T + 0.06 * noise(3)
-    est["normal"] = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-6)
-    irradiance = gaussian_blur(photo / np.maximum(albedo, 0.02), p["blur_px"] + 1.5)
-    est["irradiance"] = np.clip(0.9 * irradiance / np.percentile(irradiance[hit], 99), 0, 1)
-    est = {k: np.where(m, v, 0.0).astype(np.float32) for k, v in est.items()}
-    return est, p
-
-
 # ----------------------------------------------------------------------------- main
-
-MAP_FILES = {name: ".png" for name in ("albedo", "roughness", "metallic", "normal", "irradiance")}
-
-
-def write_map(path: Path, name: str, values: np.ndarray) -> None:
-    """Per-view map files: albedo, irradiance PNG sRGB; roughness, metallic PNG values; normals PNG (n+1)/2."""
-    if name in ("albedo", "irradiance"):
-        imageio.write_image(path, values)
-    elif name == "normal":
-        imageio.write_image(path, 0.5 * (values + 1.0), encode_srgb=False)
-    else:
-        imageio.write_image(path, values, encode_srgb=False)
 
 
 def psnr_and_match(a: np.ndarray, b: np.ndarray, mask: np.ndarray, tol: float) -> tuple[float, float]:
@@ -677,35 +414,6 @@ itself is exact: the same scene with Lambertian `diffuse` BSDFs on the same albe
 irradiance rendered alike (views 0 and 24 at 160x120, 128 spp), gives medians 1.002 and 0.999
 on these pixels, where the principled scene gives 1.098 and 1.076.
 """
-
-
-def write_gt_json(out: Path, names, exclude_objects) -> None:
-    """gt.json: the GT pages gt/textures/<map>/<object>.png of `write_texture_pages`, normals from
-    the geometry, `exclude_objects` (emitters) out of the metrics."""
-    doc = {"format": "jaxdistill-gt", "version": 1,
-           "textures": {k: {n: f"gt/textures/{k}/{n}.png" for n in names} for k in ("albedo", "roughness", "metallic")},
-           "texture_encoding": {"albedo": "srgb", "roughness": "linear", "metallic": "linear"},
-           "normal": "geometry", "exclude_objects": list(exclude_objects), "sampler": "bilinear"}
-    (out / "gt.json").write_text(json.dumps(doc, indent=1))
-
-
-def write_preview(folder: Path, views=(0, 12, 24, 36)) -> Path:
-    """preview.jpg: rows of views, columns photo | albedo | normal | roughness | irradiance targets,
-    at half resolution (read back from the written files, so it is deterministic)."""
-    doc = json.loads((folder / "scene.json").read_text())
-    rows = []
-    for i in views:
-        if i >= len(doc["views"]):
-            continue
-        v = doc["views"][i]
-        tiles = [imageio.read_image(folder / v["photo"].replace(".exr", ".png"), linear=False)]
-        for key in ("albedo", "normal", "roughness", "irradiance"):
-            img = imageio.read_image(folder / v["targets"][key], linear=False)
-            tiles.append(np.repeat(img, 3, axis=-1) if img.shape[-1] == 1 else img)
-        rows.append(np.concatenate([t[::2, ::2, :3] for t in tiles], axis=1))
-    path = folder / "preview.jpg"
-    imageio.write_image(path, np.concatenate(rows, axis=0), encode_srgb=False, compression="jpeg:85")
-    return path
 
 
 def manifest(folder: Path) -> dict[str, str]:

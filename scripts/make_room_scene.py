@@ -4,10 +4,11 @@
         [--width=128 --height=96] [--spp=64] [--max_depth=5] [--variant=auto]
     python scripts/make_room_scene.py --split=heldout --index=0 --out=DIR --targets_from=ESTIMATE_OUT
 
-The room is `procedural_rooms.random_room(seed)` with seed = `make_rgbx_data.room_seed(split,
-index)`, rendered exactly as the prior's training data is (`make_rgbx_data.render_linear`: the
-same textures, cameras placed by the same rule, Mitsuba's `intrinsic_integrator` giving the
-photo and the irradiance E / pi in one pass, isolated fireflies removed), but kept linear.
+The room is `procedural_rooms.random_room(seed)` with seed = `shards.room_seed(split, index)`
+(`jaxdistill/models/training/`), rendered exactly as the prior's training data is
+(`room_render.render_linear`: the same textures, cameras placed by the same rule, Mitsuba's
+`intrinsic_integrator` giving the photo and the irradiance E / pi in one pass, isolated
+fireflies removed), but kept linear.
 Only held-out rooms (seeds 1_000_000 + index) are written: the training rooms are the prior's
 training data. DIR gets:
 
@@ -20,7 +21,7 @@ training data. DIR gets:
 - `ground_truth/irradiance/<view>.exr`: E / pi, linear, in the photos' units (each view's
   `ground_truth`), so photo = albedo x irradiance on diffuse surfaces;
 - `targets/<map>/<view>.png`: stand-ins for a monocular estimator, made as the bedroom's
-  (`make_bedroom.estimate_view`), parameters in `estimates.json`; or, with `--targets_from`,
+  (`standins.estimate_view`), parameters in `estimates.json`; or, with `--targets_from`,
   the images `python -m jaxdistill.estimate --scene=DIR --out_dir=ESTIMATE_OUT` wrote
   (ESTIMATE_OUT/<map>/<view>.png; referenced in place when inside DIR, else copied to
   DIR/estimates/). On a folder this script already made with the same settings,
@@ -43,19 +44,18 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
 from jaxdistill import MAP_NAMES
-from jaxdistill.io import exposure, images as imageio
-from jaxdistill.evaluate import metrics
 from jaxdistill.evaluate.consistency import (DIFFUSE_COSINE, DIFFUSE_ROUGHNESS, consistency, diffuse_mask,  # noqa: F401
                                              view_cosine)
 from jaxdistill.datasets.mitsuba import bridge as mb
-from jaxdistill.scene.model import Scene, View, read_scene, write_scene  # noqa: E402
-
-from make_bedroom import (EXR_TIMESTAMP, MAP_FILES, estimate_view, write_gt_json, write_map,  # noqa: E402
-                          write_preview, write_texture_pages)
-from make_rgbx_data import render_linear, room_seed  # noqa: E402
+from jaxdistill.evaluate import metrics
+from jaxdistill.io import exposure, images as imageio
+from jaxdistill.models.training.room_render import render_linear
+from jaxdistill.models.training.scene_files import (EXR_TIMESTAMP, MAP_FILES, write_gt_json, write_map, write_preview,
+                                                    write_texture_pages)
+from jaxdistill.models.training.shards import room_seed
+from jaxdistill.models.training.standins import estimate_view
+from jaxdistill.scene.model import Scene, View, read_scene, write_scene
 
 ROOM_FILE = "room.json"
 ROOM_FORMAT = "jaxdistill-room-scene"
@@ -101,7 +101,7 @@ def generate(out: Path, settings: dict, command: str) -> dict:
         views.append(View(name=name, camera=cam, photo=out / "photos" / f"{name}.exr", targets=targets,
                           exposure=stops, ground_truth={"irradiance": out / "ground_truth" / "irradiance" / f"{name}.exr"}))
     write_scene(Scene(name=f"room_{seed}", mesh=r.mesh, views=tuple(views), texture_layout="pages"), out)
-    (out / "estimates.json").write_text(json.dumps({"seed": seed, "model": "make_bedroom.estimate_view",
+    (out / "estimates.json").write_text(json.dumps({"seed": seed, "model": "standins.estimate_view",
                                                     "views": params}, indent=1))
     dielectric = [v & (r.gt["metallic"][i][..., 0] == 0) for i, v in enumerate(valid)]
     diffuse = [diffuse_mask(v, r.gt["roughness"][i], r.gt["metallic"][i], view_cosine(cam, r.gt["normal"][i]))
@@ -167,7 +167,7 @@ def readme(info: dict) -> str:
                                    f"{len(info['emitters'])} emitting objects" if info["emitters"] else "") if x)
     targets = info["targets"]
     if targets["source"] == "stand-ins":
-        target_text = ("stand-ins for a monocular estimator, made as the bedroom's (`make_bedroom.estimate_view`: "
+        target_text = ("stand-ins for a monocular estimator, made as the bedroom's (`standins.estimate_view`: "
                        "GT corrupted by gain, shading leak, blur, noise, offsets, tilted normals; parameters in "
                        "`estimates.json`). They are not a learned model's estimates. Replace them with\n\n"
                        f"    python -m jaxdistill.estimate --prior_dir=... --scene=DIR --out_dir=ESTIMATE_OUT\n"
@@ -184,7 +184,7 @@ def readme(info: dict) -> str:
 (`make_rgbx_data.py`; its `--split={info['split']}` room {info['index']}, never a training room):
 {info['objects']} objects, {info['faces']} triangles, room {' x '.join(f'{x:g}' for x in info['room_size'])} m,
 light: {lights}. {info['views']} views of {info['width']}x{info['height']}, path traced by Mitsuba 3
-(`{info['variant']}`, `make_rgbx_data.render_linear`: intrinsic integrator, max depth {info['max_depth']},
+(`{info['variant']}`, `room_render.render_linear`: intrinsic integrator, max depth {info['max_depth']},
 {info['spp']} spp, box pixel filter, isolated fireflies removed), photo and irradiance E/pi in one pass.
 
     {info['command']}

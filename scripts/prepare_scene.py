@@ -11,7 +11,7 @@ by Mitsuba: ground_truth/irradiance/<view>.exr, and scaled into [0, 1] as
 targets/irradiance/<view>.exr), masks/<view>.png (valid = hit, not emitter, not glass), each
 referenced by its view in scene.json (targets, ground_truth, mask: a complete scene for the
 main job and its evaluation), import.json (conventions, materials, UV decisions, statistics,
-timings) and README.md. How each step works: `jaxdistill/datasets/mitsuba/importer.py`. Then:
+timings) and README.md. How each step works: `jaxdistill/datasets/mitsuba/prepare.py`. Then:
 
     python -m jaxdistill.main --flagfile=configs/bedroom.cfg --scene=DIR --out_dir=RUN --views_per_step=8
 
@@ -67,7 +67,7 @@ def main(argv=None) -> int:
     command = "python scripts/prepare_scene.py " + " ".join(
         shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv))
     try:
-        from jaxdistill.datasets.mitsuba.importer import prepare_scene
+        from jaxdistill.datasets.mitsuba.prepare import prepare_scene
         summary = prepare_scene(args.mitsuba, args.out, num_views=args.views, width=args.width, height=args.height,
                                 spp=args.spp, seed=args.seed, up=parse_up(args.up), command=command,
                                 progress=not args.quiet)

@@ -1,4 +1,4 @@
-r"""Speed vs error: the curve users choose a configuration from (issue 6, part 2).
+r"""Speed vs error: the curve users choose a configuration from (docs/benchmarks.md §2, §3).
 
     python scripts/speed_vs_error.py                      # the full sweep: about 45 min on 2 idle cores
     python scripts/speed_vs_error.py --quick              # smoke version: 3 points, 4 steps (~2 min)
@@ -23,16 +23,17 @@ A. The sweep (embedded bedroom, `views` prior). Around the baseline of `configs/
    skipped and listed as such: fixed 4096 pages with trilinear sampling are 388M texels, about
    37 GB, more than a 24 GB machine has (fixed 2048: 97M texels, 9.3 GB peak RSS measured).
 
-   Each point is one fresh Python process running the library's own code path, as `train.run`
-   does: `build_problem`, `make_step` + `jit_step`, `init_state`, the step loop fetching the
-   metrics every --log_every steps (NaN check). Its albedo PSNR against ground truth is measured
-   at the photos' native size (`scoring.evaluation_context` / `scoring.quick_psnr`, what
-   --eval_every reports). Per point:
+   Each point is one fresh Python process running the main job's own code: `build_problem`, then
+   `jaxdistill.engine.loop.run_loop` (the step set up as the main job sets it up, the step loop
+   fetching the metrics every --log_every steps, NaN check), with `LoopHooks` that compile the
+   step ahead of time and note the time of every fetch, and no checkpoints. Its albedo PSNR
+   against ground truth is measured at the photos' native size (`scoring.evaluation_context` /
+   `scoring.quick_psnr`, what --eval_every reports). Per point:
 
      setup_s    build_problem (scene, cached fragments, layout, gather plans, visibility, targets)
-                + optimizer, init_state and placing state and constants on the device
+                + optimizer, initial state and placing state and constants on the device
      compile_s  tracing, lowering and XLA-compiling the step (ahead of time, then run compiled)
-     steps_s    all --steps steps, batches assembled on the host as in train.run, to the last result
+     steps_s    all --steps steps, batches assembled on the host as in the main job, to the last result
      wall_s     setup_s + compile_s + steps_s: what the distillation costs a user. Not included:
                 importing Python/JAX (import_s), evaluation against GT (eval_s: native-size plans,
                 GT renders, the PSNR), the periodic --eval_every PSNRs (switched off here),
@@ -347,23 +348,18 @@ def run_point(spec: dict) -> dict:
     import numpy as np
     from absl import logging
 
-    from jaxdistill import pipeline
-
     from jaxdistill.engine import config as config_lib, loop
+    from jaxdistill.engine.problem import build_problem, choose_prior
     from jaxdistill.evaluate import ground_truth as evaluation, scoring
-    from jaxdistill.engine.step import data_mesh, init_state, jit_step, make_optimizer, make_step
-    from jaxdistill.engine.problem import build_problem
     import_s = time.perf_counter() - t0
     logging.set_verbosity(logging.INFO)
 
     cfg = spec["config"]
     cfg["maps"] = tuple(cfg["maps"])
     config = config_lib.validate(config_lib.DistillConfig(**cfg))
-    devices = jax.devices()
-    if config.views_per_step % len(devices):
-        raise ValueError(f"--views_per_step {config.views_per_step} does not split over {len(devices)} devices")
+    loop.check_before_compute(config, Path(config.out_dir), choose_prior(config))   # as the main job, before compute
 
-    # setup: what train.run does before its loop (less the evaluation context, timed in eval_s)
+    # setup: what the main job does before its loop (less the evaluation context, timed in eval_s)
     load_before = os.getloadavg()[0]
     limit_gb = spec.get("max_gb") or available_gb()
     too_big = memory_precheck(config, limit_gb)      # only when full pages could not fit: not a timed part
@@ -378,57 +374,41 @@ def run_point(spec: dict) -> dict:
                 "texels": int(problem.space.num_texels), "render_hw": [problem.height, problem.width],
                 "import_s": import_s, "setup_s": time.perf_counter() - t0, "setup_timings": problem.timings,
                 "need_gb": need_gb, "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20}
-    mesh = data_mesh(devices)
-    replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
-    by_view = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("data"))
-    optimizer = make_optimizer(config.lr, config.weight_decay, config.lr_schedule, config.steps)
-    settings = loop.step_settings(config, problem)
-    state = init_state(problem.initial_texels(), optimizer, config.seed)
-    first = problem.batch(problem.view_ids(0, config.views_per_step, config.seed))
-    step_fn, traces = jit_step(make_step(problem.prior, settings, optimizer), mesh, first, state, problem.frozen)
-    state = jax.device_put(state, replicated)
-    frozen = jax.device_put(problem.frozen, replicated)
-    jax.block_until_ready((state, frozen))
-    setup_s = time.perf_counter() - t0
 
-    # compile: ahead of time, so that the step loop below times steps only
-    t0 = time.perf_counter()
-    compiled = step_fn.lower(state, jax.device_put(first, by_view), frozen).compile()
-    compile_s = time.perf_counter() - t0
-    del first
+    # the main job's loop; the hooks mark the end of the setup, compile the step ahead of time (so
+    # that the steps are timed apart) and note when each --log_every window's metrics come back
+    times, marks = {}, []
 
-    # the loop of train.run: host batches while the device runs; metrics fetched every log_every
-    losses, marks, pending = [], [(0, time.perf_counter())], []
-    t0 = marks[0][1]
-    for step in range(config.steps):
-        batch = jax.device_put(problem.batch(problem.view_ids(step, config.views_per_step, config.seed)), by_view)
-        state, metrics = compiled(state, batch, frozen)
-        pending.append(metrics)
-        done = step + 1
-        if done % config.log_every == 0 or done == config.steps:
-            fetched = jax.device_get(pending)
-            pending.clear()
-            if not all(m["finite"] for m in fetched):
-                raise FloatingPointError(f"non-finite loss or gradient before step {done}")
-            losses.extend(float(m["loss"]) for m in fetched)
-            marks.append((done, time.perf_counter()))
-    jax.block_until_ready(state.texels)
-    steps_s = time.perf_counter() - t0
-    traces.check(1)
+    def before_steps(step_fn, state, batch, frozen):
+        jax.block_until_ready((state, frozen))
+        times["setup_end"] = time.perf_counter()
+        compiled = step_fn.lower(state, batch, frozen).compile()
+        times["compiled"] = time.perf_counter()
+        marks.append((0, times["compiled"]))
+        return compiled
+
+    hooks = loop.LoopHooks(before_steps=before_steps, after_fetch=lambda done, _: marks.append((done, time.perf_counter())),
+                           checkpoints=False)
+    result = loop.run_loop(config, problem, loop.recorded_config(config, problem.choice.kind), None, progress=False,
+                           hooks=hooks)
+    setup_s = times["setup_end"] - t0
+    compile_s = times["compiled"] - times["setup_end"]
+    steps_s = marks[-1][1] - marks[0][1]
     windows = [(b[1] - a[1]) / (b[0] - a[0]) for a, b in zip(marks, marks[1:])]
 
     # evaluation at the photos' native size, as --eval_every does
     t0 = time.perf_counter()
     ctx = scoring.evaluation_context(config, problem)
-    psnr = scoring.quick_psnr(state, problem, ctx) if ctx.gt is not None else math.nan
+    psnr = scoring.quick_psnr(result.state, problem, ctx) if ctx.gt is not None else math.nan
     eval_s = time.perf_counter() - t0
+    losses = result.history["loss"]
     row = {
         "render_hw": [problem.height, problem.width], "texels": int(problem.space.num_texels),
         "page_sizes": sorted(set(int(s) for s in problem.space.layout.page_sizes)),
         "import_s": import_s, "setup_s": setup_s, "compile_s": compile_s, "steps_s": steps_s,
         "wall_s": setup_s + compile_s + steps_s, "s_per_step": float(np.median(windows)),
         "eval_s": eval_s, "albedo_psnr": psnr, "final_loss": losses[-1] if losses else math.nan,
-        "setup_timings": problem.timings, "traces": traces.traces, "need_gb": need_gb,
+        "setup_timings": problem.timings, "traces": result.traces, "need_gb": need_gb,
         "load_avg_1min": [load_before, os.getloadavg()[0]],
     }
     if spec.get("baseline") and ctx.gt is not None:
@@ -557,7 +537,7 @@ def run_rgbx(spec: dict) -> dict:
                         "fp32_compile_s": compile_s["float32"][kind], "bf16_compile_s": compile_s["bfloat16"][kind],
                         "calls_timed": len(times["float32"][kind])}
     note = ("RANDOM WEIGHTS (the tokenizer has %d entries, CLIP has %d: a folder written by "
-            "scripts/make_random_rgbx.py or tests/tiny_rgbx.py): the errors are those of random networks, "
+            "scripts/make_random_rgbx.py or jaxdistill.models.training.random_model): the errors are those of random networks, "
             "the timings are real" % (vocab, REAL_CLIP_VOCAB)) if random_weights else \
         "weights as supplied (tokenizer vocabulary of CLIP's size)"
     return {"folder": str(folder), "random_weights": random_weights, "note": note, "view": view.name,

@@ -1,4 +1,8 @@
-"""The procedural bedroom: packing, UVs, normals, estimates, and the committed scene folder."""
+"""The procedural bedroom: packing, UVs, normals, estimates, and the committed scene folder.
+
+The room kit (`room_geometry`), the stand-in estimates (`standins`) and the normals are library
+code, tested here through the package; the bedroom's own objects and generation are
+scripts/make_bedroom.py's, loaded from the script."""
 
 from __future__ import annotations
 
@@ -11,6 +15,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from jaxdistill.models.training import room_geometry, standins
+from jaxdistill.scene.cameras import camera_normals
+from jaxdistill.scene.mesh import face_normals
 from jaxdistill.scene.model import read_scene
 from jaxdistill.scenes import scene_path
 
@@ -34,21 +41,21 @@ def mb():
 @pytest.fixture(scope="module")
 def geometry(mb):
     objs = mb.bedroom_objects()
-    mesh, sizes = mb.build_scene_geometry(objs)
+    mesh, sizes = room_geometry.build_scene_geometry(objs)
     return objs, mesh, sizes
 
 
-def test_pack_rects_fits_without_overlap_at_one_scale(mb):
+def test_pack_rects_fits_without_overlap_at_one_scale():
     sizes = np.array([[2.0, 1.0], [1.0, 1.0], [0.5, 2.0], [0.3, 0.2], [1.5, 0.4]])
     gutter = 0.01
-    corners, scale = mb.pack_rects(sizes, gutter)
+    corners, scale = room_geometry.pack_rects(sizes, gutter)
     lo, hi = corners, corners + sizes * scale
     assert np.all(lo >= gutter - 1e-12) and np.all(hi <= 1 - gutter + 1e-12)
     for i in range(len(sizes)):
         for j in range(i + 1, len(sizes)):
             apart = np.any((hi[i] + gutter <= lo[j] + 1e-12) | (hi[j] + gutter <= lo[i] + 1e-12))
             assert apart, (i, j)
-    assert mb.pack_rects(sizes, gutter)[1] == scale
+    assert room_geometry.pack_rects(sizes, gutter)[1] == scale
     total = (sizes * scale).prod(axis=1).sum()
     assert total > 0.3                                   # a shelf packer should use a fair share
 
@@ -75,7 +82,7 @@ def test_every_object_has_non_overlapping_uvs_in_the_unit_square(geometry):
 
 def test_normals_face_into_the_room_and_out_of_furniture(mb, geometry):
     objs, mesh, _ = geometry
-    normals = mb.face_normals(mesh)
+    normals = face_normals(mesh)
     centres = mesh.triangles().mean(axis=1)
     room_centre = mb.ROOM / 2
     for k, name in enumerate(mesh.object_names):
@@ -89,7 +96,7 @@ def test_normals_face_into_the_room_and_out_of_furniture(mb, geometry):
     assert np.all(np.einsum("fi,fi->f", normals[sel], centres[sel] - box_centre) > 0)
 
 
-def test_camera_normals_of_a_wall_facing_the_camera_point_at_it(mb):
+def test_camera_normals_of_a_wall_facing_the_camera_point_at_it():
     from jaxdistill.scene import cameras
     K = np.array([[20.0, 0, 8], [0, 20.0, 6], [0, 0, 1]])
     cam = cameras.look_at(np.array([0.0, 0.0, 5.0]), np.zeros(3), np.array([0.0, 1.0, 0.0]), K, 16, 12)
@@ -97,13 +104,13 @@ def test_camera_normals_of_a_wall_facing_the_camera_point_at_it(mb):
     triangle = np.zeros((12, 16), np.int64)
     triangle[:, 8:] = 1
     triangle[0, 0] = -1
-    n = mb.camera_normals(normals, triangle, cam)
+    n = camera_normals(normals, triangle, cam)
     np.testing.assert_allclose(n[1, 1], [0, 0, 1], atol=1e-12)          # z towards the camera
     np.testing.assert_allclose(n[1, 9], [0, 1, 0], atol=1e-12)          # y up
     assert np.all(n[0, 0] == 0)
 
 
-def test_estimates_are_seeded_and_corrupt_every_map(mb):
+def test_estimates_are_seeded_and_corrupt_every_map():
     rng = np.random.default_rng(3)
     h, w = 24, 32
     n = rng.normal(size=(h, w, 3))
@@ -114,9 +121,9 @@ def test_estimates_are_seeded_and_corrupt_every_map(mb):
     photo = (gt["albedo"] * rng.uniform(0.2, 2.0, (h, w, 1))).astype(np.float32)
     hit = np.ones((h, w), bool)
     hit[0, 0] = False
-    a, pa = mb.estimate_view(np.random.default_rng([0, 1]), gt, photo, hit)
-    b, pb = mb.estimate_view(np.random.default_rng([0, 1]), gt, photo, hit)
-    c, _ = mb.estimate_view(np.random.default_rng([0, 2]), gt, photo, hit)
+    a, pa = standins.estimate_view(np.random.default_rng([0, 1]), gt, photo, hit)
+    b, pb = standins.estimate_view(np.random.default_rng([0, 1]), gt, photo, hit)
+    c, _ = standins.estimate_view(np.random.default_rng([0, 2]), gt, photo, hit)
     assert pa == pb
     for key in gt:
         np.testing.assert_array_equal(a[key], b[key])

@@ -17,7 +17,7 @@ import pytest
 from jaxdistill.io.checkpoint import CheckpointStore, StopSignals, check_compatible, compatible
 from jaxdistill.errors import InputError
 
-CONFIG = {"lr": 0.01, "tex_res": [64, 64], "scene": "bedroom", "steps": 100, "out_dir": "/tmp/x"}
+CONFIG = {"lr": 0.01, "tex_res": [64, 64], "scene": "bedroom", "steps": 100, "out_dir": "out/x"}
 
 
 def _tx():

@@ -61,5 +61,20 @@ def test_other_commands_reach_their_modules(command):
 
 
 def test_bad_flag_exits_like_python_m():
-    result = jaxdistill("distill", "--scene=bedroom", "--out_dir=/tmp/x", "--steps=0")
+    result = jaxdistill("distill", "--scene=bedroom", "--out_dir=out/x", "--steps=0")
     assert result.returncode == 1 and "--steps: must be >= 1" in result.stderr
+
+
+def test_config_names_a_shipped_config_and_later_flags_override_it():
+    from jaxdistill import main
+
+    assert main.config_names() == ["bedroom", "smoke", "thesis"]
+    smoke = main.CONFIGS_DIR / "smoke.cfg"
+    assert main.expand_configs(["x", "--config=smoke", "--steps=3"]) == ["x", f"--flagfile={smoke}", "--steps=3"]
+    assert main.expand_configs(["x", "--config", "smoke", "--view"]) == ["x", f"--flagfile={smoke}", "--view"]
+    result = jaxdistill("distill", "--config=smoke", "--steps=0")       # scene and out_dir come from the config
+    assert result.returncode == 1 and "--steps: must be >= 1" in result.stderr, result.stderr
+    assert "--scene: is required" not in result.stderr and "--out_dir: is required" not in result.stderr
+    result = jaxdistill("distill", "--config=nope")
+    assert result.returncode == 1
+    assert "--config=nope: no such config" in result.stderr and "bedroom, smoke, thesis" in result.stderr

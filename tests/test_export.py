@@ -8,7 +8,7 @@ import struct
 import numpy as np
 import pytest
 
-from jaxdistill.export import pages as export
+from jaxdistill.export import gltf, pages as page_files, plots, tangents
 from jaxdistill.io import images as imageio
 from jaxdistill.scene.cameras import Camera, look_at
 from jaxdistill.scene.model import Mesh
@@ -50,16 +50,16 @@ def quad_mesh(uv_of_xy=lambda x, y: (x, y), faces=((0, 1, 2), (0, 2, 3)), rotati
 
 
 def test_page_names():
-    assert export.page_names(["floor", "bed"], [0, 1]) == ["floor", "bed"]
-    assert export.page_names(["floor", "bed", "lamp"], [0, 0, 1]) == ["page_000", "lamp"]
-    assert export.page_names(["a", "b"], [0, 0]) == ["page_000"]
-    assert export.page_names(["my lamp/1", "x"], [0, 1]) == ["my_lamp_1", "x"]
-    assert export.page_names(["a b", "a/b"], [0, 1]) == ["a_b", "a_b_001"]
+    assert page_files.page_names(["floor", "bed"], [0, 1]) == ["floor", "bed"]
+    assert page_files.page_names(["floor", "bed", "lamp"], [0, 0, 1]) == ["page_000", "lamp"]
+    assert page_files.page_names(["a", "b"], [0, 0]) == ["page_000"]
+    assert page_files.page_names(["my lamp/1", "x"], [0, 1]) == ["my_lamp_1", "x"]
+    assert page_files.page_names(["a b", "a/b"], [0, 1]) == ["a_b", "a_b_001"]
 
 
 def test_write_maps_single_page(tmp_path):
     pages = random_pages([8])
-    written = export.write_maps(tmp_path, pages, ["floor", "bed"], [0, 0])
+    written = page_files.write_maps(tmp_path, pages, ["floor", "bed"], [0, 0])
     names = sorted(p.relative_to(tmp_path).as_posix() for p in written)
     assert names == sorted(f"maps/{m}.{e}" for m in pages for e in ("exr", "png"))
     for m in pages:
@@ -76,7 +76,7 @@ def test_write_maps_single_page(tmp_path):
 
 def test_write_maps_several_pages(tmp_path):
     pages = random_pages([8, 4])
-    written = export.write_maps(tmp_path, pages, ["wall", "lamp"], [0, 1])
+    written = page_files.write_maps(tmp_path, pages, ["wall", "lamp"], [0, 1])
     assert len(written) == 5 * 2 * 2
     for m in pages:
         for p, stem in enumerate(["wall", "lamp"]):
@@ -88,13 +88,13 @@ def test_write_maps_errors(tmp_path):
     pages = random_pages([8, 4])
     bad = dict(pages, roughness=[pages["roughness"][0], np.zeros((8, 8, 1), np.float32)])
     with pytest.raises(ValueError, match="'roughness' page 1 is 8x8"):
-        export.write_maps(tmp_path, bad, ["wall", "lamp"], [0, 1])
+        page_files.write_maps(tmp_path, bad, ["wall", "lamp"], [0, 1])
     with pytest.raises(ValueError, match=r"'metallic' page 0.*\(S, S, 1\)"):
-        export.write_maps(tmp_path, dict(pages, metallic=pages["albedo"]), ["wall", "lamp"], [0, 1])
+        page_files.write_maps(tmp_path, dict(pages, metallic=pages["albedo"]), ["wall", "lamp"], [0, 1])
     with pytest.raises(ValueError, match="unknown map 'depth'"):
-        export.write_maps(tmp_path, {"depth": pages["roughness"]}, ["wall", "lamp"], [0, 1])
+        page_files.write_maps(tmp_path, {"depth": pages["roughness"]}, ["wall", "lamp"], [0, 1])
     with pytest.raises(ValueError, match="2 pages, but object_page uses 1"):
-        export.write_maps(tmp_path, pages, ["wall", "lamp"], [0, 0])
+        page_files.write_maps(tmp_path, pages, ["wall", "lamp"], [0, 0])
 
 
 # ----------------------------------------------------------------------------- tangent space
@@ -129,7 +129,7 @@ def decoded(page):
     (lambda x, y: (x, y), (0, 0, -1), (0, 0, -1)),
 ])
 def test_tangent_space_quad(uv_of_xy, world, expected):
-    (page,) = export.tangent_space_normals(uniform_normal(world), quad_mesh(uv_of_xy), [0])
+    (page,) = tangents.tangent_space_normals(uniform_normal(world), quad_mesh(uv_of_xy), [0])
     assert page.shape == (S, S, 3) and page.dtype == np.float32
     np.testing.assert_allclose(decoded(page), np.broadcast_to(expected, (S, S, 3)), atol=1e-6)
 
@@ -141,8 +141,8 @@ def test_tangent_space_is_rotation_invariant():
     rot = np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
     world = np.array([np.sin(TILT), 0.2, np.cos(TILT)])
     mesh = quad_mesh(lambda x, y: (y, 1 - x), rotation=rot)
-    (page,) = export.tangent_space_normals(uniform_normal(rot @ world), mesh, [0])
-    (flat,) = export.tangent_space_normals(uniform_normal(world), quad_mesh(lambda x, y: (y, 1 - x)), [0])
+    (page,) = tangents.tangent_space_normals(uniform_normal(rot @ world), mesh, [0])
+    (flat,) = tangents.tangent_space_normals(uniform_normal(world), quad_mesh(lambda x, y: (y, 1 - x)), [0])
     np.testing.assert_allclose(page, flat, atol=1e-6)
     w = world / np.linalg.norm(world)
     np.testing.assert_allclose(decoded(page)[3, 3], [w[1], -w[0], w[2]], atol=1e-6)
@@ -153,7 +153,7 @@ def test_tangent_space_uncovered_seams_and_unknown():
     mesh = quad_mesh(faces=((0, 1, 2),))
     world = uniform_normal((np.sin(TILT), 0, np.cos(TILT)), size=16)[0].copy()
     world[15, 15] = 0.0  # unknown normal inside the triangle
-    (page,) = export.tangent_space_normals([world], mesh, [0], dilate=2)
+    (page,) = tangents.tangent_space_normals([world], mesh, [0], dilate=2)
     tilted = (np.array([np.sin(TILT), 0, np.cos(TILT)]) + 1) / 2
     r, c = np.mgrid[:16, :16]
     u, v = (c + 0.5) / 16, 1 - (r + 0.5) / 16
@@ -169,7 +169,7 @@ def test_tangent_space_uncovered_seams_and_unknown():
     assert seam.any()
     np.testing.assert_allclose(page[seam], np.broadcast_to(tilted, (int(seam.sum()), 3)), atol=1e-6)
     # without dilation they stay flat
-    (plain,) = export.tangent_space_normals([world], mesh, [0], dilate=0)
+    (plain,) = tangents.tangent_space_normals([world], mesh, [0], dilate=0)
     np.testing.assert_allclose(plain[~covered], np.broadcast_to([0.5, 0.5, 1.0], (int((~covered).sum()), 3)))
 
 
@@ -178,15 +178,15 @@ def test_tangent_space_pages_and_errors():
     two = Mesh(vertices=mesh.vertices, faces=mesh.faces, uv=mesh.uv, face_object=np.array([0, 1], np.int32),
                object_names=("a", "b"))
     tilt = (np.sin(TILT), 0, np.cos(TILT))
-    p0, p1 = export.tangent_space_normals(uniform_normal(tilt, 8) + uniform_normal(tilt, 4), two, [0, 1])
+    p0, p1 = tangents.tangent_space_normals(uniform_normal(tilt, 8) + uniform_normal(tilt, 4), two, [0, 1])
     # each page only holds its object's face: face 0 covers u >= v, face 1 covers u <= v
     assert p0.shape == (8, 8, 3) and p1.shape == (4, 4, 3)
     np.testing.assert_allclose(p0[0, 0], [0.5, 0.5, 1.0])  # top left: u < v, face 1's half
     np.testing.assert_allclose(p1[0, 0], (np.array(tilt) + 1) / 2, atol=1e-6)
     with pytest.raises(ValueError, match="'normal' page 0"):
-        export.tangent_space_normals([np.zeros((8, 4, 3))], mesh, [0])
+        tangents.tangent_space_normals([np.zeros((8, 4, 3))], mesh, [0])
     with pytest.raises(ValueError, match="object_page"):
-        export.tangent_space_normals(uniform_normal(tilt), two, [0, 1])
+        tangents.tangent_space_normals(uniform_normal(tilt), two, [0, 1])
 
 
 # ----------------------------------------------------------------------------- glTF
@@ -243,7 +243,7 @@ def decode_png(doc, blob, texture_index):
 
 def test_gltf_orientation_raw(tmp_path):
     mesh, pages = gltf_scene()
-    path = export.write_gltf(tmp_path / "room.glb", mesh, [0, 1], pages)
+    path = gltf.write_gltf(tmp_path / "room.glb", mesh, [0, 1], pages)
     doc, blob = read_glb(path)
     wall = next(m for m in doc["meshes"] if m["name"] == "wall")
     prim = wall["primitives"][0]
@@ -266,10 +266,10 @@ def test_gltf_reload_with_trimesh(tmp_path):
     import trimesh
 
     mesh, pages = gltf_scene()
-    path = export.write_gltf(tmp_path / "room.glb", mesh, [0, 1], pages)
+    path = gltf.write_gltf(tmp_path / "room.glb", mesh, [0, 1], pages)
     loaded = trimesh.load(path, force="scene", process=False)
     assert sorted(loaded.geometry) == ["lamp", "wall"]
-    normals = export.tangent_space_normals(pages["normal"], mesh, [0, 1])
+    normals = tangents.tangent_space_normals(pages["normal"], mesh, [0, 1])
     for object_id, (name, page) in enumerate([("wall", 0), ("lamp", 1)]):
         geom = loaded.geometry[name]
         face_ids = np.nonzero(mesh.face_object == object_id)[0]
@@ -297,7 +297,7 @@ def test_gltf_albedo_only_and_atlas(tmp_path):
 
     mesh, pages = gltf_scene()
     atlas = {"albedo": [pages["albedo"][0]]}
-    path = export.write_gltf(tmp_path / "atlas.glb", mesh, [0, 0], atlas)
+    path = gltf.write_gltf(tmp_path / "atlas.glb", mesh, [0, 0], atlas)
     doc, _ = read_glb(path)
     assert len(doc["materials"]) == 1 and len(doc["images"]) == 1
     material = doc["materials"][0]
@@ -307,7 +307,7 @@ def test_gltf_albedo_only_and_atlas(tmp_path):
     loaded = trimesh.load(path, force="scene", process=False)
     assert sorted(loaded.geometry) == ["lamp", "wall"]
     with pytest.raises(ValueError, match=".glb"):
-        export.write_gltf(tmp_path / "atlas.obj", mesh, [0, 0], atlas)
+        gltf.write_gltf(tmp_path / "atlas.obj", mesh, [0, 0], atlas)
 
 def mirrored_scene():
     """gltf_scene plus object 'mirror': a triangle whose u runs against dP/dx x (mirrored UVs)."""
@@ -325,7 +325,7 @@ def test_gltf_normals_and_tangents_decode_the_normal_pages(tmp_path):
     squares) and w the UVs' handedness; a glTF renderer's decode of the normal texture with them,
     T x + cross(N, T) w y + N z, gives back the world normal pages (to 8-bit precision)."""
     mesh, pages = mirrored_scene()
-    path = export.write_gltf(tmp_path / "room.glb", mesh, [0, 1, 2], pages)
+    path = gltf.write_gltf(tmp_path / "room.glb", mesh, [0, 1, 2], pages)
     doc, blob = read_glb(path)
     signs = {}
     for object_id, name in enumerate(mesh.object_names):
@@ -386,7 +386,7 @@ def test_gltf_cameras_project_like_K_and_c2w(tmp_path, K):
     mesh, pages = gltf_scene()
     cameras = [("view_a", look_at([3.0, -2.0, 1.5], [0.5, 0.5, 0.0], [0.0, 0.0, 1.0], K, 320, 240)),
                ("view_b", look_at([-1.0, 2.0, 2.0], [0.5, 0.5, 0.2], [0.0, 0.0, 1.0], K, 320, 240))]
-    path = export.write_gltf(tmp_path / "room.glb", mesh, [0, 1], pages, cameras)
+    path = gltf.write_gltf(tmp_path / "room.glb", mesh, [0, 1], pages, cameras)
     doc, _ = read_glb(path)
     points = np.random.default_rng(0).uniform([0, 0, 0], [1, 1, 0.5], (20, 3))
     nodes = {n["name"]: n for n in doc["nodes"] if "camera" in n}
@@ -411,13 +411,13 @@ def test_write_loss_plot(tmp_path):
     steps = np.arange(200)
     loss = np.exp(-steps / 50) * (1 + 0.2 * np.sin(steps))
     psnr = {"albedo PSNR (dB)": (steps[::20], 10 + steps[::20] / 10)}
-    path = export.write_loss_plot(tmp_path / "plots/loss.png", steps, loss, extra=psnr, title="bedroom")
+    path = plots.write_loss_plot(tmp_path / "plots/loss.png", steps, loss, extra=psnr, title="bedroom")
     image = imageio.read_image(path, linear=False)
     assert image.shape[0] >= 300 and image.shape[1] >= 500 and image.std() > 0.01
-    negative = export.write_loss_plot(tmp_path / "neg.png", steps, loss - 0.5)
+    negative = plots.write_loss_plot(tmp_path / "neg.png", steps, loss - 0.5)
     assert imageio.read_image(negative, linear=False).std() > 0.01
     with pytest.raises(ValueError, match="loss: 3 steps but 2 values"):
-        export.write_loss_plot(tmp_path / "bad.png", [0, 1, 2], [1.0, 2.0])
+        plots.write_loss_plot(tmp_path / "bad.png", [0, 1, 2], [1.0, 2.0])
 
 
 def test_write_contact_sheet(tmp_path):
@@ -425,8 +425,8 @@ def test_write_contact_sheet(tmp_path):
     a = rng.uniform(0, 1, (10, 12, 3))
     rows = [[a, rng.uniform(0, 1, (10, 16, 3)), None],
             [rng.uniform(0, 1, (14, 12, 3)), None, rng.uniform(0, 1, (6, 9, 3))]]
-    path = export.write_contact_sheet(tmp_path / "sheet.png", rows, ["photo", "albedo", "normal"],
-                                      ["view_000", "view_001"], gap=4, title_px=20, label_px=40)
+    path = plots.write_contact_sheet(tmp_path / "sheet.png", rows, ["photo", "albedo", "normal"],
+                                     ["view_000", "view_001"], gap=4, title_px=20, label_px=40)
     sheet = imageio.read_image(path, linear=False)
     widths, heights = [12, 16, 9], [10, 14]
     assert sheet.shape == (20 + sum(heights) + 4 * 3, 40 + sum(widths) + 4 * 4, 3)
@@ -437,10 +437,10 @@ def test_write_contact_sheet(tmp_path):
     np.testing.assert_allclose(sheet[y0:y0 + 10, x2:x2 + 9], 0.5, atol=1 / 255)
     # the title band holds text (non-white pixels)
     assert (sheet[:20] < 0.5).any() and (sheet[y0:, :40] < 0.5).any()
-    plain = export.write_contact_sheet(tmp_path / "plain.png", rows, ["a", "b", "c"], gap=2, title_px=16)
+    plain = plots.write_contact_sheet(tmp_path / "plain.png", rows, ["a", "b", "c"], gap=2, title_px=16)
     assert imageio.read_image(plain, linear=False).shape == (16 + 24 + 2 * 3, 37 + 2 * 4, 3)
     with pytest.raises(ValueError, match="row 1: 2 images for 3 columns"):
-        export.write_contact_sheet(tmp_path / "bad.png", [rows[0], rows[1][:2]], ["a", "b", "c"])
+        plots.write_contact_sheet(tmp_path / "bad.png", [rows[0], rows[1][:2]], ["a", "b", "c"])
 
 
 @pytest.mark.parametrize("maps", [("albedo", "normal", "roughness", "metallic", "irradiance"), ("roughness",),
@@ -453,9 +453,9 @@ def test_material_images_built_one_map_at_a_time(maps):
     texture from irradiance."""
     mesh, pages = gltf_scene()
     pages = {m: pages[m] for m in maps}
-    layers = {m: export.material_layers(m, pages[m], mesh, [0, 1]) for m in maps}
+    layers = {m: gltf.material_layers(m, pages[m], mesh, [0, 1]) for m in maps}
     assert layers.get("irradiance", None) is None
-    images = export.combine_material_layers({m: v for m, v in layers.items() if v is not None}, 2)
+    images = gltf.combine_material_layers({m: v for m, v in layers.items() if v is not None}, 2)
     u8 = lambda x: np.round(np.clip(x, 0.0, 1.0) * 255.0).astype(np.uint8)  # noqa: E731
     for p, page in enumerate(images):
         size = (8, 4)[p]
@@ -467,7 +467,7 @@ def test_material_images_built_one_map_at_a_time(maps):
             metal = u8(pages["metallic"][p][..., 0]) if "metallic" in maps else np.zeros((size, size), np.uint8)
             expected["metallicRoughnessTexture"] = np.stack([np.full((size, size), 255, np.uint8), rough, metal], -1)
         if "normal" in maps:
-            expected["normalTexture"] = u8(export.tangent_space_normals(pages["normal"], mesh, [0, 1])[p])
+            expected["normalTexture"] = u8(tangents.tangent_space_normals(pages["normal"], mesh, [0, 1])[p])
         assert sorted(page) == sorted(expected)
         for key, want in expected.items():
             assert page[key].dtype == np.uint8

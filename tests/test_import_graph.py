@@ -127,7 +127,7 @@ def test_the_layering_check_finds_an_upward_import():
     graph = {"jaxdistill.scene.model": {"jaxdistill.io.images"}, "jaxdistill.render.sampler": {"jaxdistill.engine.step"},
              "jaxdistill.engine.step": set(), "jaxdistill.io.images": set()}
     assert upward_imports(graph) == ["jaxdistill.render.sampler (stage 3) imports jaxdistill.engine.step (stage 6)"]
-    assert layer_of("jaxdistill.datasets.mitsuba.importer") == 4 and layer_of("jaxdistill.scenes") == 0
+    assert layer_of("jaxdistill.datasets.mitsuba.prepare") == 4 and layer_of("jaxdistill.scenes") == 0
 
 
 def test_stages_import_only_downward():

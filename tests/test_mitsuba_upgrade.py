@@ -12,7 +12,8 @@ import pytest
 from conftest import look_at_camera
 from jaxdistill.io import images as imageio
 from jaxdistill.errors import InputError
-from jaxdistill.datasets.mitsuba.upgrade import camel_to_snake, needs_upgrade, upgrade
+from jaxdistill.datasets.mitsuba.upgrade import needs_upgrade, upgrade
+from jaxdistill.datasets.mitsuba.upgrade_rules import camel_to_snake
 from jaxdistill.render import fragments as fr
 from mitsuba05_fixture import (FLOOR_ALPHA, FLOOR_RGB, LEAF_CENTRE, LEAF_RGB, LIGHT_RADIANCE, PHONG_EXPONENT,
                                WALL_SRGB_HEX, write_scene05)
@@ -20,7 +21,10 @@ from mitsuba05_fixture import (FLOOR_ALPHA, FLOOR_RGB, LEAF_CENTRE, LEAF_RGB, LI
 mi = pytest.importorskip("mitsuba")
 pytest.importorskip("xatlas")
 from jaxdistill.datasets.mitsuba import bridge as mb
-from jaxdistill.datasets.mitsuba import importer as imp
+from jaxdistill.datasets.mitsuba.ground_truth import GroundTruthEvaluator
+from jaxdistill.datasets.mitsuba.prepare import prepare_scene
+from jaxdistill.datasets.mitsuba.shapes import reconstruction_mesh
+from jaxdistill.datasets.mitsuba.source import load_source
 
 
 def srgb_decode(code: int) -> float:
@@ -185,15 +189,15 @@ def test_nearest_plugin_mappings():
 
 
 def test_import_upgrades_and_masks_cutouts(scene05, tmp_path):
-    source = imp.load_source(scene05, upgraded_dir=tmp_path)
+    source = load_source(scene05, upgraded_dir=tmp_path)
     written = tmp_path / "scene.mitsuba3.xml"
     assert written.is_file() and 'version="3.0.0"' in written.read_text()
     assert any("phong" in c for c in source.upgrade_changes)
     leaf = next(o for o in source.objects if o.name == "leaf")
     assert leaf.material.plugin == "mask(diffuse)" and not leaf.masked
 
-    mesh, _ = imp.reconstruction_mesh(source.objects)
-    evaluator = imp.GroundTruthEvaluator(source.objects, mesh)
+    mesh, _ = reconstruction_mesh(source.objects)
+    evaluator = GroundTruthEvaluator(source.objects, mesh)
     eye = np.array([0.0, 1.0, 3.0])
     cam = look_at_camera(eye, LEAF_CENTRE, width=40, height=30, fx=40.0)
     gt = evaluator.evaluate(cam, fr.compute_fragments(mesh, [cam], cache_dir=False, progress=False)[0])
@@ -218,7 +222,7 @@ def test_import_upgrades_and_masks_cutouts(scene05, tmp_path):
 def test_mitsuba3_files_are_not_upgraded(tmp_path):
     xml = tmp_path / "scene.xml"
     xml.write_text('<scene version="3.0.0"><shape type="sphere"><bsdf type="diffuse"/></shape></scene>')
-    source = imp.load_source(xml, upgraded_dir=tmp_path / "out")
+    source = load_source(xml, upgraded_dir=tmp_path / "out")
     assert source.upgrade_changes == () and not (tmp_path / "out").exists()
 
 
@@ -226,7 +230,7 @@ def test_refused_scene_stops_prepare_scene_before_compute(tmp_path):
     xml = tmp_path / "old.xml"
     xml.write_text('<scene version="0.5.0"><shape type="sphere"><bsdf type="irawan" id="Cloth"/></shape></scene>')
     with pytest.raises(InputError) as err:
-        imp.prepare_scene(xml, tmp_path / "out", num_views=1, width=8, height=8, spp=1, progress=False)
+        prepare_scene(xml, tmp_path / "out", num_views=1, width=8, height=8, spp=1, progress=False)
     message = str(err.value)
     assert f"{xml}: <shape type=\"sphere\"> <bsdf type=\"irawan\" id=\"Cloth\">: plugin 'irawan' has no Mitsuba 3 " \
            "equivalent; replace it by a Mitsuba 3 BSDF" in message
@@ -250,7 +254,7 @@ def test_load_error_after_the_upgrade_names_the_upgraded_file(tmp_path):
     xml.write_text('<scene version="0.5.0"><shape type="sphere"><bsdf type="diffuse">'
                    '<float name="fooBar" value="1"/></bsdf></shape></scene>')
     with pytest.raises(InputError) as err:
-        imp.load_source(xml, upgraded_dir=tmp_path / "out")
+        load_source(xml, upgraded_dir=tmp_path / "out")
     message = str(err.value)
     assert "Mitsuba 3 cannot load it after the upgrade from Mitsuba 0.x" in message and '"foo_bar"' in message
     assert str(tmp_path / "out" / "old.mitsuba3.xml") in message
@@ -268,8 +272,8 @@ def test_a_05_room_imports_as_its_mitsuba3_original(tmp_path):
     old05 = original.parent / "scene05.xml"
     old05.write_text(text)
     args = dict(num_views=2, width=24, height=18, spp=2, seed=3, progress=False)
-    imp.prepare_scene(original, tmp_path / "a", **args)
-    imp.prepare_scene(old05, tmp_path / "b", **args)
+    prepare_scene(original, tmp_path / "a", **args)
+    prepare_scene(old05, tmp_path / "b", **args)
     assert (tmp_path / "b" / "scene05.mitsuba3.xml").is_file()
     files = sorted(p.relative_to(tmp_path / "a") for p in (tmp_path / "a").rglob("*")
                    if p.suffix in (".exr", ".png") and "photos" not in p.parts)

@@ -19,8 +19,13 @@ from jaxdistill.scene.model import read_scene
 
 mi = pytest.importorskip("mitsuba")
 pytest.importorskip("xatlas")
-from jaxdistill.datasets.mitsuba import importer as imp
-from jaxdistill.render import unwrap
+from jaxdistill.datasets.mitsuba import bridge as mb
+from jaxdistill.datasets.mitsuba import prepare
+from jaxdistill.datasets.mitsuba import shapes as mitsuba_shapes
+from jaxdistill.datasets.mitsuba.ground_truth import GroundTruthEvaluator, render_irradiance
+from jaxdistill.datasets.mitsuba.shapes import reconstruction_mesh
+from jaxdistill.datasets.mitsuba.source import load_source
+from jaxdistill.render import uv_checks
 
 REPO = Path(__file__).resolve().parents[1]
 # Bitterli's "Modern Hall" (CC-BY 3.0, tests/data/staircase2/LICENSE.txt): the copy in tests/data (so CI
@@ -124,15 +129,15 @@ def room_xml(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def imported(room_xml, tmp_path_factory):
     out = tmp_path_factory.mktemp("out")
-    summary = imp.prepare_scene(room_xml, out, num_views=3, width=32, height=24, spp=16, seed=1, progress=False)
+    summary = prepare.prepare_scene(room_xml, out, num_views=3, width=32, height=24, spp=16, seed=1, progress=False)
     return out, summary
 
 
 @pytest.fixture(scope="module")
 def evaluator(room_xml):
-    source = imp.load_source(room_xml)
-    mesh, decisions = imp.reconstruction_mesh(source.objects)
-    return source, mesh, decisions, imp.GroundTruthEvaluator(source.objects, mesh)
+    source = load_source(room_xml)
+    mesh, decisions = reconstruction_mesh(source.objects)
+    return source, mesh, decisions, GroundTruthEvaluator(source.objects, mesh)
 
 
 def ground_truth(evaluator, cam):
@@ -159,7 +164,7 @@ def test_import_writes_a_valid_scene(imported):
     assert "floor" in summary["reunwrapped"]                      # tiled UVs
     assert "wall_x0" not in summary["reunwrapped"]                # a rectangle's UVs are fine
     doc = json.loads((out / "import.json").read_text())
-    assert doc["format"] == imp.IMPORT_FORMAT and not (out / "gt.json").exists()   # gt.json: GT textures only
+    assert doc["format"] == prepare.IMPORT_FORMAT and not (out / "gt.json").exists()   # gt.json: GT textures only
     maps = {"albedo", "normal", "roughness", "metallic", "irradiance"}
     for view in scene.views:
         assert set(view.targets) == maps and set(view.ground_truth) == maps
@@ -258,16 +263,16 @@ def test_reconstruction_uvs(evaluator):
     assert mesh.uv.min() >= 0 and mesh.uv.max() <= 1
     np.testing.assert_array_equal(mesh.triangles(), np.concatenate([o.vertices[o.faces] for o in source.objects]))
     floor = mesh.uv[mesh.face_object == mesh.object_names.index("floor")]
-    assert unwrap.uv_overlap_fraction(floor) == 0.0
+    assert uv_checks.uv_overlap_fraction(floor) == 0.0
 
 
 def test_uv_problems():
     tri = np.array([[[0, 0, 0], [1, 0, 0], [0, 1, 0]]] * 2, float)
     uv = np.array([[[0, 0], [1, 0], [0, 1]]] * 2, float)
-    assert unwrap.uv_problem(uv[:1], tri[:1]) is None
-    assert "overlapping" in unwrap.uv_problem(uv, tri)
-    assert "tiled" in unwrap.uv_problem(uv * 2, tri)
-    assert "collapsed" in unwrap.uv_problem(uv * 0, tri)
+    assert uv_checks.uv_problem(uv[:1], tri[:1]) is None
+    assert "overlapping" in uv_checks.uv_problem(uv, tri)
+    assert "tiled" in uv_checks.uv_problem(uv * 2, tri)
+    assert "collapsed" in uv_checks.uv_problem(uv * 0, tri)
 
 
 def test_unsupported_plugins_are_listed_together(tmp_path):
@@ -277,7 +282,7 @@ def test_unsupported_plugins_are_listed_together(tmp_path):
     <bsdf type="plastic"/></bsdf></shape>"""
     xml = write_room(tmp_path, extra)
     with pytest.raises(InputError) as err:
-        imp.prepare_scene(xml, tmp_path / "out", num_views=1, width=32, height=24, spp=1, progress=False)
+        prepare.prepare_scene(xml, tmp_path / "out", num_views=1, width=32, height=24, spp=1, progress=False)
     message = str(err.value)
     assert "'bumpy'" in message and "bumpmap" in message and "'blended'" in message and "'blendbsdf'" in message
     assert len(err.value.problems) == 2
@@ -289,7 +294,7 @@ def test_input_errors(tmp_path, room_xml):
         args = dict(num_views=1, width=32, height=24, spp=1)
         args.update(kw)
         with pytest.raises(InputError) as err:
-            imp.prepare_scene(xml, tmp_path / "out", progress=False, **args)
+            prepare.prepare_scene(xml, tmp_path / "out", progress=False, **args)
         return str(err.value)
 
     assert "scene file not found" in problems(tmp_path / "missing.xml")
@@ -313,7 +318,7 @@ def test_input_errors(tmp_path, room_xml):
 
 @pytest.mark.skipif(not STAIRCASE.is_file(), reason="staircase2 scene not present")
 def test_staircase2_imports(tmp_path):
-    summary = imp.prepare_scene(STAIRCASE, tmp_path, num_views=2, width=48, height=32, spp=1, progress=False)
+    summary = prepare.prepare_scene(STAIRCASE, tmp_path, num_views=2, width=48, height=32, spp=1, progress=False)
     scene = read_scene(tmp_path)
     assert len(scene.views) == 2 and scene.num_objects == 32
     objects = {o["name"]: o for o in summary["objects"]}
@@ -334,7 +339,7 @@ def test_analytic_shape_uvs_match_mitsuba():
     rng = np.random.default_rng(0)
     for kind in ("rectangle", "disk", "sphere", "cylinder"):
         shape = mi.load_dict({"type": kind, "to_world": mi.ScalarTransform4f(m.tolist())})
-        vertices, faces, texcoords, _, uv_function = imp._tessellate(kind, m)
+        vertices, faces, texcoords, _, uv_function = mitsuba_shapes._tessellate(kind, m)
         for _ in range(8):
             phi, r, z = rng.uniform(0.1, 6.2), rng.uniform(0.2, 0.9), rng.uniform(0.1, 0.9)
             if kind == "rectangle":
@@ -346,17 +351,17 @@ def test_analytic_shape_uvs_match_mitsuba():
                 origin, target = 2 * d, d
             else:
                 origin, target = [2 * np.cos(phi), 2 * np.sin(phi), z], [np.cos(phi), np.sin(phi), z]
-            o, t = imp._transform_points(m, np.array([origin, target], float))
+            o, t = mitsuba_shapes._transform_points(m, np.array([origin, target], float))
             si = shape.ray_intersect(mi.Ray3f(mi.Point3f(*o), mi.Vector3f(*((t - o) / np.linalg.norm(t - o)))))
             assert si.is_valid()
             p = np.array(si.p, float)[None]
             if uv_function is not None:
                 ours = uv_function(p)[0]
             else:  # rectangle: barycentric interpolation of its corner texcoords is exact
-                local = imp._transform_points(np.linalg.inv(m), p)[0]
+                local = mitsuba_shapes._transform_points(np.linalg.inv(m), p)[0]
                 ours = (local[:2] + 1) / 2
-                np.testing.assert_allclose(texcoords, (imp._transform_points(np.linalg.inv(m), vertices)[:, :2] + 1) / 2,
-                                           atol=1e-12)
+                local_vertices = mitsuba_shapes._transform_points(np.linalg.inv(m), vertices)
+                np.testing.assert_allclose(texcoords, (local_vertices[:, :2] + 1) / 2, atol=1e-12)
             np.testing.assert_allclose(ours, np.array(si.uv, float), atol=1e-4)
 
 
@@ -381,8 +386,8 @@ def test_irradiance_under_a_disk_light_is_the_analytic_formula(tmp_path):
   <shape type="disk"><transform name="to_world"><scale value="{r}"/><rotate x="1" angle="180"/>
     <translate z="{h}"/></transform><emitter type="area">{rgb("radiance", radiance)}</emitter></shape>""")
     cam = look_at_camera((0.0, 0.0, 0.6), (0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0), width=24, height=18)
-    before = imp.mb.load_mitsuba().variant()
-    image = imp.render_irradiance(xml, [cam], spp=32, seed=3)[0].reshape(-1, 3)
+    before = mb.load_mitsuba().variant()
+    image = render_irradiance(xml, [cam], spp=32, seed=3)[0].reshape(-1, 3)
     assert mi.variant() == before                     # the llvm variant is left again
     o, d = cam.pixel_rays()
     rho = np.hypot(*(o + d * (-o[:, 2:] / d[:, 2:]))[:, :2].T)
@@ -401,12 +406,12 @@ def test_irradiance_in_a_closed_glowing_box_counts_every_bounce(tmp_path):
     <bsdf type="diffuse">{rgb("reflectance", (0.5, 0.25, 0.0))}</bsdf>
     <emitter type="area">{rgb("radiance", (1, 1, 1))}</emitter></shape>""")
     cam = look_at_camera((0.1, 0.2, 0.0), (1.0, 0.3, 0.2), up=(0.0, 1.0, 0.0), width=16, height=12)
-    image = imp.render_irradiance(xml, [cam], spp=32, seed=0)[0]
+    image = render_irradiance(xml, [cam], spp=32, seed=0)[0]
     np.testing.assert_allclose(image.reshape(-1, 3).mean(0), [2.0, 4.0 / 3.0, 1.0], rtol=0.02)
     # the same scene given as text (an upgraded Mitsuba 0.x file), with max_depth 2: direct light only
     text = xml.read_text().replace('<integrator type="path"/>',
                                    '<integrator type="path"><integer name="max_depth" value="2"/></integrator>')
-    direct = imp.render_irradiance(tmp_path / "absent.xml", [cam], spp=32, seed=0, xml_text=text)[0]
+    direct = render_irradiance(tmp_path / "absent.xml", [cam], spp=32, seed=0, xml_text=text)[0]
     np.testing.assert_allclose(direct.reshape(-1, 3).mean(0), 1.0, rtol=0.02)
 
 
@@ -415,7 +420,7 @@ def test_imported_irradiance_times_albedo_is_the_photo_on_diffuse_surfaces(tmp_p
     room's diffuse walls and floor (not the OBJ box: Mitsuba smooths its vertex normals)."""
     xml = write_room(tmp_path / "room", light_down=True, max_depth=3)
     out = tmp_path / "out"
-    summary = imp.prepare_scene(xml, out, num_views=2, width=32, height=24, spp=64, seed=2, progress=False)
+    summary = prepare.prepare_scene(xml, out, num_views=2, width=32, height=24, spp=64, seed=2, progress=False)
     scene = read_scene(out)
     frags = fr.compute_fragments(scene.mesh, [v.camera for v in scene.views], cache_dir=False, progress=False)
     flat = [i for i, name in enumerate(scene.mesh.object_names) if name in ("floor", "wall_x0", "wall_z1")]
@@ -501,13 +506,13 @@ def test_irradiance_without_llvm_is_a_clear_error_before_any_compute(tmp_path, m
             raise ImportError(f"variant {variant} is not available: libLLVM not found")
         return real(variant)
 
-    monkeypatch.setattr(imp.mb, "load_mitsuba", no_llvm)
+    monkeypatch.setattr(mb, "load_mitsuba", no_llvm)
     cam = look_at_camera((0.0, 0.0, 1.0), (0.0, 0.0, 0.0), width=8, height=6)
     with pytest.raises(InputError, match="llvm_ad_rgb variant, which cannot start here .*install LLVM"):
-        imp.render_irradiance(write_xml(tmp_path, ""), [cam], spp=1)
-    monkeypatch.setattr(imp, "load_source", lambda *a, **k: pytest.fail("the import started before the check"))
+        render_irradiance(write_xml(tmp_path, ""), [cam], spp=1)
+    monkeypatch.setattr(prepare, "load_source", lambda *a, **k: pytest.fail("the import started before the check"))
     with pytest.raises(InputError, match="install LLVM"):
-        imp.prepare_scene(room_xml, tmp_path / "out", num_views=1, width=16, height=12, spp=1, progress=False)
+        prepare.prepare_scene(room_xml, tmp_path / "out", num_views=1, width=16, height=12, spp=1, progress=False)
     assert not (tmp_path / "out").exists()
 
 
@@ -520,5 +525,5 @@ def test_reimport_removes_the_gt_json_an_earlier_import_wrote(room_xml, tmp_path
                                     "textures": {"albedo": {}}})):
         folder.mkdir()
         (folder / "gt.json").write_text(json.dumps(doc))
-        imp.prepare_scene(room_xml, folder, num_views=1, width=16, height=12, spp=1, progress=False)
+        prepare.prepare_scene(room_xml, folder, num_views=1, width=16, height=12, spp=1, progress=False)
     assert not (old / "gt.json").exists() and (textured / "gt.json").is_file()

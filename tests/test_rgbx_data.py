@@ -1,25 +1,19 @@
 """Training data of our RGB<->X-family prior: the irradiance integrator against analytic
-irradiance, the procedural rooms' geometry, and scripts/make_rgbx_data.py end to end (tiny)."""
+irradiance, the procedural rooms' geometry, and the data job (scripts/make_rgbx_data.py's
+`room_render.main`) end to end (tiny)."""
 
 from __future__ import annotations
 
 import math
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 mi = pytest.importorskip("mitsuba")
 
-from jaxdistill.scene import cameras
-from jaxdistill.datasets.mitsuba import bridge as mb
-
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "scripts"))
-
-import make_rgbx_data  # noqa: E402
-import procedural_rooms  # noqa: E402
+from jaxdistill.datasets.mitsuba import bridge as mb  # noqa: E402
+from jaxdistill.models.training import procedural_rooms, room_render, shards  # noqa: E402
+from jaxdistill.scene import cameras  # noqa: E402
 
 
 def plane_scene(albedo, sky, sun, sun_direction):
@@ -90,9 +84,9 @@ def test_furniture_footprints_do_not_overlap():
 
 def test_make_rgbx_data_writes_resumable_deterministic_shards(tmp_path, capsys):
     args = ["--out", str(tmp_path), "--rooms=1", "--views=2", "--width=32", "--height=24", "--spp=2", "--variant=scalar_rgb"]
-    assert make_rgbx_data.main(args) == 0
+    assert room_render.main(args) == 0
     shard = tmp_path / "room_0000000.npz"
-    arrays, meta = make_rgbx_data.read_shard(shard)
+    arrays, meta = shards.read_shard(shard)
     assert meta["seed"] == 0 and len(meta["cameras"]) == 2
     channels = {"photo": 3, "albedo": 3, "normal": 3, "roughness": 1, "metallic": 1, "irradiance": 3, "valid": 1}
     for name, c in channels.items():
@@ -115,12 +109,12 @@ def test_make_rgbx_data_writes_resumable_deterministic_shards(tmp_path, capsys):
 
     first = shard.read_bytes()
     capsys.readouterr()
-    assert make_rgbx_data.main(args) == 0                          # resumes: nothing to do
+    assert room_render.main(args) == 0                          # resumes: nothing to do
     assert "1 already written" in capsys.readouterr().out
     assert shard.read_bytes() == first
     shard.unlink()
-    assert make_rgbx_data.main(args) == 0                          # regenerated identically
-    again, _ = make_rgbx_data.read_shard(shard)
+    assert room_render.main(args) == 0                          # regenerated identically
+    again, _ = shards.read_shard(shard)
     for name in ("albedo", "normal", "roughness", "metallic", "valid"):
         assert np.array_equal(arrays[name], again[name]), name
 
@@ -129,7 +123,7 @@ def test_firefly_filter_removes_isolated_outliers_only():
     image = np.full((9, 9, 3), 0.2, np.float32)
     image[4, 4] = 5.0                                             # an isolated outlier
     image[:, 7:] = 3.0                                            # a bright 2-pixel-wide stripe
-    out = make_rgbx_data.remove_fireflies(image)
+    out = room_render.remove_fireflies(image)
     np.testing.assert_allclose(out[4, 4], 0.2)
     np.testing.assert_array_equal(out[:, 7:], image[:, 7:])
     np.testing.assert_array_equal(np.delete(out.reshape(-1, 3), 4 * 9 + 4, 0), np.delete(image.reshape(-1, 3), 4 * 9 + 4, 0))

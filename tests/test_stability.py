@@ -1,4 +1,4 @@
-"""Numerical stability on hard cases (issue 6, part 3): 16-bit floats, the ends of the noise
+"""Numerical stability on hard cases (docs/benchmarks.md §4): 16-bit floats, the ends of the noise
 schedule, never-observed texels, degenerate geometry, huge textures, dropout extremes and
 non-finite input files. Every test compares against an independent expectation (a NumPy
 formula, analytic geometry, a brute-force count); cases an existing test already covers are

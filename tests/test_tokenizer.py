@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 
 from jaxdistill.errors import InputError
-from jaxdistill.models.tokenizer import MAP_PROMPTS, load_tokenizer
-from tiny_clip_vocab import (BOS, EOS, WORDS, tiny_vocab_and_merges, word_token,
-                             write_tiny_clip_tokenizer)
+from jaxdistill.models.tokenizer import BOS, EOS, MAP_PROMPTS, load_tokenizer
+from jaxdistill.models import shipped
+from jaxdistill.models.training.vocabulary import (WORDS, tiny_vocab_and_merges, word_token, write_prior_tokenizer,
+                                                     write_tiny_clip_tokenizer)
 
 PROMPTS = [
     *MAP_PROMPTS.values(),
@@ -63,6 +64,18 @@ def test_tiny_vocab_words_are_whole_tokens(folder):
     words = [w for w in WORDS if "!" not in w]  # with pad "!" each "!" is the pad token itself
     want = [[tok.bos_id, vocab[word_token(w)], tok.eos_id] for w in words]
     assert tok.encode(words)[:, :3].tolist() == want
+
+
+def test_the_builder_writes_the_shipped_tokenizer_byte_for_byte(tmp_path):
+    """The shipped model stays reproducible by scripts/train_rgbx.py: its tokenizer folder is what
+    the vocabulary builder writes, file for file and byte for byte."""
+    folder = shipped.shipped_folder()
+    assert folder is not None, "the package must ship jaxdistill/models/rgbx_rooms"
+    built = write_prior_tokenizer(tmp_path / "tokenizer")
+    names = sorted(p.name for p in (folder / "tokenizer").iterdir())
+    assert names == sorted(p.name for p in built.iterdir())
+    for name in names:
+        assert (built / name).read_bytes() == (folder / "tokenizer" / name).read_bytes(), name
 
 
 def test_truncation_keeps_eos_last(folder):

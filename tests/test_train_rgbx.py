@@ -1,9 +1,9 @@
-"""scripts/train_rgbx.py: its export is a diffusers folder that diffusers, transformers and our
-loader read to the same networks; training stages resume bit-identically (tiny sizes)."""
+"""The prior's training (scripts/train_rgbx.py, `jaxdistill.models.training.train_prior`): its
+export is a diffusers folder that diffusers, transformers and our loader read to the same
+networks; training stages resume bit-identically (tiny sizes)."""
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import jax
@@ -15,22 +15,20 @@ torch = pytest.importorskip("torch")
 diffusers = pytest.importorskip("diffusers")
 transformers = pytest.importorskip("transformers")
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "scripts"))
-
-import train_rgbx  # noqa: E402
 from jaxdistill.models.clip import CLIPTextConfig, CLIPTextTransformer  # noqa: E402
 from jaxdistill.models.convert import load_rgbx  # noqa: E402
 from jaxdistill.models.tokenizer import load_tokenizer  # noqa: E402
+from jaxdistill.models.training import export_model, recipe, shards, train_prior  # noqa: E402
+from jaxdistill.models.training.stages import Budget  # noqa: E402
+from jaxdistill.models.training.vocabulary import write_prior_tokenizer  # noqa: E402
 from jaxdistill.models.unet import UNet2DCondition, UNetConfig  # noqa: E402
 from jaxdistill.models.vae import AutoencoderKL, VAEConfig  # noqa: E402
-from tiny_clip_vocab import write_tiny_clip_tokenizer  # noqa: E402
 from tiny_rgbx import nchw, nhwc, rel_err  # noqa: E402
 
-TINY_VAE = dict(train_rgbx.VAE, block_out_channels=(8, 16, 16, 16), norm_num_groups=8)
-TINY_UNET = dict(train_rgbx.UNET, block_out_channels=(8, 16, 16, 16), norm_num_groups=8, attention_head_dim=(2, 2, 4, 4),
+TINY_VAE = dict(recipe.VAE, block_out_channels=(8, 16, 16, 16), norm_num_groups=8)
+TINY_UNET = dict(recipe.UNET, block_out_channels=(8, 16, 16, 16), norm_num_groups=8, attention_head_dim=(2, 2, 4, 4),
                  cross_attention_dim=16)
-TINY_TEXT = dict(train_rgbx.TEXT, hidden_size=16, intermediate_size=32, num_attention_heads=2, projection_dim=16)
+TINY_TEXT = dict(recipe.TEXT, hidden_size=16, intermediate_size=32, num_attention_heads=2, projection_dim=16)
 
 
 def random_params(module, key, *inputs):
@@ -51,7 +49,7 @@ def random_params(module, key, *inputs):
 @pytest.fixture(scope="module")
 def exported(tmp_path_factory):
     root = tmp_path_factory.mktemp("export")
-    tok_dir = write_tiny_clip_tokenizer(root / "tok", pad_token="!", style="modern")
+    tok_dir = write_prior_tokenizer(root / "tok")
     tok = load_tokenizer(tok_dir)
     key = jax.random.key(3)
     unet = UNet2DCondition(UNetConfig.from_dict(TINY_UNET))
@@ -61,7 +59,7 @@ def exported(tmp_path_factory):
     vae_p = random_params(vae, key, jnp.zeros((1, 32, 32, 3)))
     text_p = random_params(text, key, jnp.zeros((1, 77), jnp.int32))
     folder = root / "model"
-    train_rgbx.export(folder, tok_dir, unet_p, vae_p, text_p, scaling=0.37, unet=TINY_UNET, vae=TINY_VAE, text=TINY_TEXT)
+    export_model.export(folder, tok_dir, unet_p, vae_p, text_p, scaling=0.37, unet=TINY_UNET, vae=TINY_VAE, text=TINY_TEXT)
     return folder, (unet, unet_p), (vae, vae_p), (text, text_p), tok
 
 
@@ -106,14 +104,12 @@ def test_diffusers_and_transformers_load_the_export_and_agree_with_ours(exported
 
 
 def tiny_shards(folder: Path, rooms: int = 2, views: int = 3) -> None:
-    import make_rgbx_data
-
     rng = np.random.default_rng(0)
     for seed in range(rooms):
         arrays = {k: rng.integers(0, 256, (views, 16, 32, c), dtype=np.uint8)
                   for k, c in (("photo", 3), ("albedo", 3), ("normal", 3), ("roughness", 1), ("metallic", 1), ("irradiance", 3))}
         arrays["valid"] = np.ones((views, 16, 32, 1), np.uint8)
-        make_rgbx_data.write_shard(folder / f"room_{seed:07d}.npz", arrays, {"seed": seed})
+        shards.write_shard(folder / f"room_{seed:07d}.npz", arrays, {"seed": seed})
 
 
 @pytest.fixture
@@ -128,9 +124,9 @@ def request_restore():
 def test_training_stops_on_its_budget_and_resumes_bit_identically(tmp_path, monkeypatch, request_restore):
     """4 VAE + 4 UNet steps in one run equal the same run cut after 2 and after 4 more steps
     (`--stop_after_steps`, exit 75 with a checkpoint, as a time limit or SIGTERM would) and resumed."""
-    monkeypatch.setattr(train_rgbx, "VAE", TINY_VAE)
-    monkeypatch.setattr(train_rgbx, "UNET", TINY_UNET)
-    monkeypatch.setattr(train_rgbx, "TEXT", TINY_TEXT)
+    monkeypatch.setattr(recipe, "VAE", TINY_VAE)
+    monkeypatch.setattr(recipe, "UNET", TINY_UNET)
+    monkeypatch.setattr(recipe, "TEXT", TINY_TEXT)
     # each run jits its own closures: a persistent compilation cache compiles each program once
     for name, value in (("jax_compilation_cache_dir", str(tmp_path / "xla")),
                         ("jax_persistent_cache_min_compile_time_secs", 0.0),
@@ -141,13 +137,13 @@ def test_training_stops_on_its_budget_and_resumes_bit_identically(tmp_path, monk
     tiny_shards(tmp_path / "data")
     common = ["--data", str(tmp_path / "data"), "--vae_batch=2", "--unet_batch=4", "--ckpt_every=3", "--stage=unet",
               "--vae_steps=4", "--unet_steps=4"]
-    assert train_rgbx.main(common + ["--work", str(tmp_path / "a")]) == 0
+    assert train_prior.main(common + ["--work", str(tmp_path / "a")]) == 0
     for budget, stage in ((2, "vae"), (4, "unet")):              # vae 0-2 | vae 2-4, unet 0-2 | unet 2-4
         with pytest.raises(SystemExit) as stop:
-            train_rgbx.main(common + ["--work", str(tmp_path / "b"), f"--stop_after_steps={budget}"])
-        assert stop.value.code == train_rgbx.Budget.EXIT_UNFINISHED
+            train_prior.main(common + ["--work", str(tmp_path / "b"), f"--stop_after_steps={budget}"])
+        assert stop.value.code == Budget.EXIT_UNFINISHED
         assert sorted(int(p.name) for p in (tmp_path / "b" / f"ckpt_{stage}").iterdir() if p.name.isdigit())[-1] == 2
-    assert train_rgbx.main(common + ["--work", str(tmp_path / "b")]) == 0
+    assert train_prior.main(common + ["--work", str(tmp_path / "b")]) == 0
     la, lb = (np.load(tmp_path / w / "latents.npz") for w in ("a", "b"))
     for k in la.files:
         np.testing.assert_array_equal(la[k], lb[k])
@@ -158,11 +154,11 @@ def test_training_stops_on_its_budget_and_resumes_bit_identically(tmp_path, monk
 def test_float16_export_halves_the_weights_and_reads_back_rounded(exported, tmp_path):
     folder, (_, unet_p), (_, vae_p), (_, text_p), _ = exported
     half = tmp_path / "half"
-    train_rgbx.export(half, folder / "tokenizer", unet_p, vae_p, text_p, scaling=0.37, unet=TINY_UNET, vae=TINY_VAE,
+    export_model.export(half, folder / "tokenizer", unet_p, vae_p, text_p, scaling=0.37, unet=TINY_UNET, vae=TINY_VAE,
                       text=TINY_TEXT, dtype="float16")
-    train_rgbx.check_export(half, unet_p, vae_p, text_p, "float16")     # raises unless equal to the rounded weights
+    export_model.check_export(half, unet_p, vae_p, text_p, "float16")     # raises unless equal to the rounded weights
     with pytest.raises(AssertionError):
-        train_rgbx.check_export(half, unet_p, vae_p, text_p, "float32")  # rounding did happen
+        export_model.check_export(half, unet_p, vae_p, text_p, "float32")  # rounding did happen
     size = {f: sum(p.stat().st_size for p in (f / "unet").glob("*.safetensors")) for f in (folder, half)}
     assert size[half] < 0.6 * size[folder]          # half the bytes per weight, plus the same header
 
@@ -172,13 +168,13 @@ def test_init_continues_a_model_keeping_its_vae_scaling_and_text_encoder(exporte
     encoder exactly; with 0 UNet steps the UNet is the init's too (it was loaded into the right
     tree), with 2 steps it moved."""
     folder, (_, unet_p), (_, vae_p), (_, text_p), _ = exported
-    monkeypatch.setattr(train_rgbx, "VAE", TINY_VAE)
-    monkeypatch.setattr(train_rgbx, "UNET", TINY_UNET)
-    monkeypatch.setattr(train_rgbx, "TEXT", TINY_TEXT)
+    monkeypatch.setattr(recipe, "VAE", TINY_VAE)
+    monkeypatch.setattr(recipe, "UNET", TINY_UNET)
+    monkeypatch.setattr(recipe, "TEXT", TINY_TEXT)
     tiny_shards(tmp_path / "data")
     for steps in (0, 2):
         work = tmp_path / f"work{steps}"
-        assert train_rgbx.main(["--data", str(tmp_path / "data"), "--work", str(work), "--init", str(folder),
+        assert train_prior.main(["--data", str(tmp_path / "data"), "--work", str(work), "--init", str(folder),
                                 "--unet_batch=4", f"--unet_steps={steps}", "--export_dtype=float32"]) == 0
         assert not (work / "ckpt_vae").exists()
         out = load_rgbx(work / "model")
@@ -194,14 +190,14 @@ def test_init_continues_a_model_keeping_its_vae_scaling_and_text_encoder(exporte
 def test_init_names_the_flag_when_the_folder_is_not_a_model(tmp_path):
     tiny_shards(tmp_path / "data")
     with pytest.raises(SystemExit, match="--init: .*model_index.json"):
-        train_rgbx.main(["--data", str(tmp_path / "data"), "--work", str(tmp_path / "w"), "--init", str(tmp_path)])
+        train_prior.main(["--data", str(tmp_path / "data"), "--work", str(tmp_path / "w"), "--init", str(tmp_path)])
 
 
 def test_timesteps_draw_the_high_fraction_from_the_top_of_the_schedule():
     key = jax.random.key(0)
-    uniform = np.asarray(train_rgbx.timesteps(key, 4000, 1000))
+    uniform = np.asarray(train_prior.timesteps(key, 4000, 1000))
     assert uniform.min() >= 0 and uniform.max() <= 999 and abs((uniform >= 900).mean() - 0.1) < 0.02
-    mixed = np.asarray(train_rgbx.timesteps(key, 4000, 1000, high_fraction=0.25, high_from=900))
+    mixed = np.asarray(train_prior.timesteps(key, 4000, 1000, high_fraction=0.25, high_from=900))
     assert (mixed[:1000] >= 900).all() and mixed.max() <= 999            # the first quarter: U{900..999}
     assert abs((mixed[1000:] >= 900).mean() - 0.1) < 0.02                # the rest stays uniform
     assert len(np.unique(mixed[:1000])) > 90
@@ -209,9 +205,9 @@ def test_timesteps_draw_the_high_fraction_from_the_top_of_the_schedule():
 
 def test_uniform_timesteps_are_the_stream_of_one_randint_and_bad_high_flags_are_named(tmp_path, capsys):
     key = jax.random.key(3)
-    np.testing.assert_array_equal(np.asarray(train_rgbx.timesteps(key, 64, 1000)),
+    np.testing.assert_array_equal(np.asarray(train_prior.timesteps(key, 64, 1000)),
                                   np.asarray(jax.random.randint(key, (64,), 0, 1000)))   # recipes stay reproducible
     for flag, value in (("--t_high_fraction", "1.5"), ("--t_high_from", "1000"), ("--t_high_from", "-1")):
         with pytest.raises(SystemExit):
-            train_rgbx.main([f"--data={tmp_path}", f"--work={tmp_path / 'w'}", f"{flag}={value}"])
+            train_prior.main([f"--data={tmp_path}", f"--work={tmp_path / 'w'}", f"{flag}={value}"])
         assert f"{flag}: must be in" in capsys.readouterr().err

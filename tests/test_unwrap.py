@@ -7,7 +7,7 @@ import time
 import numpy as np
 import pytest
 
-from jaxdistill.render import unwrap as uw
+from jaxdistill.render import atlas, uv_checks, unwrap as uw
 from jaxdistill.scene.cameras import Camera
 from jaxdistill.errors import InputError
 from jaxdistill.scene.model import Mesh
@@ -68,8 +68,8 @@ def check_layout(mesh: Mesh, idx, decision: uw.UVDecision, *, density_tol: float
     UV area matches 3D area x (texels_per_unit / page_size)^2."""
     uv = mesh.uv[idx]
     assert np.isfinite(uv).all() and uv.min() >= 0 and uv.max() <= 1
-    assert uw.uv_overlap_fraction(uv, resolution=2 * decision.page_size) == 0.0
-    signed = uw._uv_areas(uv)
+    assert uv_checks.uv_overlap_fraction(uv, resolution=2 * decision.page_size) == 0.0
+    signed = uv_checks._uv_areas(uv)
     a3 = areas3d(mesh, idx)
     chart = uv_charts(mesh.faces[idx], uv)
     solid = a3 > 1e-12
@@ -113,36 +113,36 @@ def reference_overlap(uv: np.ndarray, resolution: int) -> float:
 def test_uv_problem_reasons():
     v, f = grid(6)
     tri, good = v[f], planar_uv(v, f)
-    assert uw.uv_problem(good, tri) is None
-    assert "tiled" in uw.uv_problem(good * 2, tri)
-    assert "collapsed" in uw.uv_problem(good * 0, tri)
-    assert uw.uv_problem(np.full_like(good, np.nan), tri) == "no texture coordinates"
+    assert uv_checks.uv_problem(good, tri) is None
+    assert "tiled" in uv_checks.uv_problem(good * 2, tri)
+    assert "collapsed" in uv_checks.uv_problem(good * 0, tri)
+    assert uv_checks.uv_problem(np.full_like(good, np.nan), tri) == "no texture coordinates"
     partly = good.copy()
     partly[3, 1] = np.nan
-    assert "non-finite" in uw.uv_problem(partly, tri)
+    assert "non-finite" in uv_checks.uv_problem(partly, tri)
     folded = good.copy()
     folded[..., 0] = np.minimum(folded[..., 0], 1 - folded[..., 0]) * 2     # both halves onto one
-    assert "overlapping" in uw.uv_problem(folded, tri)
+    assert "overlapping" in uv_checks.uv_problem(folded, tri)
 
 
 def test_overlap_fraction_matches_reference():
     rng = np.random.default_rng(1)
     uv = rng.random((40, 3, 2)) * 0.6 + rng.random((40, 1, 2)) * 0.4
     for res in (16, 37):
-        assert uw.uv_overlap_fraction(uv, res) == pytest.approx(reference_overlap(uv, res), abs=1e-12)
+        assert uv_checks.uv_overlap_fraction(uv, res) == pytest.approx(reference_overlap(uv, res), abs=1e-12)
     v, f = grid(10)
-    assert uw.uv_overlap_fraction(planar_uv(v, f), 64) == 0.0
+    assert uv_checks.uv_overlap_fraction(planar_uv(v, f), 64) == 0.0
 
 
 def test_overlap_fraction_is_fast_on_a_million_faces():
     v, f = grid(708)                                        # 1.0M faces
     uv = planar_uv(v, f)
     t = time.perf_counter()
-    assert uw.uv_overlap_fraction(uv) == 0.0
+    assert uv_checks.uv_overlap_fraction(uv) == 0.0
     doubled = np.concatenate([uv[:200_000], uv[:200_000]])  # stacked copies
-    assert uw.uv_overlap_fraction(doubled) == 1.0
+    assert uv_checks.uv_overlap_fraction(doubled) == 1.0
     stacked = np.tile(np.array([[[0, 0], [1, 0], [0, 1]]], float), (100_000, 1, 1))   # all the same big triangle
-    assert uw.uv_overlap_fraction(stacked) == 1.0
+    assert uv_checks.uv_overlap_fraction(stacked) == 1.0
     assert time.perf_counter() - t < 15
 
 
@@ -248,11 +248,11 @@ def test_without_cameras_the_page_is_about_the_default_resolution():
 def test_split_chunks_and_shelf_pack():
     rng = np.random.default_rng(3)
     centroids = rng.random((1000, 3)) * (5, 1, 1)
-    chunks = uw.split_chunks(centroids, 130)
+    chunks = atlas.split_chunks(centroids, 130)
     assert all(len(c) <= 130 for c in chunks)
     np.testing.assert_array_equal(np.sort(np.concatenate(chunks)), np.arange(1000))
     sizes = rng.integers(1, 40, (30, 2))
-    offsets, w, h = uw.shelf_pack(sizes, padding=2)
+    offsets, w, h = atlas.shelf_pack(sizes, padding=2)
     assert (offsets >= 0).all() and (offsets + sizes <= (w, h)).all()
     lo, hi = offsets, offsets + sizes
     for i in range(len(sizes)):
@@ -275,7 +275,7 @@ def test_chunks_fall_back_to_the_shelf_packer(monkeypatch):
     def fail(parts, padding):
         raise RuntimeError("no repack")
 
-    monkeypatch.setattr(uw, "_repack", fail)
+    monkeypatch.setattr(atlas, "_repack", fail)
     v, f = grid(30, noise=0.2)                               # 1800 faces
     out, (d,) = uw.ensure_uvs(make_mesh([("big", v, f)]), cache_dir=False, progress=False, chunk_faces=500)
     check_layout(out, np.arange(len(f)), d, density_tol=0.05)

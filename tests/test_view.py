@@ -26,7 +26,7 @@ from jaxdistill.io import checkpoint, images as imageio
 from jaxdistill import pipeline
 from jaxdistill.engine import config as config_lib, loop
 from jaxdistill.evaluate import ground_truth as evaluation
-from jaxdistill.export import pages as export, run_dir as run_files
+from jaxdistill.export import pages as page_files, run_dir as run_files
 from jaxdistill.models import estimates as model_estimates
 from jaxdistill import view
 from jaxdistill.scene.mesh import Mesh  # noqa: E402
@@ -144,7 +144,7 @@ def test_cli_names_a_missing_out_dir_a_folder_that_is_no_run_and_a_busy_port(tmp
 def test_smoke_run_writes_evidence_and_a_texel_space_that_reproduces_its_maps(smoke_run):
     live = run_files.read_texel_space(smoke_run)
     assert live.config["scene"] == "bedroom" and list(live.channels.maps) == live.config["maps"]
-    stems = export.page_names(RunDir(smoke_run).scene.mesh.object_names, live.space.layout.object_page)
+    stems = page_files.page_names(RunDir(smoke_run).scene.mesh.object_names, live.space.layout.object_page)
     with checkpoint.CheckpointStore(smoke_run / "checkpoints") as store:
         step = store.latest_step()
         raw = store.read_texels(step)
@@ -155,8 +155,8 @@ def test_smoke_run_writes_evidence_and_a_texel_space_that_reproduces_its_maps(sm
     for m in live.channels.maps:        # the checkpoint's texels through texel_space.npz == maps/ of the run
         pages = run_files.map_pages(m, texels, live.channels, live.space, live.trust)
         for p, page in enumerate(pages):
-            np.testing.assert_array_equal(page, imageio.read_image(export.page_file(smoke_run / "maps", m, stems, p,
-                                                                                    ".exr")))
+            np.testing.assert_array_equal(page, imageio.read_image(page_files.page_file(smoke_run / "maps", m, stems,
+                                                                                        p, ".exr")))
     for p, stem in enumerate(stems):
         counts = imageio.read_image(smoke_run / "evidence" / "visibility" / f"{stem}.exr")[..., 0]
         assert counts.max() <= 48 and not (trusted[p][..., 0] > 0)[counts == 0].any()  # trust needs a view
@@ -175,8 +175,8 @@ def test_a_running_out_dir_shows_its_newest_checkpoint_and_refreshes(smoke_run, 
     snapshot = run.snapshot()
     assert not snapshot.finished and snapshot.source == "checkpoint of step 20" and snapshot.step == 20
     stems = run.stems
-    np.testing.assert_array_equal(snapshot.pages["roughness"][3],
-                                  imageio.read_image(export.page_file(smoke_run / "maps", "roughness", stems, 3, ".exr")))
+    np.testing.assert_array_equal(snapshot.pages["roughness"][3], imageio.read_image(
+        page_files.page_file(smoke_run / "maps", "roughness", stems, 3, ".exr")))
     assert run.evidence("visibility", "albedo") is None and run.history()["step"][-1] == 20
     before = run.version()
     shutil.copy(smoke_run / "metrics.json", running / "metrics.json")
@@ -246,7 +246,7 @@ def test_the_browser_shows_the_textured_mesh_the_views_and_a_view_comparison(smo
         albedo = render()
         # an independent reference: the run's albedo pages sampled through the view by our gather
         frag = compute_fragments(viewer.run.scene.mesh, [camera], progress=False)[0]
-        pages = [imageio.read_image(export.page_file(smoke_run / "maps", "albedo", viewer.run.stems, p, ".exr"))
+        pages = [imageio.read_image(page_files.page_file(smoke_run / "maps", "albedo", viewer.run.stems, p, ".exr"))
                  for p in range(len(viewer.run.stems))]
         reference = 255 * evaluation.display_image("albedo", sample_pages(pages, [frag], viewer.run.object_page)[0])
         shown, expected = blocks(grey(albedo), 16), blocks(grey(reference), 16)

@@ -115,9 +115,9 @@ def test_texel_view_statistics_match_brute_force_per_view_values():
 
 
 def test_texel_trust_expands_to_the_page_trust_of_the_expanded_evidence():
-    """What texel_space.npz stores per texel (export.texel_trust) gives, expanded to pages, the
-    very trust pages the export weights its push-pull fill with (export.page_trust)."""
-    from jaxdistill.export import pages as export
+    """What texel_space.npz stores per texel (charts.texel_trust) gives, expanded to pages, the
+    very trust pages the export weights its push-pull fill with (charts.page_trust)."""
+    from jaxdistill.render import charts
     from jaxdistill.render.sampler import expand
 
     mesh, frags = scene_views()
@@ -126,8 +126,8 @@ def test_texel_trust_expands_to_the_page_trust_of_the_expanded_evidence():
     evidence = texel_evidence(build_gather_plans(frags, space, "bilinear"), space.num_texels)
     rng = np.random.default_rng(0)
     coverage = [rng.uniform(size=(s, s)) < 0.7 for s in layout.page_sizes]
-    expected = export.page_trust(expand(evidence[:, None], space, 0.0, dilation=0), coverage)
-    got = expand(export.texel_trust(evidence, coverage, space)[:, None], space, 0.0, dilation=0)
+    expected = charts.page_trust(expand(evidence[:, None], space, 0.0, dilation=0), coverage)
+    got = expand(charts.texel_trust(evidence, coverage, space)[:, None], space, 0.0, dilation=0)
     assert any((e > 0).any() and (e < 1).any() for e in expected)                 # partial trust really occurs
     for e, g in zip(expected, got):
         np.testing.assert_array_equal(g[..., 0], e)

@@ -3,7 +3,9 @@
 `run_loop` is the middle of the main job (`jaxdistill.pipeline.run`). The loop is thin: view ids
 for a step are a function of (seed, step); the host assembles that batch while the device runs
 the previous step (JAX dispatch is asynchronous); metrics are fetched every --log_every steps,
-before an evaluation and before a checkpoint.
+before an evaluation and before a checkpoint. `setup_step` is what it steps with (settings,
+optimizers, the step-0 state, the jitted step), for benchmarks that time the step alone;
+`LoopHooks` lets a benchmark time the loop itself (scripts/speed_vs_error.py) without a copy of it.
 """
 
 from __future__ import annotations
@@ -17,13 +19,14 @@ from typing import Callable
 
 import jax
 import numpy as np
+import optax
 from absl import logging
 from tqdm.auto import tqdm
 
 from jaxdistill.engine.config import DistillConfig, resumable_flags
 from jaxdistill.engine.problem import Problem
-from jaxdistill.engine.step import (DistillState, StepSettings, data_mesh, init_state, initial_align, initial_reused,
-                                    jit_step, make_optimizer, make_step)
+from jaxdistill.engine.step import (DistillState, StepSettings, TraceCounter, data_mesh, init_state, initial_align,
+                                    initial_reused, jit_step, make_optimizer, make_step)
 from jaxdistill.errors import InputError
 from jaxdistill.io import checkpoint
 
@@ -42,6 +45,64 @@ def batch_views(problem: Problem, config: DistillConfig, step: int) -> np.ndarra
     """The views of `step`: a function of (seed, step // reuse_steps), so the steps that reuse one
     x_pred see the views it was computed for, and a resumed run samples the same."""
     return problem.view_ids(step // config.reuse_steps, config.views_per_step, config.seed)
+
+
+@dataclasses.dataclass
+class Stepper:
+    """What the loop steps with, set up once for a problem: the step's static settings, the
+    optimizers (texels; per-view gains with --align=gain, else None), the step-0 state (on the
+    host), the jitted step with its trace counter, and the shardings (state and constants
+    replicated, batches split over the devices by view)."""
+
+    settings: StepSettings
+    optimizer: optax.GradientTransformation
+    align_optimizer: optax.GradientTransformation | None
+    state: DistillState
+    step_fn: Callable
+    traces: TraceCounter
+    replicated: jax.sharding.NamedSharding
+    by_view: jax.sharding.NamedSharding
+
+
+def setup_step(config: DistillConfig, problem: Problem, first_batch: dict) -> Stepper:
+    """The `Stepper` of `config` and `problem`; `first_batch` (a host batch, e.g. of step 0) gives
+    the shapes the step is traced for and the state's reused x_pred (--reuse_steps) is shaped by."""
+    mesh = data_mesh(jax.devices())
+    optimizer = make_optimizer(config.lr, config.weight_decay, config.lr_schedule, config.steps)
+    align_optimizer = (make_optimizer(config.lr, 0.0, config.lr_schedule, config.steps) if config.align == "gain"
+                       else None)
+    settings = step_settings(config, problem)
+    texels = problem.initial_texels()
+    state = init_state(texels, optimizer, config.seed,
+                       initial_reused(problem.prior, settings, texels, first_batch, problem.frozen),
+                       initial_align(problem.num_views, problem.channels, align_optimizer))
+    step_fn, traces = jit_step(make_step(problem.prior, settings, optimizer, align_optimizer), mesh, first_batch, state,
+                               problem.frozen)
+    return Stepper(settings, optimizer, align_optimizer, state, step_fn, traces,
+                   jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()),
+                   jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("data")))
+
+
+@dataclasses.dataclass(frozen=True)
+class LoopHooks:
+    """Ways into `run_loop` for measuring it; the main job passes none, and the defaults change
+    nothing.
+
+    before_steps(step_fn, state, batch, frozen) -> step function: called once, when the state is
+      restored and placed on the devices with the constants, before the first step, with the
+      jitted step and a placed batch of the run's shapes; the loop then calls what it returns as
+      it would the jitted step, e.g. `step_fn.lower(state, batch, frozen).compile()` so that the
+      compilation is timed apart from the steps.
+    after_fetch(steps_done, metrics): called whenever step metrics come back from the device
+      (every --log_every steps and at the end), with the number of steps done and the fetched
+      metrics of each step since the last fetch (dicts of host values).
+    checkpoints: False saves no checkpoint at all (periodic, final, or on a non-finite loss): a
+      throw-away run that cannot be resumed and writes nothing to --out_dir.
+    """
+
+    before_steps: Callable[..., Callable] | None = None
+    after_fetch: Callable[[int, list], None] | None = None
+    checkpoints: bool = True
 
 
 def _history_path(out: Path) -> Path:
@@ -143,12 +204,18 @@ class LoopResult:
 class _Checkpoints:
     """The run's checkpoint store with what each save records beside the state."""
 
-    def __init__(self, config: DistillConfig, out: Path, recorded: dict):
+    def __init__(self, config: DistillConfig, out: Path, recorded: dict, enabled: bool = True):
         self.out, self.recorded = out, recorded
-        self.store = checkpoint.CheckpointStore(out / "checkpoints", max_to_keep=config.keep_checkpoints or None)
+        self.store = (checkpoint.CheckpointStore(out / "checkpoints", max_to_keep=config.keep_checkpoints or None)
+                      if enabled else None)
 
     def save(self, state, history: dict) -> None:
-        _save(self.store, state, self.recorded, history, self.out)
+        if self.store is not None:
+            _save(self.store, state, self.recorded, history, self.out)
+
+    def close(self) -> None:
+        if self.store is not None:
+            self.store.close()
 
     def restore(self, step: int, state) -> tuple[DistillState, dict]:
         """The state of checkpoint `step` and the history up to it (empty history when none was saved)."""
@@ -169,30 +236,25 @@ def _empty_history() -> dict:
 
 
 def run_loop(config: DistillConfig, problem: Problem, recorded: dict, latest: int | None, *,
-             evaluate: Callable[[DistillState], float] | None = None, progress: bool = True) -> LoopResult:
+             evaluate: Callable[[DistillState], float] | None = None, progress: bool = True,
+             hooks: LoopHooks | None = None) -> LoopResult:
     """Steps from `latest` (a checkpoint step, None for a fresh run) to --steps, checkpointing every
     --ckpt_every steps and at the end; `evaluate(state)` (albedo PSNR) every --eval_every steps.
-    SIGINT/SIGTERM stop it after the current step with a checkpoint (`LoopResult.stopped_by`)."""
-    mesh = data_mesh(jax.devices())
-    optimizer = make_optimizer(config.lr, config.weight_decay, config.lr_schedule, config.steps)
-    align_optimizer = (make_optimizer(config.lr, 0.0, config.lr_schedule, config.steps) if config.align == "gain"
-                       else None)
-    settings = step_settings(config, problem)
+    SIGINT/SIGTERM stop it after the current step with a checkpoint (`LoopResult.stopped_by`).
+    `hooks` (`LoopHooks`) let a benchmark time it; None runs it as the main job does."""
+    hooks = hooks or LoopHooks()
     first = problem.batch(batch_views(problem, config, 0))
-    texels = problem.initial_texels()
-    state = init_state(texels, optimizer, config.seed,
-                       initial_reused(problem.prior, settings, texels, first, problem.frozen),
-                       initial_align(problem.num_views, problem.channels, align_optimizer))
-    checkpoints = _Checkpoints(config, Path(config.out_dir), recorded)
+    stepper = setup_step(config, problem, first)
+    checkpoints = _Checkpoints(config, Path(config.out_dir), recorded, enabled=hooks.checkpoints)
     history = _empty_history()
+    state = stepper.state
     if latest is not None:
         state, history = checkpoints.restore(latest, state)
-    step_fn, traces = jit_step(make_step(problem.prior, settings, optimizer, align_optimizer), mesh, first, state,
-                               problem.frozen)
-    replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
-    by_view = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("data"))
-    state = jax.device_put(state, replicated)
-    frozen = jax.device_put(problem.frozen, replicated)
+    step_fn, traces, by_view = stepper.step_fn, stepper.traces, stepper.by_view
+    state = jax.device_put(state, stepper.replicated)
+    frozen = jax.device_put(problem.frozen, stepper.replicated)
+    if hooks.before_steps is not None:
+        step_fn = hooks.before_steps(step_fn, state, jax.device_put(first, by_view), frozen)
 
     start_step = int(jax.device_get(state.step))
     pending = []           # (step, metrics on device) not yet fetched
@@ -209,7 +271,7 @@ def run_loop(config: DistillConfig, problem: Problem, recorded: dict, latest: in
             evaluating = bool(config.eval_every and done % config.eval_every == 0 and evaluate is not None)
             saving = bool(config.ckpt_every and done % config.ckpt_every == 0 and done < config.steps)
             if done % config.log_every == 0 or done == config.steps or stop.requested or evaluating or saving:
-                _drain(pending, history, bar, state, checkpoints)   # the history matches an eval or a checkpoint
+                _drain(pending, history, bar, state, checkpoints, hooks)   # the history matches an eval or a checkpoint
             traces.check(1)
             bar.update()
             if evaluating:
@@ -221,10 +283,10 @@ def run_loop(config: DistillConfig, problem: Problem, recorded: dict, latest: in
             if stop.requested:
                 stopped_by = stop.signal_name
                 break
-        _drain(pending, history, bar, state, checkpoints)
+        _drain(pending, history, bar, state, checkpoints, hooks)
     seconds = time.perf_counter() - loop_start
     checkpoints.save(state, history)
-    checkpoints.store.close()
+    checkpoints.close()
     result = LoopResult(state, history, start_step, seconds, traces.traces)
     if stopped_by:
         logging.warning("stopped by %s at step %d; checkpoint saved. Continue with the same flags and --resume. "
@@ -234,19 +296,21 @@ def run_loop(config: DistillConfig, problem: Problem, recorded: dict, latest: in
     return result
 
 
-def _drain(pending: list, history: dict, bar, state, checkpoints: _Checkpoints) -> None:
+def _drain(pending: list, history: dict, bar, state, checkpoints: _Checkpoints, hooks: LoopHooks) -> None:
     """Fetches pending step metrics into the history; stops the run on a non-finite step."""
     fetched = jax.device_get([m for _, m in pending])
     for (step, _), values in zip(pending, fetched):
         if not values["finite"]:
             checkpoints.save(state, history)
-            checkpoints.store.close()
+            checkpoints.close()
             raise NonFiniteLoss(
                 f"the loss or its gradient became NaN/inf at step {step}; the state before that step is saved in "
                 f"{checkpoints.out / 'checkpoints'} (step {step}). Try a smaller --lr, --prior_dtype=float32, or "
                 "check the photos and targets for NaN/inf; resume with --resume.")
         history["step"].append(step + 1)
         history["loss"].append(float(values["loss"]))
+    if fetched and hooks.after_fetch is not None:
+        hooks.after_fetch(pending[-1][0] + 1, fetched)
     pending.clear()
     if fetched:
         bar.t_mean = float(fetched[-1]["t_mean"])

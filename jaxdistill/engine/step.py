@@ -1,6 +1,6 @@
 """The distillation step: one pure, jitted function (state, batch, frozen) → (state, metrics).
 
-Per step, for a batch of B views and the M requested maps (thesis §4.2, DESIGN.md §2):
+Per step, for a batch of B views and the M requested maps (thesis §4.2, docs/design.md §4):
 1. gather-render the current texels for all views and maps at once (`render`, one gather);
    normals are rotated from world to each view's RGB<->X camera space;
 2. `features` = the renders (image-space loss) or their VAE latents (latent-space loss);

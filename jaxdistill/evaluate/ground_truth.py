@@ -27,10 +27,11 @@ import numpy as np
 from jaxdistill.io import images as imageio
 from jaxdistill.evaluate import metrics
 from jaxdistill.errors import InputError, read_json
-from jaxdistill.scene.cameras import rgbx_camera_normals, rgbx_camera_rotation
+from jaxdistill.scene.cameras import camera_normals, rgbx_camera_rotation
 from jaxdistill.scene.maps import CHANNELS, MapChannels, model_to_file, png_pixels
 from jaxdistill.render.gather_plan import GatherPlan
 from jaxdistill.render.sampler import render, sample_pages
+from jaxdistill.scene.mesh import face_normals
 from jaxdistill.scene.model import Scene
 
 GT_FORMAT = "jaxdistill-gt"
@@ -92,20 +93,6 @@ def read_ground_truth(scene: Scene) -> GroundTruth | None:
         raise InputError.single(path, "exclude_objects", f"{unknown} are not objects of the scene")
     return GroundTruth(pages=pages, geometry_normals=doc.get("normal") == "geometry",
                        exclude_objects=tuple(doc.get("exclude_objects", [])))
-
-
-def face_normals(mesh) -> np.ndarray:
-    """(F, 3) unit geometric normals, cross(e1, e2) of each triangle (as the mesh orients it)."""
-    t = mesh.triangles()
-    n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
-    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
-
-
-def camera_normals(normals_world: np.ndarray, triangle: np.ndarray, camera) -> np.ndarray:
-    """(H, W, 3) float32 RGB<->X camera-space normals of the faces `triangle` (H, W) hits; 0 on misses."""
-    hit = triangle >= 0
-    n = rgbx_camera_normals(normals_world[np.where(hit, triangle, 0)], camera)
-    return np.where(hit[..., None], n, 0.0).astype(np.float32)
 
 
 def gt_view_maps(gt: GroundTruth, scene: Scene, fragments: Sequence) -> list[dict[str, np.ndarray]]:

@@ -12,9 +12,10 @@ from jaxdistill.engine.problem import Problem
 from jaxdistill.evaluate import ground_truth as evaluation
 from jaxdistill.evaluate import scoring
 from jaxdistill.evaluate.scoring import Baseline, EvalContext, training_plan
-from jaxdistill.export import pages as export, run_dir as run_files
+from jaxdistill.export import gltf, pages as page_files, plots, run_dir as run_files
 from jaxdistill.io import images as imageio
 from jaxdistill.io.view_images import resize
+from jaxdistill.render import charts
 from jaxdistill.render.sampler import expand
 from jaxdistill.render.visibility import texel_view_statistics
 from jaxdistill.scene.cameras import rgbx_camera_rotation
@@ -22,10 +23,10 @@ from jaxdistill.scene.cameras import rgbx_camera_rotation
 
 def texel_trust(problem: Problem) -> np.ndarray:
     """(N,) float32 in [0, 1]: how far each texel's distilled value is kept in the exported pages
-    (`export.texel_trust`: its evidence, inside its object's UV charts)."""
-    coverage = export.chart_coverage(problem.scene.mesh, problem.space.layout.object_page,
+    (`charts.texel_trust`: its evidence, inside its object's UV charts)."""
+    coverage = charts.chart_coverage(problem.scene.mesh, problem.space.layout.object_page,
                                      problem.space.layout.page_sizes)
-    return export.texel_trust(problem.evidence, coverage, problem.space)
+    return charts.texel_trust(problem.evidence, coverage, problem.space)
 
 
 def write_map_files(out: Path, problem: Problem, texels: np.ndarray, trust: np.ndarray) -> list[Path]:
@@ -35,13 +36,13 @@ def write_map_files(out: Path, problem: Problem, texels: np.ndarray, trust: np.n
     written, layers = [], {}
     for m in [m for m in MAP_NAMES if m in channels.maps]:
         pages = run_files.map_pages(m, texels, channels, space, trust)
-        written += export.write_maps(out, {m: pages}, scene.mesh.object_names, space.layout.object_page)
-        layer = export.material_layers(m, pages, scene.mesh, space.layout.object_page)
+        written += page_files.write_maps(out, {m: pages}, scene.mesh.object_names, space.layout.object_page)
+        layer = gltf.material_layers(m, pages, scene.mesh, space.layout.object_page)
         if layer is not None:
             layers[m] = layer
         del pages
-    export.write_gltf_images(out / "scene.glb", scene.mesh, space.layout.object_page,
-                             export.combine_material_layers(layers, space.layout.num_pages),
+    gltf.write_gltf_images(out / "scene.glb", scene.mesh, space.layout.object_page,
+                             gltf.combine_material_layers(layers, space.layout.num_pages),
                              [(v.name, v.camera) for v in scene.views])
     return written
 
@@ -67,7 +68,7 @@ def write_evidence(out: Path, problem: Problem, ctx: EvalContext, baseline: list
             spread = np.sqrt(variance[:, channels.slice(m)].sum(axis=1))
             spread = np.where(count >= 2, spread, np.nan).astype(np.float32)
             pages[f"disagreement_{m}"] = expand(spread[:, None], space, np.nan, dilation=0)
-    return export.write_evidence(out, pages, problem.scene.mesh.object_names, space.layout.object_page)
+    return page_files.write_evidence(out, pages, problem.scene.mesh.object_names, space.layout.object_page)
 
 
 def write_contact_sheets(out: Path, config: DistillConfig, problem: Problem, pred: list[dict], ctx: EvalContext,
@@ -86,7 +87,7 @@ def write_contact_sheets(out: Path, config: DistillConfig, problem: Problem, pre
             rows.append([photos[j], evaluation.display_image(m, baseline[i][m]) if baseline else None,
                          evaluation.display_image(m, pred[i][m]),
                          evaluation.display_image(m, gt) if gt is not None else None])
-        export.write_contact_sheet(out / f"contact_{m}.png", rows, ["photo", "per-view estimate", "ours", "GT"],
+        plots.write_contact_sheet(out / f"contact_{m}.png", rows, ["photo", "per-view estimate", "ours", "GT"],
                                    [names[i] for i in picks])
 
 
@@ -95,7 +96,7 @@ def write_loss_plot(out: Path, problem: Problem, history: dict) -> None:
     if not history["step"]:
         return
     extra = {"albedo PSNR (dB)": (history["eval_step"], history["albedo_psnr"])} if history["eval_step"] else None
-    export.write_loss_plot(out / "loss.png", history["step"], history["loss"], extra=extra,
+    plots.write_loss_plot(out / "loss.png", history["step"], history["loss"], extra=extra,
                            title=f"{problem.scene.name}: {problem.choice.kind} prior, {len(problem.channels.maps)} maps")
 
 

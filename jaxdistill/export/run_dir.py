@@ -1,7 +1,7 @@
 """What a run keeps beside its outputs so that they can be looked at while it goes on.
 
 `texel_space.npz` in the run's out_dir (written once, before the first step): the level-0 tile
-set of the texel space, how far each texel is trusted (`export.texel_trust`), and the distilled maps. With it, the
+set of the texel space, how far each texel is trusted (`charts.texel_trust`), and the distilled maps. With it, the
 texels of any checkpoint become the same file-space map pages that `maps/` holds at the end
 (`map_pages`; the final checkpoint's after `as_exported`, which applies the `--anchor` gains the
 run recorded in metrics.json), without the scene, the ray casts or the prior.
@@ -29,7 +29,7 @@ TEXEL_SPACE_FILE = "texel_space.npz"
 def map_pages(name: str, texels: np.ndarray, channels: MapChannels, space: TexelSpace,
               trust: np.ndarray) -> list[np.ndarray]:
     """File-space pages (S, S, C) of map `name` from model-space texels (N, channels): each
-    texel kept as far as `trust` (N,) in [0, 1] says (`export.texel_trust`: its evidence inside
+    texel kept as far as `trust` (N,) in [0, 1] says (`charts.texel_trust`: its evidence inside
     the charts), the rest filled from its neighbours by push-pull (`sampler.push_pull`)."""
     values = model_to_file(name, np.asarray(texels)[:, channels.slice(name)])
     pages = expand(values, space, initial_file_values([name])[name], dilation=0)

@@ -29,7 +29,7 @@ from jaxdistill.models.convert import LoadedRgbx
 from jaxdistill.models.tokenizer import MAP_PROMPTS, ClipTokenizer, load_tokenizer
 from jaxdistill.models.unet import UNet2DCondition
 
-# the authors' demo samples with these scheduler settings (DESIGN.md §3)
+# the authors' demo samples with these scheduler settings (docs/design.md §5)
 DEMO_SCHEDULER_OVERRIDES = {"rescale_betas_zero_snr": True, "timestep_spacing": "trailing"}
 PHOTO_GAMMA = 2.2
 GAMMA_MAPS = ("albedo", "irradiance")   # the demo writes these with x**(1/2.2)

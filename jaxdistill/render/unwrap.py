@@ -7,8 +7,8 @@ object names are the very same arrays) and one `UVDecision` per object.
 
 Rules:
 
-1. **Detection** (`uv_problem`): an object keeps its UVs unless they are missing (all NaN:
-   "no texture coordinates"; `scene.load_mesh(require_uv=False)` gives those), partly
+1. **Detection** (`uv_checks.uv_problem`): an object keeps its UVs unless they are missing (all
+   NaN: "no texture coordinates"; `scene.load_mesh(require_uv=False)` gives those), partly
    non-finite, tiled (outside [0, 1]), collapsed (faces with zero UV area over more than
    UV_COLLAPSED_LIMIT = 1 % of its surface) or overlapping (more than UV_OVERLAP_LIMIT = 2 % of
    the covered texel centres of a UV_RASTER^2 = 256^2 raster covered twice). Policy "auto"
@@ -22,16 +22,17 @@ Rules:
    set of cameras gives the same layout (and reuses the cache). Objects no camera sees get the
    median of the others; without any camera an object gets the density that fills about a
    DEFAULT_RESOLUTION = 1024 page (not quantised).
-3. **Unwrap** (`unwrap_object`): xatlas packs the charts at that density with XATLAS_PADDING =
-   2 texels between charts. Chart growth is capped at about CHART_FACES = 1000 faces per chart
-   (in area: CHART_FACES x the mean face area; objects of <= CHART_FACES faces are uncapped),
-   which keeps xatlas linear in the face count at the price of more seams (one uncapped chart
-   of a noisy 12k-face grid takes 22-43 s, capped 1.6 s). The page side is the next power of
-   two >= the atlas side (at least 8), at most `max_page_size` (4096): when the area estimate
-   (EXPECTED_FILL) or the result says the atlas would be larger, it is made at a lower density
-   (said in the decision's reason; after CAP_RETRIES the layout is scaled down, padding with
-   it). The atlas rectangle sits in the page's corner [0, w / page] x [0, h / page] with
-   square texels. xatlas's v points down (image rows) and is flipped to our v up.
+3. **Unwrap** (`unwrap_object`; the xatlas calls and the packing are in `atlas`): xatlas packs
+   the charts at that density with XATLAS_PADDING = 2 texels between charts. Chart growth is
+   capped at about CHART_FACES = 1000 faces per chart (in area: CHART_FACES x the mean face
+   area; objects of <= CHART_FACES faces are uncapped), which keeps xatlas linear in the face
+   count at the price of more seams (one uncapped chart of a noisy 12k-face grid takes 22-43 s,
+   capped 1.6 s). The page side is the next power of two >= the atlas side (at least 8), at most
+   `max_page_size` (4096): when the area estimate (EXPECTED_FILL) or the result says the atlas
+   would be larger, it is made at a lower density (said in the decision's reason; after
+   CAP_RETRIES the layout is scaled down, padding with it). The atlas rectangle sits in the
+   page's corner [0, w / page] x [0, h / page] with square texels. xatlas's v points down
+   (image rows) and is flipped to our v up.
    Orientation: xatlas parameterises each chart without folds but leaves some charts mirrored
    (about half the faces of an icosphere; a flat grid comes out unmirrored, a slightly noisy
    one mirrored). We keep its charts as they are, since mirroring one in place could make it
@@ -67,29 +68,23 @@ from typing import Sequence
 import numpy as np
 from tqdm.auto import tqdm
 
-from jaxdistill.scene.cameras import Camera
 from jaxdistill.errors import InputError, ProblemList
+from jaxdistill.render.atlas import CHART_FACES, face_areas, merge_atlases, split_chunks, xatlas_chunk, xatlas_version
+from jaxdistill.render.uv_checks import uv_problem
+from jaxdistill.scene.cameras import Camera
 from jaxdistill.scene.model import Mesh
 
 log = logging.getLogger(__name__)
 
-UV_RASTER = 256
-UV_OVERLAP_LIMIT = 0.02
-UV_COLLAPSED_LIMIT = 0.01
 XATLAS_PADDING = 2
-OVERLAP_MAX_TESTS = 1 << 24     # texel-centre tests of one overlap check (resolution lowered beyond)
-OVERLAP_BATCH = 1 << 21         # texel-centre tests per vectorised batch
-MIN_OVERLAP_RASTER = 16
-
 OBSERVE_WIDTH = 160
 DENSITY_QUANTILE = 0.999
 DEFAULT_RESOLUTION = 1024
 MIN_PAGE_SIZE = 8
 EXPECTED_FILL = 0.5             # conservative xatlas utilisation (measured 0.55-0.75) for size estimates
 CHUNK_PACKING = 0.9             # chunk charts repacked together: a little below one xatlas call
-CHART_FACES = 1000              # chart growth cap (in mean face areas): keeps xatlas linear in faces
 CHUNK_FACES = 100_000           # faces per xatlas call: 20k-200k measured linear with the cap, 320k not
-SECONDS_PER_FACE = 2.5e-4       # xatlas, 2 cores: 90-215 us/face measured with the cap (noisy grid worst)
+SECONDS_PER_FACE = 2.5e-4       # xatlas time per face (upper end of scripts/bench_unwrap.py), for the estimate in logs
 MAX_FACES = 4_000_000
 TIME_LIMIT_S = 1800.0
 CAP_RETRIES = 3
@@ -129,98 +124,6 @@ class UnwrapResult:
     chunks: int
     cached: bool
     note: str = ""
-
-
-# ----------------------------------------------------------------------------- detection
-
-
-def _uv_areas(uv: np.ndarray) -> np.ndarray:
-    """Signed areas (F,) of UV triangles (F, 3, 2); > 0 counter-clockwise."""
-    e1, e2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
-    return 0.5 * (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
-
-
-def _raster_counts(p: np.ndarray, resolution: int) -> np.ndarray:
-    """(resolution^2,) how many triangles p (F, 3, 2, texel units, centre of texel i at i) cover each centre."""
-    count = np.zeros(resolution * resolution, np.int64)
-    area = _uv_areas(p)
-    p, area = p[np.abs(area) >= 1e-12], area[np.abs(area) >= 1e-12]
-    lo = np.maximum(np.ceil(p.min(axis=1)), 0).astype(np.int64)
-    hi = np.minimum(np.floor(p.max(axis=1)), resolution - 1).astype(np.int64)
-    span = np.maximum(hi - lo + 1, 0)
-    n = span[:, 0] * span[:, 1]
-    keep = n > 0
-    p, area, lo, span, n = p[keep], area[keep], lo[keep], span[keep], n[keep]
-    ends = np.cumsum(n)
-    start = 0
-    while start < len(n):
-        base = ends[start - 1] if start else 0
-        stop = max(int(np.searchsorted(ends, base + OVERLAP_BATCH, side="right")), start + 1)
-        counts = n[start:stop]
-        tri = np.repeat(np.arange(start, stop), counts)
-        k = np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)
-        xs = lo[tri, 0] + k % span[tri, 0]
-        ys = lo[tri, 1] + k // span[tri, 0]
-        corners = p[tri]
-        sign = np.sign(area[tri])
-        inside = np.ones(len(tri), bool)
-        for a in range(3):
-            (x0, y0), (x1, y1) = corners[:, a].T, corners[:, (a + 1) % 3].T
-            inside &= ((x1 - x0) * (ys - y0) - (y1 - y0) * (xs - x0)) * sign > 1e-9
-        count += np.bincount(ys[inside] * resolution + xs[inside], minlength=resolution * resolution)
-        start = stop
-    return count
-
-
-def uv_overlap_fraction(uv: np.ndarray, resolution: int = UV_RASTER, *, max_tests: int = OVERLAP_MAX_TESTS) -> float:
-    """Fraction of covered texel centres (of a resolution^2 raster of [0, 1]^2) covered twice or more.
-
-    uv (F, 3, 2); non-finite and zero-area triangles are ignored. Vectorised: the cost is the
-    number of (triangle, texel centre in its bounding box) tests, at most `max_tests`; beyond
-    it (stacked or huge overlapping triangles) the raster is halved (down to 16^2), then a
-    seeded random subset of the triangles is tested (which can only under-count overlaps).
-    """
-    uv = np.asarray(uv, np.float64).reshape(-1, 3, 2)
-    uv = uv[np.isfinite(uv).all(axis=(1, 2))]
-    resolution = int(resolution)
-    while True:
-        p = uv * resolution - 0.5                        # texel i has its centre at coordinate i
-        lo = np.maximum(np.ceil(p.min(axis=1)), 0)
-        hi = np.minimum(np.floor(p.max(axis=1)), resolution - 1)
-        tests = np.prod(np.maximum(hi - lo + 1, 0), axis=1)
-        if tests.sum() <= max_tests or resolution <= MIN_OVERLAP_RASTER:
-            break
-        resolution //= 2
-    if tests.sum() > max_tests:
-        rng = np.random.default_rng(0)
-        p = p[rng.random(len(p)) < max_tests / tests.sum()]
-    count = _raster_counts(p, resolution)
-    covered = (count > 0).sum()
-    return float((count > 1).sum() / covered) if covered else 0.0
-
-
-def uv_problem(uv: np.ndarray, triangles: np.ndarray) -> str | None:
-    """Why per-corner UVs (F, 3, 2) of triangles (F, 3, 3) cannot be kept, or None if they can.
-
-    Reasons: 'no texture coordinates' (all NaN), 'non-finite', 'tiled (outside [0, 1])',
-    'collapsed (zero UV area)', 'overlapping (N % of texels)'.
-    """
-    finite = np.isfinite(uv)
-    if not finite.any():
-        return "no texture coordinates"
-    if not finite.all():
-        return f"non-finite ({(~finite.all(axis=(1, 2))).sum()} faces)"
-    if (uv < -1e-6).any() or (uv > 1 + 1e-6).any():
-        return "tiled (outside [0, 1])"
-    edges = triangles[:, 1:] - triangles[:, :1]
-    area3d = 0.5 * np.linalg.norm(np.cross(edges[:, 0], edges[:, 1]), axis=1)
-    degenerate = np.abs(_uv_areas(uv)) < 1e-12
-    if area3d[degenerate].sum() > UV_COLLAPSED_LIMIT * max(area3d.sum(), 1e-300):
-        return "collapsed (zero UV area)"
-    overlap = uv_overlap_fraction(uv)
-    if overlap > UV_OVERLAP_LIMIT:
-        return f"overlapping ({100 * overlap:.0f} % of texels)"
-    return None
 
 
 # ----------------------------------------------------------------------------- texel density
@@ -271,157 +174,13 @@ def default_texels_per_unit(area: float, resolution: int = DEFAULT_RESOLUTION) -
     return resolution * math.sqrt(EXPECTED_FILL / max(area, 1e-300))
 
 
-# ----------------------------------------------------------------------------- xatlas
-
-
-def _xatlas_version() -> str:
-    try:
-        from importlib.metadata import version
-
-        return version("xatlas")
-    except Exception:   # noqa: BLE001 - an unknown version only weakens the cache key
-        return "unknown"
-
-
-def _face_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    tri = vertices[faces]
-    return 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-
-
-@dataclasses.dataclass(frozen=True, eq=False)
-class _Atlas:
-    """One xatlas result: per-vertex texel coordinates (V', 2) float64 in [0, w] x [0, h] with
-    xatlas's v down, faces (F, 3) into them (same order as the input faces), atlas size w x h."""
-
-    texels: np.ndarray
-    faces: np.ndarray
-    width: int
-    height: int
-
-
-def _atlas_result(atlas, faces: np.ndarray) -> _Atlas:
-    if atlas.atlas_count != 1:
-        raise RuntimeError(f"xatlas made {atlas.atlas_count} atlases, expected one")
-    vmapping, indices, uvs = atlas[0]
-    indices = np.asarray(indices, np.int64).reshape(-1, 3)
-    if indices.shape != faces.shape or not (np.asarray(vmapping)[indices] == faces).all():
-        raise RuntimeError("xatlas changed the faces (order or count); cannot map UVs back")
-    w, h = int(atlas.width), int(atlas.height)
-    return _Atlas(np.asarray(uvs, np.float64) * (w, h), indices, w, h)   # xatlas: normalised by w, h
-
-
-def _xatlas_chunk(vertices: np.ndarray, faces: np.ndarray, texels_per_unit: float, padding: int) -> _Atlas:
-    """One xatlas call (charts and packing) on a mesh (V, 3), (F, 3) at `texels_per_unit`.
-
-    Coordinates are centred and scaled so that the median face area is about 1 before they
-    reach xatlas (float32, area epsilons), the density rescaled to match.
-    """
-    import xatlas
-
-    areas = _face_areas(vertices, faces)
-    positive = areas[areas > 0]
-    scale = math.sqrt(float(np.median(positive))) if len(positive) else 1.0
-    local = (vertices - vertices.mean(axis=0)) / scale
-    atlas = xatlas.Atlas()
-    atlas.add_mesh(np.ascontiguousarray(local, np.float32), np.ascontiguousarray(faces, np.uint32))
-    chart = xatlas.ChartOptions()
-    chart.max_chart_area = float(CHART_FACES * areas.mean() / scale**2) if len(faces) > CHART_FACES else 0.0
-    pack = xatlas.PackOptions()
-    pack.padding = int(padding)
-    pack.texels_per_unit = float(texels_per_unit * scale)
-    atlas.generate(chart_options=chart, pack_options=pack)
-    return _atlas_result(atlas, faces)
-
-
-def _merge_atlases(parts: Sequence[_Atlas], padding: int) -> tuple[np.ndarray, int, int]:
-    """Per-corner texel coordinates (sum F, 3, 2) of chunk atlases packed into one (v down), w, h.
-
-    xatlas repacks the charts of all chunks together (a UV mesh at one texel per unit, so the
-    density stays); if that fails, the chunk rectangles are shelf-packed instead.
-    """
-    try:
-        return _repack(parts, padding)
-    except RuntimeError as err:
-        log.warning("xatlas could not repack the chunk atlases (%s): shelf-packing them instead", err)
-    corner, width, height = shelf_pack([(p.width, p.height) for p in parts], padding)
-    out = np.concatenate([p.texels[p.faces] + c for p, c in zip(parts, corner)])
-    return out, width, height
-
-
-def _repack(parts: Sequence[_Atlas], padding: int) -> tuple[np.ndarray, int, int]:
-    """xatlas packing of the charts (UV islands) of all chunk atlases at one texel per unit."""
-    import xatlas
-
-    offsets = np.cumsum([0] + [len(p.texels) for p in parts])[:-1]
-    texels = np.concatenate([p.texels for p in parts])
-    faces = np.concatenate([p.faces + o for p, o in zip(parts, offsets)])
-    atlas = xatlas.Atlas()
-    atlas.add_uv_mesh(np.ascontiguousarray(texels, np.float32), np.ascontiguousarray(faces, np.uint32))
-    pack = xatlas.PackOptions()
-    pack.padding = int(padding)
-    pack.texels_per_unit = 1.0
-    atlas.generate(pack_options=pack)
-    merged = _atlas_result(atlas, faces)
-    return merged.texels[merged.faces], merged.width, merged.height
-
-
-def split_chunks(centroids: np.ndarray, chunk_faces: int) -> list[np.ndarray]:
-    """Face index arrays of spatial chunks of <= chunk_faces faces each: recursive median split
-    of the centroids (F, 3) along the longest axis of their bounding box (deterministic order)."""
-    out, stack = [], [np.arange(len(centroids))]
-    while stack:
-        idx = stack.pop()
-        if len(idx) <= chunk_faces:
-            out.append(np.sort(idx))
-            continue
-        c = centroids[idx]
-        axis = int(np.argmax(c.max(axis=0) - c.min(axis=0)))
-        half = len(idx) // 2
-        order = np.argpartition(c[:, axis], half, kind="introselect")
-        stack += [idx[order[half:]], idx[order[:half]]]           # lower half popped first
-    return out
-
-
-def _shelves(sizes: np.ndarray, order: np.ndarray, padding: int, target: int) -> tuple[np.ndarray, int, int]:
-    """Rows of rectangles (in `order`) filled left to right up to `target` wide: (offsets, width, height)."""
-    offsets = np.zeros_like(sizes)
-    x = y = shelf = width = 0
-    for i in order:
-        if x > 0 and x + sizes[i, 0] > target:
-            x, y, shelf = 0, y + shelf + padding, 0
-        offsets[i] = (x, y)
-        width = max(width, x + int(sizes[i, 0]))
-        x += int(sizes[i, 0]) + padding
-        shelf = max(shelf, int(sizes[i, 1]))
-    return offsets, width, y + shelf
-
-
-def shelf_pack(sizes: Sequence[tuple[int, int]], padding: int) -> tuple[np.ndarray, int, int]:
-    """Places rectangles (w, h) without overlap, `padding` apart: (offsets (N, 2) int, width, height).
-
-    Shelves of the tallest-first rectangles, rows filled left to right up to a width limit; of
-    the limits that end a row after 1, 2, ... rectangles, the one with the smallest square
-    (max(width, height), then area) wins: the result goes into a square page.
-    """
-    sizes = np.asarray(sizes, np.int64).reshape(-1, 2)
-    order = np.argsort(-sizes[:, 1], kind="stable")
-    targets = np.unique(np.cumsum(sizes[order, 0] + padding) - padding)
-    best = None
-    for target in targets:
-        offsets, width, height = _shelves(sizes, order, padding, int(target))
-        score = (max(width, height), width * height)
-        if best is None or score < best[0]:
-            best = (score, offsets, width, height)
-    return best[1], best[2], best[3]
-
-
 def _next_power_of_two(x: float) -> int:
     return 1 << max(0, int(math.ceil(math.log2(max(x, 1.0)))))
 
 
 def _object_key(vertices: np.ndarray, faces: np.ndarray, texels_per_unit: float, padding: int, max_page_size: int,
                 chunk_faces: int) -> str:
-    h = hashlib.sha256(f"unwrap v{CACHE_VERSION} xatlas {_xatlas_version()} chart {CHART_FACES} pad {padding} "
+    h = hashlib.sha256(f"unwrap v{CACHE_VERSION} xatlas {xatlas_version()} chart {CHART_FACES} pad {padding} "
                        f"max {max_page_size} chunk {chunk_faces} tpu {float(texels_per_unit).hex()}".encode())
     for array in (vertices.astype(np.float64), faces.astype(np.int64)):
         h.update(str(array.shape).encode())
@@ -483,7 +242,7 @@ def unwrap_object(vertices: np.ndarray, faces: np.ndarray, *, texels_per_unit: f
     start = time.perf_counter()
     vertices, faces = compact(np.asarray(vertices, np.float64), np.asarray(faces, np.int64))
     num_faces = len(faces)
-    areas = _face_areas(vertices, faces)
+    areas = face_areas(vertices, faces)
     total_area = float(areas.sum())
     requested = default_texels_per_unit(total_area) if texels_per_unit is None else float(texels_per_unit)
     if not (math.isfinite(requested) and requested > 0):
@@ -545,7 +304,7 @@ def _unwrap_chunks(pieces, chunks, tpu: float, padding: int, *, name: str, progr
     with tqdm(total=num_faces, desc=f"uv unwrap {name}", unit="face", unit_scale=True, disable=not progress,
               dynamic_ncols=True) as bar:
         for i, (v, f) in enumerate(pieces):
-            parts.append(_xatlas_chunk(v, f, tpu, padding))
+            parts.append(xatlas_chunk(v, f, tpu, padding))
             done += len(f)
             bar.update(len(f))
             if i == 0 and len(pieces) > 1:                      # refine the estimate with the measured rate
@@ -559,7 +318,7 @@ def _unwrap_chunks(pieces, chunks, tpu: float, padding: int, *, name: str, progr
             texel, width, height = parts[0].texels[parts[0].faces], parts[0].width, parts[0].height
         else:
             bar.set_postfix_str("packing chunks")
-            merged, width, height = _merge_atlases(parts, padding)
+            merged, width, height = merge_atlases(parts, padding)
             texel = np.empty((num_faces, 3, 2))
             texel[np.concatenate(chunks)] = merged
     texel[..., 1] = height - texel[..., 1]                      # xatlas v down -> ours v up
@@ -650,7 +409,7 @@ def _is_cached(mesh: Mesh, idx: np.ndarray, density: float, max_page_size: int, 
     if folder is None:
         return False
     vertices, faces = compact(mesh.vertices, mesh.faces[idx])
-    tpu = density if np.isfinite(density) else default_texels_per_unit(float(_face_areas(vertices, faces).sum()))
+    tpu = density if np.isfinite(density) else default_texels_per_unit(float(face_areas(vertices, faces).sum()))
     return (folder / f"{_object_key(vertices, faces, tpu, XATLAS_PADDING, max_page_size, chunk_faces)}.npz").is_file()
 
 

@@ -428,3 +428,10 @@ def rgbx_camera_rotation(c2w) -> np.ndarray:
 def rgbx_camera_normals(normals_world, camera: Camera) -> np.ndarray:
     """(..., 3) world-space normals in RGB<->X's camera space: x right, y up, z towards the camera."""
     return np.asarray(normals_world, np.float64) @ rgbx_camera_rotation(camera.c2w)
+
+
+def camera_normals(normals_world: np.ndarray, triangle: np.ndarray, camera: Camera) -> np.ndarray:
+    """(H, W, 3) float32 RGB<->X camera-space normals of the faces `triangle` (H, W) hits; 0 on misses."""
+    hit = triangle >= 0
+    n = rgbx_camera_normals(normals_world[np.where(hit, triangle, 0)], camera)
+    return np.where(hit[..., None], n, 0.0).astype(np.float32)

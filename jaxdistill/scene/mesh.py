@@ -41,6 +41,26 @@ class Mesh:
         return self.vertices[self.faces]
 
 
+def face_normals(mesh: Mesh) -> np.ndarray:
+    """(F, 3) unit geometric normals, cross(e1, e2) of each triangle (as the mesh orients it)."""
+    t = mesh.triangles()
+    n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+
+
+def join_objects(parts, names) -> Mesh:
+    """One Mesh of per-object parts [(vertices (N, 3), faces (F, 3), corner uv (F, 3, 2))], object
+    k being parts[k] named names[k] (faces re-indexed into the joined vertices)."""
+    faces, face_object, offset = [], [], 0
+    for k, (v, f, _) in enumerate(parts):
+        faces.append(f + offset)
+        face_object.append(np.full(len(f), k, np.int32))
+        offset += len(v)
+    return Mesh(vertices=np.concatenate([v for v, _, _ in parts]), faces=np.concatenate(faces).astype(np.int64),
+                uv=np.concatenate([uv for _, _, uv in parts]), face_object=np.concatenate(face_object),
+                object_names=tuple(names))
+
+
 def load_mesh(path: Path, object_names: list[str] | None = None, *, require_uv: bool = True) -> Mesh:
     """Reads a trimesh-readable file; every geometry node becomes one object (transform applied).
 

@@ -7,7 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from jaxdistill.scene.model import Mesh
+from jaxdistill.scene.cameras import look_at
+from jaxdistill.scene.mesh import Mesh, join_objects
 
 
 def quad_patch(origin, edge_u, edge_v, subdivisions: int = 1):
@@ -30,22 +31,15 @@ def mesh_from_patches(patches, atlas: bool = False) -> Mesh:
     atlas=True packs the patches' UVs into the cells of a square grid (with a margin of 1/16
     cell) so that all objects can share one texture page (`texture_layout="atlas"`).
     """
-    vertices, faces, uvs, face_object, names = [], [], [], [], []
-    offset = 0
+    parts = []
     grid = int(np.ceil(np.sqrt(len(patches))))
-    for object_id, (name, origin, edge_u, edge_v, n) in enumerate(patches):
+    for object_id, (_, origin, edge_u, edge_v, n) in enumerate(patches):
         v, f, uv = quad_patch(origin, edge_u, edge_v, n)
         if atlas:
             cell = np.array([object_id % grid, object_id // grid], np.float64)
             uv = (cell + 1 / 16 + uv * (1 - 2 / 16)) / grid
-        vertices.append(v)
-        faces.append(f + offset)
-        uvs.append(uv)
-        face_object.append(np.full(len(f), object_id, np.int32))
-        names.append(name)
-        offset += len(v)
-    return Mesh(vertices=np.concatenate(vertices), faces=np.concatenate(faces).astype(np.int64),
-                uv=np.concatenate(uvs), face_object=np.concatenate(face_object), object_names=tuple(names))
+        parts.append((v, f, uv))
+    return join_objects(parts, [name for name, *_ in patches])
 
 
 def box_patches(name: str, lo, hi, subdivisions: int = 1):
@@ -82,3 +76,17 @@ def box_room(size=(6.0, 3.0, 5.0), subdivisions: int = 4, furniture: bool = Fals
         patches += box_patches("table", (0.62 * sx, 0.0, 0.55 * sz), (0.85 * sx, 0.25 * sy, 0.8 * sz), n)
         patches += box_patches("wardrobe", (0.8 * sx, 0.0, 0.05 * sz), (0.97 * sx, 0.7 * sy, 0.35 * sz), n)
     return mesh_from_patches(patches, atlas=atlas)
+
+
+def room_cameras(num_views: int, size=(6.0, 3.0, 5.0), resolution=512):
+    """`num_views` square cameras inside a `box_room` of `size` at varied heights, looking at varied
+    points (fx for about 70 degrees of field of view); seeded, so always the same."""
+    rng = np.random.default_rng(0)
+    sx, sy, sz = size
+    K = np.array([[resolution * 0.7, 0, resolution / 2], [0, resolution * 0.7, resolution / 2], [0, 0, 1.0]])
+    cams = []
+    for _ in range(num_views):
+        eye = rng.uniform([0.2 * sx, 0.3 * sy, 0.4 * sz], [0.5 * sx, 0.8 * sy, 0.9 * sz])
+        target = rng.uniform([0.0, 0.0, 0.0], [sx, sy, sz])
+        cams.append(look_at(eye, target, np.array([0.0, 1.0, 0.0]), K, resolution, resolution))
+    return cams

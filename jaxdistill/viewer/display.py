@@ -1,7 +1,7 @@
 """What the viewer shows, as plain arrays and bytes (no viser here): display images of map and
 evidence pages, the unlit glTF that carries them to the browser, and camera poses.
 
-Display encodings of file-space pages (export.py's conventions):
+Display encodings of file-space pages (export/pages.py's conventions):
     albedo      sRGB of the linear values, clipped to [0, 1]
     normal      (n + 1) / 2 of the world-space normal
     roughness,  grey values as they are
@@ -21,7 +21,7 @@ from typing import Sequence
 import numpy as np
 
 from jaxdistill.evaluate import ground_truth as evaluation
-from jaxdistill.export import pages as export
+from jaxdistill.export import gltf
 from jaxdistill.io import images as imageio
 from jaxdistill.scene.cameras import Camera
 from jaxdistill.scene.model import Mesh
@@ -162,16 +162,16 @@ def unlit_glb(mesh: Mesh, object_page: Sequence[int], images: Sequence[np.ndarra
     unlit, pre-distorted so that the browser's tone mapping gives them back (`untone_mapped`)."""
     textures = [to_uint8(imageio.linear_to_srgb(untone_mapped(np.asarray(img) / 255.0) / TONE_HEADROOM))
                 for img in images]
-    return mark_unlit(export.gltf_bytes(mesh, object_page, [{"baseColorTexture": t} for t in textures]),
+    return mark_unlit(gltf.gltf_bytes(mesh, object_page, [{"baseColorTexture": t} for t in textures]),
                       TONE_HEADROOM)
 
 
 def pbr_glb(mesh: Mesh, object_page: Sequence[int], pages: dict[str, Sequence[np.ndarray]]) -> bytes:
     """The mesh as binary glTF with PBR materials from file-space pages of albedo, roughness,
     metallic and normal (those present), as scene.glb has them: for relighting in the browser."""
-    layers = {m: export.material_layers(m, pages[m], mesh, object_page) for m in pages if m != "irradiance"}
+    layers = {m: gltf.material_layers(m, pages[m], mesh, object_page) for m in pages if m != "irradiance"}
     num_pages = len(next(iter(pages.values())))
-    return export.gltf_bytes(mesh, object_page, export.combine_material_layers(layers, num_pages))
+    return gltf.gltf_bytes(mesh, object_page, gltf.combine_material_layers(layers, num_pages))
 
 
 # ----------------------------------------------------------------------------- cameras

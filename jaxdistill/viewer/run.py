@@ -16,7 +16,7 @@ import numpy as np
 from jaxdistill import MAP_NAMES
 from jaxdistill.io import checkpoint, images as imageio
 from jaxdistill.evaluate import ground_truth as evaluation, metrics
-from jaxdistill.export import pages as export, run_dir as run_files
+from jaxdistill.export import pages as page_files, run_dir as run_files
 from jaxdistill.errors import InputError
 from jaxdistill.scene.maps import MapChannels
 from jaxdistill.scene.model import Scene
@@ -66,7 +66,7 @@ class RunDir:
         else:
             self.object_page = (list(range(self.scene.num_objects)) if self.scene.texture_layout == "pages"
                                 else [0] * self.scene.num_objects)
-        self.stems = export.page_names(self.scene.mesh.object_names, self.object_page)
+        self.stems = page_files.page_names(self.scene.mesh.object_names, self.object_page)
         self._fragments = {}
 
     # -- what the run has written --------------------------------------------------------------
@@ -124,7 +124,7 @@ class RunDir:
     def _read_pages(self, root: Path, name: str) -> list[np.ndarray]:
         pages = []
         for p in range(len(self.stems)):
-            path = export.page_file(root, name, self.stems, p, ".exr")
+            path = page_files.page_file(root, name, self.stems, p, ".exr")
             if not path.is_file():
                 raise InputError.single(path, "(file)", f"missing: the run's {name} map is not there (was the "
                                         "out_dir moved or cleaned?); rerun the distillation")
@@ -135,8 +135,8 @@ class RunDir:
         """Pages of `evidence/visibility` or `evidence/disagreement_<name>`, None when the run
         has not written them (still running, or no per-view estimates)."""
         stem = "visibility" if kind == "visibility" else f"disagreement_{name}"
-        root = self.out / export.EVIDENCE_DIR
-        if not export.page_file(root, stem, self.stems, 0, ".exr").is_file():
+        root = self.out / page_files.EVIDENCE_DIR
+        if not page_files.page_file(root, stem, self.stems, 0, ".exr").is_file():
             return None
         return self._read_pages(root, stem)
 

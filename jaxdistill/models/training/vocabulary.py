@@ -1,4 +1,8 @@
-"""A tiny but valid CLIP BPE tokenizer folder for tests (not a test module).
+"""The tiny CLIP BPE vocabulary of our RGB<->X-family prior: built here, byte for byte.
+
+`write_prior_tokenizer(folder)` writes the tokenizer folder `scripts/train_rgbx.py` trains with
+and ships (jaxdistill/models/rgbx_rooms/tokenizer/, byte for byte); `write_tiny_clip_tokenizer`
+also writes the other pad token and the legacy file style (the tokenizer's tests read both).
 
 The vocabulary follows CLIP's layout: the 256 byte-level symbols (ids 0-255, so "!" is id 0 as
 in the real vocabulary), their `</w>` word-final forms (256-511), one token per merge, then
@@ -11,8 +15,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-BOS = "<|startoftext|>"
-EOS = "<|endoftext|>"
+from jaxdistill.models.tokenizer import BOS, EOS
 
 # lowercase words that get whole-word tokens (the MAP_PROMPTS words first)
 WORDS = ("albedo", "diffuse", "basecolor", "camera", "space", "normal", "roughness", "metallicness",
@@ -135,3 +138,9 @@ def write_tiny_clip_tokenizer(folder, pad_token: str = "!", *, style: str = "leg
     for name, data in (("special_tokens_map.json", special_map), ("tokenizer_config.json", config)):
         (folder / name).write_text(json.dumps(data, indent=2, sort_keys=True) + "\n", encoding="utf-8")
     return folder
+
+
+def write_prior_tokenizer(folder) -> Path:
+    """The tokenizer folder of our prior (pad "!", files as transformers >= 4.34 writes them): the
+    one `scripts/train_rgbx.py` trains with and exports. Returns the folder."""
+    return write_tiny_clip_tokenizer(folder, pad_token="!", style="modern")

@@ -4,20 +4,21 @@ One seed gives one room (pure NumPy, no rendering): its size, walls with windows
 furniture placed without overlaps, a material per object drawn from a parametric library
 (paint, wallpaper, plaster, tiles, wood, fabric, carpet, stone, plastic, metal, paintings),
 and lights (sun and sky through the windows, ceiling panels, lamps with emitting bulbs).
-`scripts/make_rgbx_data.py` renders rooms from here; the geometry helpers (rectangles packed
-into one texture page per object) are the embedded bedroom's (`make_bedroom.py`), the rooms,
-materials and lights are not, and the bedroom is never among the training rooms.
+`room_render` renders rooms from here (`scripts/make_rgbx_data.py`); the geometry helpers
+(`room_geometry`: rectangles packed into one texture page per object) are shared with the
+embedded bedroom (`scripts/make_bedroom.py`), the rooms, materials and lights are not, and the
+bedroom is never among the training rooms.
 """
 
 from __future__ import annotations
 
 import colorsys
 import dataclasses
-import math
 
 import numpy as np
 
-from make_bedroom import Rect, box, grid, legs, mix, rect, smooth_noise, wall, wood
+from jaxdistill.models.training.room_geometry import Rect, box, legs, rect, wall
+from jaxdistill.models.training.textures import grid, mix, smooth_noise, wood
 
 
 @dataclasses.dataclass

@@ -1,0 +1,300 @@
+"""Trains our small RGB<->X-family prior on `make_rgbx_data.py` shards and exports it.
+
+`main(argv)` is `scripts/train_rgbx.py`; the networks are `recipe`'s, all in JAX with the
+project's own Flax modules (`jaxdistill.models`) and optax:
+
+1. `vae`: the autoencoder on photos and all five maps ([-1, 1], grey maps as 3 channels):
+   L1 + L2 reconstruction plus a small KL term; AdamW.
+2. `latents`: every photo and map encoded once (the posterior mean); the latent scaling
+   factor is 1 / std of the map latents (Stable Diffusion's rule), written to the VAE config.
+3. `unet`: v-prediction MSE at t ~ U{0..999}; the photo latent is zeroed and the prompt
+   emptied each with probability `--p_drop` (independently), so eq. 4.2's guidance means
+   something; AdamW with warm-up and cosine decay; an EMA of the weights is what ships.
+   The text encoder is a tiny CLIP transformer with seeded random weights, frozen (RGB<->X's
+   CLIP is frozen too): it only has to give the five prompts and "" distinct embeddings; the
+   tokenizer is `vocabulary.write_prior_tokenizer`'s.
+4. `export`: a diffusers folder (`export_model`), read back by our loader and checked equal.
+
+Every stage is deterministic from `--seed` and resumable (`stages.run_stage`); `--init`
+continues a model this script exported (its VAE, latent scaling, text encoder and tokenizer kept).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from tqdm import tqdm
+
+from jaxdistill.models import scheduler as sched
+from jaxdistill.models.clip import CLIPTextConfig, CLIPTextTransformer
+from jaxdistill.models.prior import MAP_PROMPTS
+from jaxdistill.models.tokenizer import load_tokenizer
+from jaxdistill.models.training import recipe
+from jaxdistill.models.training.export_model import check_export, export
+from jaxdistill.models.training.recipe import MAPS
+from jaxdistill.models.training.shards import load_images
+from jaxdistill.models.training.stages import Budget, adamw, run_stage
+from jaxdistill.models.training.vocabulary import write_prior_tokenizer
+from jaxdistill.models.unet import UNet2DCondition, UNetConfig
+from jaxdistill.models.vae import AutoencoderKL, VAEConfig
+
+DESCRIPTION = "Trains our small RGB<->X-family prior on `make_rgbx_data.py` shards and exports it."
+
+
+# ----------------------------------------------------------------------------- stage 1: VAE
+
+
+def train_vae(args, photos, maps):
+    vae = AutoencoderKL(VAEConfig.from_dict(recipe.VAE))
+    pool = np.concatenate([photos] + [maps[m] for m in MAPS])        # (6N, H, W, 3)
+    params = vae.init(jax.random.key(args.seed), jnp.zeros((1,) + pool.shape[1:]))
+    tx = adamw(args.vae_lr, args.vae_steps)
+    state = {"params": params, "opt": tx.init(params)}
+
+    def loss_fn(params, images, key):
+        mean, logvar = vae.apply(params, images, method="encode")
+        z = mean + jnp.exp(0.5 * logvar) * jax.random.normal(key, mean.shape)
+        recon = vae.apply(params, z, method="decode")
+        kl = 0.5 * jnp.mean(jnp.sum(mean ** 2 + jnp.exp(logvar) - 1.0 - logvar, axis=-1))
+        err = recon - images
+        return jnp.mean(jnp.abs(err)) + jnp.mean(err ** 2) + args.kl_weight * kl
+
+    @jax.jit
+    def step(state, batch):
+        images, key = batch
+        loss, grads = jax.value_and_grad(loss_fn)(state["params"], images, key)
+        updates, opt = tx.update(grads, state["opt"], state["params"])
+        return {"params": optax.apply_updates(state["params"], updates), "opt": opt}, loss
+
+    def batch(step):
+        rng = np.random.default_rng([args.seed, 1, step])
+        return jnp.asarray(pool[rng.integers(len(pool), size=args.vae_batch)]), jax.random.fold_in(jax.random.key(args.seed), step)
+
+    state = run_stage("vae", args.work, state, step, batch, args.vae_steps, args.ckpt_every, {"stage": "vae", **recipe.VAE},
+                      args.budget)
+    return vae, state["params"]
+
+
+# ----------------------------------------------------------------------------- stage 2: latents
+
+
+def encode_all(args, vae, vae_params, photos, maps):
+    """{photo, <map>: (N, h, w, 4) unscaled posterior means}, cached in work/latents.npz."""
+    cache = args.work / "latents.npz"
+    if cache.exists():
+        with np.load(cache) as z:
+            return {k: z[k] for k in z.files}
+    encode = jax.jit(lambda x: vae.apply(vae_params, x, method="encode")[0])
+    out = {}
+    for name, images in tqdm([("photo", photos)] + [(m, maps[m]) for m in MAPS], desc="latents", unit="kind"):
+        out[name] = np.concatenate([np.asarray(encode(jnp.asarray(images[i:i + 64]))) for i in range(0, len(images), 64)])
+    np.savez(cache, **out)
+    return out
+
+
+# ----------------------------------------------------------------------------- stage 3: UNet
+
+
+def prompt_ids(tokenizer):
+    """(6, 77) token ids of the five map prompts, then the empty prompt."""
+    return jnp.asarray(tokenizer.encode([MAP_PROMPTS[m] for m in MAPS] + [""]))
+
+
+def load_init(folder: Path):
+    """The networks and float32 params of a diffusers folder to continue from (`--init`)."""
+    from jaxdistill.models.convert import load_rgbx
+
+    if not (folder / "model_index.json").is_file():
+        raise SystemExit(f"--init: {folder} has no model_index.json; give a diffusers folder this script exported")
+    return load_rgbx(folder, flag="--init")
+
+
+def init_prompts(init, tokenizer):
+    """(text params, (6, 77, D) last hidden states of the five prompts then "") of an `--init` model."""
+    ids = prompt_ids(tokenizer)
+    params = init.params["text_encoder"]
+    return params, np.asarray(init.networks.text_encoder.apply(params, ids))
+
+
+def text_encoder_and_prompts(seed: int, tokenizer, text: dict = recipe.TEXT):
+    """(frozen CLIP params, (6, 77, D) last hidden states of the five prompts then "")."""
+    encoder = CLIPTextTransformer(CLIPTextConfig.from_dict(dict(text, vocab_size=len(tokenizer.backend.get_vocab()))))
+    ids = prompt_ids(tokenizer)
+    params = encoder.init(jax.random.key(seed + 7), ids)
+    return params, np.asarray(encoder.apply(params, ids))
+
+
+def timesteps(key, batch: int, num_train_timesteps: int, high_fraction: float = 0.0, high_from: int = 900):
+    """(batch,) int32 training timesteps: U{0..T-1}, except that a fraction `high_fraction` of
+    the batch (rounded down) draws from U{high_from..T-1}. The x̂0 a single pass at t = T-1 gives
+    (the model's conditional mean under zero terminal SNR) is learned only from the high-t
+    samples, a tenth of a uniform batch above t = 900."""
+    t = jax.random.randint(key, (batch,), 0, num_train_timesteps)      # as before the option: same stream at 0
+    high = int(batch * high_fraction)
+    if high:
+        t = t.at[:high].set(jax.random.randint(jax.random.fold_in(key, 1), (high,), high_from, num_train_timesteps))
+    return t
+
+
+def train_unet(args, latents, contexts, scaling, init_params=None):
+    unet = UNet2DCondition(UNetConfig.from_dict(recipe.UNET))
+    config = sched.SchedulerConfig(**{k: recipe.SCHEDULER[k] for k in ("beta_start", "beta_end", "beta_schedule",
+                                                                "num_train_timesteps", "prediction_type",
+                                                                "rescale_betas_zero_snr")})
+    alpha_bar = sched.alphas_cumprod(config)
+    photo = latents["photo"] * scaling
+    targets = np.stack([latents[m] * scaling for m in MAPS], 1)   # (N, 5, h, w, 4)
+    n, h, w = photo.shape[:3]
+    params = unet.init(jax.random.key(args.seed + 1), jnp.zeros((1, h, w, 8)), jnp.zeros((1,)), jnp.asarray(contexts[:1]))
+    if init_params is not None:
+        if jax.tree.structure(init_params) != jax.tree.structure(params) or any(
+                a.shape != b.shape for a, b in zip(jax.tree.leaves(init_params), jax.tree.leaves(params))):
+            raise SystemExit(f"--init: its UNet is not this script's UNet ({recipe.UNET['block_out_channels']} blocks, "
+                             f"{h}x{w} latents); give a folder this script exported")
+        params = jax.tree.map(jnp.asarray, init_params)
+    tx = adamw(args.unet_lr, args.unet_steps)
+    state = {"params": params, "ema": params, "opt": tx.init(params)}
+    ctx = jnp.asarray(contexts)
+
+    def loss_fn(params, x0, cond, which, key):
+        k_t, k_eps, k_img, k_txt = jax.random.split(key, 4)
+        b = x0.shape[0]
+        t = timesteps(k_t, b, config.num_train_timesteps, args.t_high_fraction, args.t_high_from)
+        eps = jax.random.normal(k_eps, x0.shape)
+        ab = alpha_bar[t]
+        z_t = sched.add_noise(x0, eps, ab)
+        v = sched.v_from_x0_eps(x0, eps, ab)
+        cond = jnp.where((jax.random.uniform(k_img, (b,)) < args.p_drop)[:, None, None, None], 0.0, cond)
+        which = jnp.where(jax.random.uniform(k_txt, (b,)) < args.p_drop, len(MAPS), which)
+        pred = unet.apply(params, jnp.concatenate([z_t, cond], -1), t, ctx[which])
+        return jnp.mean((pred - v) ** 2)
+
+    @jax.jit
+    def step(state, batch):
+        x0, cond, which, key = batch
+        loss, grads = jax.value_and_grad(loss_fn)(state["params"], x0, cond, which, key)
+        updates, opt = tx.update(grads, state["opt"], state["params"])
+        params = optax.apply_updates(state["params"], updates)
+        ema = jax.tree.map(lambda e, p: args.ema * e + (1 - args.ema) * p, state["ema"], params)
+        return {"params": params, "ema": ema, "opt": opt}, loss
+
+    def batch(step):
+        rng = np.random.default_rng([args.seed, 3, step])
+        i, m = rng.integers(n, size=args.unet_batch), rng.integers(len(MAPS), size=args.unet_batch)
+        return (jnp.asarray(targets[i, m]), jnp.asarray(photo[i]), jnp.asarray(m),
+                jax.random.fold_in(jax.random.key(args.seed + 3), step))
+
+    state = run_stage("unet", args.work, state, step, batch, args.unet_steps, args.ckpt_every, {"stage": "unet", **recipe.UNET},
+                      args.budget)
+    return unet, state["ema"]
+
+
+# ----------------------------------------------------------------------------- main
+
+
+def model_record(args, images: int, scaling: float) -> dict:
+    """jaxdistill_model.json: what `models/shipped.py` reports as the model (name, version) and
+    how it was made (data, recipe, final losses), for the model card and metrics.json."""
+    def last_loss(stage):
+        path = args.work / f"{stage}_loss.jsonl"
+        return json.loads(path.read_text().splitlines()[-1])["loss"] if path.is_file() else None
+
+    return {"name": args.name, "version": args.version, "images": images, "data": str(args.data),
+            "init": str(args.init) if args.init else None,
+            "seed": args.seed, "latent_scaling_factor": scaling, "export_dtype": args.export_dtype,
+            "vae": ({"from": str(args.init)} if args.init else
+                    {"steps": args.vae_steps, "batch": args.vae_batch, "lr": args.vae_lr, "final_loss": last_loss("vae")}),
+            "unet": {"steps": args.unet_steps, "batch": args.unet_batch, "lr": args.unet_lr, "ema": args.ema,
+                     "p_drop": args.p_drop, "t_high_fraction": args.t_high_fraction, "t_high_from": args.t_high_from,
+                     "final_loss": last_loss("unet")},
+            "command": "python scripts/train_rgbx.py " + " ".join(sys.argv[1:])}
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=DESCRIPTION)
+    parser.add_argument("--data", type=Path, required=True, help="folder of make_rgbx_data.py shards")
+    parser.add_argument("--work", type=Path, required=True, help="checkpoints, latents, logs")
+    parser.add_argument("--out", type=Path, default=None, help="diffusers folder to export (default WORK/model)")
+    parser.add_argument("--stage", choices=("all", "vae", "latents", "unet", "export"), default="all")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--vae_steps", type=int, default=3000)
+    parser.add_argument("--vae_batch", type=int, default=16)
+    parser.add_argument("--vae_lr", type=float, default=1e-3)
+    parser.add_argument("--kl_weight", type=float, default=1e-6)
+    parser.add_argument("--unet_steps", type=int, default=6000)
+    parser.add_argument("--unet_batch", type=int, default=64)
+    parser.add_argument("--unet_lr", type=float, default=1e-3)
+    parser.add_argument("--ema", type=float, default=0.999)
+    parser.add_argument("--t_high_fraction", type=float, default=0.0,
+                        help="fraction in [0, 1] of each UNet batch whose t is drawn from U{t_high_from..T-1} instead "
+                        "of U{0..T-1} (T = 1000 training timesteps)")
+    parser.add_argument("--t_high_from", type=int, default=900,
+                        help="first timestep of the high draw (--t_high_fraction), in [0, T-1]")
+    parser.add_argument("--p_drop", type=float, default=0.1, help="photo and prompt dropout, each")
+    parser.add_argument("--name", default="jaxdistill-rgbx-rooms", help="model name in jaxdistill_model.json")
+    parser.add_argument("--version", default="1")
+    parser.add_argument("--export_dtype", choices=("float32", "float16"), default="float16",
+                        help="weights dtype of the exported folder (float16: half the size)")
+    parser.add_argument("--init", type=Path, default=None,
+                        help="continue from this diffusers folder (e.g. the shipped model): its VAE, latent scaling, "
+                             "text encoder and tokenizer are kept, the VAE stage is skipped, and the UNet starts "
+                             "from its weights (fine-tuning on --data)")
+    parser.add_argument("--ckpt_every", type=int, default=250)
+    parser.add_argument("--stop_after_steps", type=int, default=0, help="train at most this many steps in this run")
+    parser.add_argument("--time_limit", type=float, default=0.0, help="minutes; then checkpoint and exit 75")
+    args = parser.parse_args(argv)
+    if not 0.0 <= args.t_high_fraction <= 1.0:
+        parser.error(f"--t_high_fraction: must be in [0, 1], got {args.t_high_fraction}")
+    if not 0 <= args.t_high_from < recipe.SCHEDULER["num_train_timesteps"]:
+        parser.error(f"--t_high_from: must be in [0, {recipe.SCHEDULER['num_train_timesteps'] - 1}], got {args.t_high_from}")
+    args.budget = Budget(args.stop_after_steps, args.time_limit)
+    args.work.mkdir(parents=True, exist_ok=True)
+    out = args.out or args.work / "model"
+    init = load_init(args.init) if args.init else None
+    if init is not None:
+        shutil.copytree(args.init / "tokenizer", args.work / "tokenizer", dirs_exist_ok=True)
+    elif not (args.work / "tokenizer" / "vocab.json").exists():
+        write_prior_tokenizer(args.work / "tokenizer")
+    tokenizer = load_tokenizer(args.work / "tokenizer")
+    start = time.perf_counter()
+    photos, maps, _ = load_images(args.data)
+    print(f"{len(photos)} images of {photos.shape[2]}x{photos.shape[1]} from {args.data} ({time.perf_counter() - start:.0f} s)")
+    if init is None:
+        vae, vae_params = train_vae(args, photos, maps)
+    else:
+        vae, vae_params = init.networks.vae, init.params["vae"]
+        print(f"VAE, latent scaling and text encoder of {args.init}; the UNet starts from its weights")
+    if args.stage == "vae":
+        return 0
+    latents = encode_all(args, vae, vae_params, photos, maps)
+    if init is None:
+        scaling = float(1.0 / np.std(np.concatenate([latents[m] for m in MAPS])))
+    else:
+        scaling = float(init.networks.vae.config.scaling_factor)
+    print(f"latent scaling factor {scaling:.5f}")
+    if args.stage == "latents":
+        return 0
+    if init is None:
+        text_params, contexts = text_encoder_and_prompts(args.seed, tokenizer, recipe.TEXT)
+    else:
+        text_params, contexts = init_prompts(init, tokenizer)
+    _, unet_params = train_unet(args, latents, contexts, scaling, init.params["unet"] if init else None)
+    if args.stage == "unet":
+        return 0
+    export(out, args.work / "tokenizer", unet_params, vae_params, text_params, scaling=scaling, unet=recipe.UNET, vae=recipe.VAE,
+           text=recipe.TEXT,
+           dtype=args.export_dtype)
+    check_export(out, unet_params, vae_params, text_params, args.export_dtype)
+    (out / "jaxdistill_model.json").write_text(json.dumps(model_record(args, len(photos), scaling), indent=1))
+    size = sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
+    print(f"exported {out} ({size / 2**20:.1f} MiB), read back identical; total {(time.perf_counter() - start) / 60:.1f} min")
+    return 0
