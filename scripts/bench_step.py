@@ -1,7 +1,7 @@
 """Where the time of a distillation step goes, against the thesis's PyTorch recipe, at real size.
 
-    python scripts/make_random_rgbx.py --size=full --out=/tmp/fullrgbx/rgb-to-x    # once, ~1 min, 4.8 GB
-    python scripts/bench_step.py --rgbx_dir=/tmp/fullrgbx/rgb-to-x \\
+    python scripts/make_random_rgbx.py --size=full --out=data/random-rgbx/rgb-to-x    # once, ~1 min, 4.8 GB
+    python scripts/bench_step.py --rgbx_dir=data/random-rgbx/rgb-to-x \\
         [--render_sizes=256,512] [--map_counts=1,5] [--dtypes=float32,bfloat16] [--frameworks=jax,torch]
         [--views_per_step=1] [--repeats=3] [--threads=N] [--json]
     python scripts/bench_step.py --size=tiny          # a tiny random folder: a quick check of this script

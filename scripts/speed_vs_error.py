@@ -2,7 +2,7 @@ r"""Speed vs error: the curve users choose a configuration from (docs/benchmarks
 
     python scripts/speed_vs_error.py                      # the full sweep: about 45 min on 2 idle cores
     python scripts/speed_vs_error.py --quick              # smoke version: 3 points, 4 steps (~2 min)
-    python scripts/speed_vs_error.py --rgbx_only --rgbx_dir=/tmp/fullrgbx/rgb-to-x   # part B, into the same JSON
+    python scripts/speed_vs_error.py --rgbx_only --rgbx_dir=data/random-rgbx/rgb-to-x   # part B, into the same JSON
     options: [--out_dir=out/speed_vs_error] [--factors=steps,texture,render,sampler,views] [--<factor>_values=...]
              [--maps=albedo] [--config=configs/bedroom.cfg] [--scene=...] [--max_gb=...] [--json]
              [--rgbx_dir=DIR [--convert_cache=DIR] [--rgbx_render_size=256] [--rgbx_t=20,200,500,800,980]]

@@ -28,16 +28,7 @@ CIRCUMSTANCES = re.compile(r"\b(?:this|last|previous|next|earlier|that)\s+sessio
 
 # Files that keep a machine path, and why. Each entry must still be needed (the test says when
 # it is not), so the list only shrinks.
-KEEPS_A_MACHINE_PATH = {
-    "jaxdistill/models/rgbx_rooms/jaxdistill_model.json":
-        "the shipped model's training record (where its data lay when it was trained); the cache key of "
-        "the model's per-view estimates (jaxdistill/models/estimates.py cache_key) hashes the size and "
-        "mtime of every .json in the model's folder, so editing this file would invalidate every cached "
-        "estimate made with the shipped model; change it only with a new model version",
-    "scripts/bench_step.py": "usage lines of the docstring name a scratch folder; to be written as data/random-rgbx",
-    "scripts/speed_vs_error.py": "a usage line of the docstring names a scratch folder; to be written as "
-                                 "data/random-rgbx",
-}
+KEEPS_A_MACHINE_PATH: dict[str, str] = {}   # file: why it must name a machine path (none does today)
 
 
 def repository_files() -> list[str]:
