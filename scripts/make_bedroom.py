@@ -20,7 +20,7 @@ What it builds (units metres, y up; the room spans [0, 4.2] x [0, 2.6] x [0, 3.6
   off-centre principal points; photos path traced with Mitsuba (EXR linear + PNG sRGB).
 - Per-view irradiance ground truth E/pi in the photos' units (`ground_truth/irradiance/`, each
   view's `ground_truth`), from the photos' own Mitsuba scene (`write_irradiance`; the scene is
-  `jaxdistill.datasets.mitsuba.bedroom.mitsuba_scene`, shared with make_bedroom_irradiance.py).
+  `jaxdistill.datasets.mitsuba.bedroom.mitsuba_scene`, shared with `--irradiance_only`).
 - Per-view stand-ins for a monocular estimator's output (the `views` prior's targets): the
   ground truth rendered by our own gather sampler, corrupted the way single-image estimators
   err; the parameters of every view are in `estimates.json`, described in the scene README.
@@ -34,6 +34,8 @@ import dataclasses
 import hashlib
 import json
 import math
+import os
+import re
 import shutil
 import sys
 import tempfile
@@ -58,7 +60,8 @@ from jaxdistill.render.sampler import sample_pages
 from jaxdistill.scene import cameras
 from jaxdistill.scene.cameras import camera_normals       # GT normals exactly as evaluation makes them
 from jaxdistill.scene.mesh import face_normals
-from jaxdistill.scene.model import Mesh, Scene, View, write_scene
+from jaxdistill.evaluate.ground_truth import read_ground_truth
+from jaxdistill.scene.model import Mesh, Scene, View, read_scene, write_scene
 
 ROOM = np.array([4.2, 2.6, 3.6])
 PIXEL_FILTER_SIGMA = 0.5   # Gaussian pixel filter applied after Mitsuba's box-filtered render (see generate)
@@ -400,7 +403,7 @@ pixel of the photo is albedo x irradiance. Rendered from the photos' own Mitsuba
 (`bridge.intrinsic_integrator(photo=False)`: emitter sampling and a cosine-sampled ray traced on
 by `path`, MIS-combined; paths one bounce shorter than the photos' max depth 6), `llvm_ad_rgb`,
 {info['spp']} spp, box filter, then the photos' Gaussian pixel filter (sigma {PIXEL_FILTER_SIGMA} px);
-{info['seconds']:.0f} s for all views here. `python scripts/make_bedroom_irradiance.py` rebuilds them alone.
+{info['seconds']:.0f} s for all views here. `python scripts/make_bedroom.py --irradiance_only` rebuilds them alone.
 
 photo / (albedo x irradiance), brightness per pixel, albedo from gt.json through our sampler at
 pixel centres: on {d['pixels']} diffuse pixels (evaluated, metallic 0, roughness >= {DIFFUSE_ROUGHNESS},
@@ -488,7 +491,96 @@ Licence: generated content of jaxdistill, same licence as the package.
 """
 
 
+# ----------------------------------------------------------------------------- irradiance alone
+
+GEOMETRY_TOLERANCE = 1e-5     # metres / uv units: the folder's mesh.glb (float32) against the rebuilt one
+
+
+def rebuilt_mesh(scene):
+    """The generator's own mesh (float64, as make_bedroom renders it), checked against the folder's."""
+    objs = bedroom_objects()
+    mesh, _ = build_scene_geometry(objs)
+    if tuple(mesh.object_names) != tuple(scene.mesh.object_names) or mesh.faces.shape != scene.mesh.faces.shape:
+        raise ValueError(f"{scene.root}: its objects or faces differ from py's bedroom")
+    corners = [(np.asarray(m.vertices)[np.asarray(m.faces)], np.asarray(m.uv), np.asarray(m.face_object))
+               for m in (mesh, scene.mesh)]
+    (a, ua, oa), (b, ub, ob) = corners
+    if not (np.array_equal(oa, ob) and np.abs(a - b).max() < GEOMETRY_TOLERANCE and np.abs(ua - ub).max() < GEOMETRY_TOLERANCE):
+        raise ValueError(f"{scene.root}: its mesh differs from py's bedroom")
+    return mesh
+
+
+def add_ground_truth(folder: Path, paths: dict[str, Path]) -> None:
+    """Adds `ground_truth.irradiance` to every view of folder/scene.json, as write_scene writes it
+    (after `targets`, relative paths), every other byte unchanged."""
+    file = folder / "scene.json"
+    text = file.read_text()
+    doc = json.loads(text)
+    if json.dumps(doc, indent=1) != text:
+        raise ValueError(f"{file}: not in write_scene's layout (json indent 1); refusing to rewrite it")
+    for entry in doc["views"]:
+        ground_truth = {k: v for k, v in entry.get("ground_truth", {}).items() if k != "irradiance"}
+        ground_truth["irradiance"] = os.path.relpath(paths[entry["name"]], folder).replace(os.sep, "/")
+        entry.pop("ground_truth", None)
+        entry["ground_truth"] = ground_truth
+    tmp = file.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(doc, indent=1))
+    os.replace(tmp, file)
+
+
+def update_readme(folder: Path, section: str) -> None:
+    """Replaces (or inserts before '## Our sampler against Mitsuba') the README's irradiance section."""
+    path = folder / "README.md"
+    text = path.read_text() if path.is_file() else ""
+    pattern = re.compile(r"## Irradiance ground truth\n.*?(?=\n## |\Z)", re.S)
+    if pattern.search(text):
+        text = pattern.sub(lambda _: section, text)
+    elif "## Our sampler against Mitsuba" in text:
+        text = text.replace("## Our sampler against Mitsuba", section + "\n## Our sampler against Mitsuba")
+    else:
+        text += "\n" + section
+    if "- `ground_truth/irradiance/<view>.exr`" not in text:
+        text = text.replace("- `estimates.json`: the corruption parameters of every view.\n",
+                            "- `estimates.json`: the corruption parameters of every view.\n"
+                            "- `ground_truth/irradiance/<view>.exr`: per-view irradiance E/pi (see below).\n")
+    path.write_text(text)
+
+
+def irradiance_main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description="re-renders the bedroom's irradiance ground truth alone")
+    parser.add_argument("--scene", type=Path, default=DEFAULT_OUT, help="the bedroom's folder")
+    parser.add_argument("--seed", type=int, default=0, help="the seed py made the folder with")
+    parser.add_argument("--spp", type=int, default=IRRADIANCE_SPP)
+    args = parser.parse_args(argv)
+    if args.spp < 1:
+        parser.error("--spp must be >= 1")
+    folder = args.scene
+    scene = read_scene(folder)
+    mesh = rebuilt_mesh(scene)
+    pages = read_ground_truth(scene).pages            # what make_bedroom's write_textures returned
+    names = [v.name for v in scene.views]
+    start = time.perf_counter()
+    paths = write_irradiance(folder, names, [v.camera for v in scene.views], mesh, pages,
+                             spp=args.spp, seed=args.seed)
+    seconds = time.perf_counter() - start
+    add_ground_truth(folder, dict(zip(names, paths)))
+    check = irradiance_check(folder)
+    hashes = manifest(folder)
+    (folder / "manifest.sha256").write_text("".join(f"{h}  {p}\n" for p, h in hashes.items()))
+    update_readme(folder, irradiance_section({"spp": args.spp, "seconds": seconds, "consistency": check}))
+    d = check["diffuse"]
+    size = sum(p.stat().st_size for p in paths)
+    print(f"{len(paths)} views, {args.spp} spp in {seconds:.0f} s ({size / 2**20:.2f} MiB); photo / (albedo x irradiance) "
+          f"on {d['pixels']} diffuse pixels: median {d['median_ratio']:.3f} (p10 {d['p10']:.3f}, p90 {d['p90']:.3f}), "
+          f"ratio of sums {d['sum_ratio']:.3f}; dielectric median {check['dielectric']['median_ratio']:.3f}, "
+          f"all {check['all_valid']['median_ratio']:.3f}")
+    return 0
+
+
 def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if "--irradiance_only" in argv:        # re-render the irradiance ground truth of an existing folder
+        return irradiance_main([a for a in argv if a != "--irradiance_only"])
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT)
     parser.add_argument("--seed", type=int, default=0)

@@ -272,10 +272,10 @@ def test_a_black_photo_is_refused_before_compute_naming_the_file(tmp_path, monke
     monkeypatch.setattr(pipeline, "run_record", lambda *a, **k: pytest.fail("computed before refusing"))
     with pytest.raises(InputError, match=rf"{photo_path.name}.*no pixel above zero"):
         pipeline.run(tiny_config(scene, tmp_path / "out", photo_weight=1.0), progress=False)
-    dark = np.zeros(shape, np.float32)
-    dark[: shape[0] // 4] = 0.5                   # a quarter lit
-    imageio.write_image(photo_path, dark)
-    with pytest.raises(InputError, match=r"only 25% of its pixels above zero"):
+    broken = np.full(shape, -0.5, np.float32)
+    broken[: shape[0] // 4] = 0.5                 # a quarter above zero, the rest negative
+    imageio.write_image(photo_path, broken)
+    with pytest.raises(InputError, match=r"more pixels below zero .* than above"):
         pipeline.run(tiny_config(scene, tmp_path / "out2"), progress=False)
 
 

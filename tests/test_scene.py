@@ -51,7 +51,7 @@ def test_round_trip(tmp_path, mesh_name):
 
 def test_reads_plain_obj_single_object(tmp_path):
     (tmp_path / "m.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 0 -1\nvt 0 0\nvt 1 0\nvt 0 1\nf 1/1 2/2 3/3\n")
-    imageio.write_image(tmp_path / "p.png", np.zeros((8, 8, 3)))
+    imageio.write_image(tmp_path / "p.png", np.full((8, 8, 3), 0.5))       # a photo shows something
     cam = look_at_camera((0.2, 1.0, -0.2), (0.2, 0.0, -0.3), 8, 8)
     doc = {"format": "jaxdistill-scene", "version": 1, "mesh": "m.obj",
            "views": [{"width": 8, "height": 8, "K": cam.K.tolist(), "c2w": cam.c2w.tolist(), "photo": "p.png"}]}

@@ -197,7 +197,7 @@ def test_a_views_comparison_and_metrics_are_those_of_that_view(smoke_run):
     folder = Path(json.loads((smoke_run / "metrics.json").read_text())["estimates_folder"])
     estimates = model_estimates.read_estimates(folder, [v.name for v in scene.views], run.maps,
                                                [f.shape for f in frags])
-    assert set(gt[k]) == {"albedo", "normal", "roughness", "metallic"}       # the bedroom has no irradiance GT
+    assert set(gt[k]) == {"albedo", "normal", "roughness", "metallic", "irradiance"}   # the bedroom has every map's GT
     for m in run.maps:
         if m in gt[k]:
             np.testing.assert_array_equal(images[m]["gt"], gt[k][m])

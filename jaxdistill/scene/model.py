@@ -73,7 +73,7 @@ MAX_NOTES = 10                          # note lines logged; the rest are counte
 NOTE_DETAILS = 5                        # images named per note line
 EXPOSURE_NOTE_STOPS = 1.0              # HDR photos without exposure: warn when the rule is this far from 0
 NEGATIVE_NOISE = 1e-3                   # photo negatives above -this x its 99th percentile: noise (info only)
-MIN_LIT_FRACTION = 0.5                  # a photo needs at least this share of its finite pixels above zero
+MAX_NEGATIVE_SHARE = 0.5                # a photo with more of its non-black pixels below zero is refused
 
 
 @dataclasses.dataclass(frozen=True)
@@ -257,17 +257,17 @@ def image_problems(path: Path, field: str, cam: Camera | None, file: str, proble
 
 def dark_photo_problem(rgb: np.ndarray) -> str | None:
     """What is wrong with a photo that cannot be the evidence of a room (no pixel above zero, or
-    most of its finite pixels zero or negative), or None. The re-rendering term and the prior's
-    condition both read the photo, so such a file is refused rather than clamped."""
+    more of its pixels below zero than above: a sign-flipped or broken HDR file), or None. The
+    re-rendering term and the prior's condition both read the photo, so such a file is refused
+    rather than clamped. Black pixels (a synthetic render's empty background) count for neither."""
     finite = np.isfinite(rgb).all(axis=-1)
-    lit = finite & (np.where(finite[..., None], rgb, 0.0).max(axis=-1) > 0)
-    if not lit.any():
+    brightness = np.where(finite[..., None], rgb, 0.0).sum(axis=-1)
+    lit, negative = int((brightness > 0).sum()), int((brightness < 0).sum())
+    if lit == 0:
         return "has no pixel above zero (all black, or all negative): it shows nothing; re-export or re-render it"
-    share = lit.sum() / max(int(finite.sum()), 1)
-    if share < MIN_LIT_FRACTION:
-        return (f"has only {100 * share:.0f}% of its pixels above zero (at least {100 * MIN_LIT_FRACTION:.0f}% "
-                "expected): mostly black or negative, it is not a usable photo; check its exposure and encoding, or "
-                "mask what is missing with the view's mask")
+    if negative > MAX_NEGATIVE_SHARE * (lit + negative):
+        return (f"has more pixels below zero ({negative}) than above ({lit}): a sign-flipped or broken image, not a "
+                "photo; check how it was written")
     return None
 
 

@@ -1,7 +1,7 @@
 """The embedded bedroom's Mitsuba scene: its lights, and the scene built from its mesh and GT pages.
 
 `scripts/make_bedroom.py` renders the bedroom's photos from `mitsuba_scene` and
-`scripts/make_bedroom_irradiance.py` its per-view irradiance ground truth (`render_irradiance`),
+`scripts/make_bedroom.py --irradiance_only` its per-view irradiance ground truth (`render_irradiance`),
 so both see the same scene: every object a `principled` BSDF on its GT pages (albedo linear,
 roughness, metallic), the lamp's bulb and the ceiling panel area lights, sun and sky through
 the window. Everything here takes the mesh and pages as arguments (the folder's `mesh.glb` and
