@@ -286,3 +286,20 @@ def test_the_photo_flags_are_checked_naming_the_flag(tiny_scene, tmp_path):
         tiny_config(tiny_scene, tmp_path / "o", photo_weight=-1.0)
     with pytest.raises(InputError, match=r"--photo_size"):
         tiny_config(tiny_scene, tmp_path / "o", photo_size=4)
+
+
+def test_evaluation_reuses_the_photo_plans_it_would_otherwise_build_again(tiny_scene, tmp_path):
+    """Renders at 16 px, photos re-rendered at their own size: the evaluation's native-size plans
+    are the re-rendering term's, identical to the plans built from the native fragments."""
+    from jaxdistill.evaluate.scoring import evaluation_context
+    from jaxdistill.render.gather_plan import build_gather_plans
+
+    config = tiny_config(tiny_scene, tmp_path / "out", render_size=16, photo_weight=1.0)
+    problem = build_problem(config)
+    assert problem.height != problem.photos.height
+    plan = evaluation_context(config, problem).plan
+    built = build_gather_plans(problem.native_fragments, problem.space, config.sampler)
+    assert plan.index is problem.photos.index
+    for name in ("index", "weight", "hit"):
+        assert np.array_equal(np.asarray(getattr(plan, name)), np.asarray(getattr(built, name))), name
+    assert (plan.height, plan.width) == (built.height, built.width)

@@ -39,12 +39,20 @@ def training_plan(problem: Problem) -> GatherPlan:
 
 def evaluation_context(config: DistillConfig, problem: Problem) -> EvalContext:
     """What evaluating at the photos' native size needs, built once: plans at native size (the
-    training plans when the run renders at native size), GT maps and masks (None without GT)."""
+    training plans when the run renders at native size, the re-rendering term's when it renders
+    the photos there), GT maps and masks (None without GT)."""
     scene = problem.scene
     cameras = [v.camera for v in scene.views]
     native = all((c.height, c.width) == (problem.height, problem.width) for c in cameras)
     frags = problem.native_fragments
-    plan = training_plan(problem) if native else build_gather_plans(frags, problem.space, config.sampler)
+    photos = problem.photos            # the re-rendering term's plans, when they are at the photos' own size
+    if native:
+        plan = training_plan(problem)
+    elif photos is not None and all((c.height, c.width) == (photos.height, photos.width) for c in cameras):
+        plan = GatherPlan(index=photos.index, weight=photos.weight, hit=photos.hit, chain=problem.frozen["chain"],
+                          height=photos.height, width=photos.width)
+    else:
+        plan = build_gather_plans(frags, problem.space, config.sampler)
     gt, gt_maps = evaluation.view_ground_truth(scene, frags)
     masks = evaluation.evaluation_masks(gt, scene, frags)
     owner = evaluation.dominant_views(problem.plan_index, problem.plan_weight, problem.space.pyramid_size)
