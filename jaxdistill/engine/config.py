@@ -71,6 +71,7 @@ class DistillConfig:
     photo_loss: str = "charbonnier"
     photo_scale: str = "batch"
     irradiance_smoothness: float = 0.0
+    irradiance_sds_weight: float = 1.0
     render_size: int = 0
     texture_size: str = "auto"
     max_texture_size: int = 4096
@@ -158,6 +159,9 @@ def define_flags(fv: flags.FlagValues = flags.FLAGS, *, main_module: bool = Fals
     flags.DEFINE_float("irradiance_smoothness", d.irradiance_smoothness, "weight of a penalty on log-irradiance "
                        "differences between neighbouring pixels of the re-rendered photos (with --photo_weight > 0)",
                        **where)
+    flags.DEFINE_float("irradiance_sds_weight", d.irradiance_sds_weight, "weight of the irradiance map's SDS term "
+                       "(1: as every map; lower leaves more of the albedo/irradiance split to the photos and "
+                       "--irradiance_smoothness)", **where)
     flags.DEFINE_integer("reuse_steps", d.reuse_steps, "rgbx prior: take K AdamW steps on the same views towards "
                          "one x_pred before the prior runs again (1 = a new x_pred every step, the thesis; K > 1 costs "
                          "1/K of the prior per step, like Instruct-NeRF2NeRF's iterative dataset update)", **where)
@@ -252,6 +256,8 @@ def validate(config: DistillConfig) -> DistillConfig:
         bad("photo_size", f"must be 0 (the photos' size) or >= 8, got {c.photo_size}")
     if not c.irradiance_smoothness >= 0:
         bad("irradiance_smoothness", f"must be >= 0, got {c.irradiance_smoothness}")
+    if not c.irradiance_sds_weight >= 0:
+        bad("irradiance_sds_weight", f"must be >= 0, got {c.irradiance_sds_weight}")
     if c.reuse_steps < 1:
         bad("reuse_steps", f"must be >= 1, got {c.reuse_steps}")
     elif c.reuse_steps > 1 and c.prior == "views":

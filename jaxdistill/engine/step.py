@@ -78,6 +78,7 @@ class StepSettings:
     photo_loss: str = DistillConfig.photo_loss
     photo_scale: str = DistillConfig.photo_scale
     irradiance_smoothness: float = 0.0
+    irradiance_sds_weight: float = 1.0    # scales the irradiance map's SDS term (1: untouched, not traced)
     photo_height: int = 0
     photo_width: int = 0
 
@@ -173,13 +174,16 @@ def pool_weights(weights, factor: int):
     return weights.reshape(b, h // factor, factor, w // factor, factor).mean(axis=(2, 4))
 
 
-def weighted_square_error(features: dict, targets: dict, weights, sample_weights, maps):
-    """(loss, {map: its term}): loss = (1/B) Σ_b Σ_m w_bm Σ_hw weights_bhw Σ_c (features − targets)²,
-    weights (B, h, w), w (B, M); the per-map terms sum to the loss."""
+def weighted_square_error(features: dict, targets: dict, weights, sample_weights, maps, map_weights=None):
+    """(loss, {map: its term}): loss = (1/B) Σ_b Σ_m λ_m w_bm Σ_hw weights_bhw Σ_c (features − targets)²,
+    weights (B, h, w), w (B, M), λ_m = map_weights.get(m, 1) (a weight of exactly 1 is not
+    multiplied in); the per-map terms sum to the loss."""
     terms = {}
     for i, m in enumerate(maps):
         sq = jnp.sum(jnp.square(features[m].astype(jnp.float32) - targets[m].astype(jnp.float32)), axis=-1)
         terms[m] = jnp.sum(sample_weights[:, i] * jnp.sum(weights * sq, axis=(1, 2))) / weights.shape[0]
+        if map_weights and map_weights.get(m, 1.0) != 1.0:
+            terms[m] = map_weights[m] * terms[m]
     return sum(terms.values()), terms
 
 
@@ -226,7 +230,8 @@ def make_step(prior: Prior, settings: StepSettings, optimizer: optax.GradientTra
             if aligned:
                 compared = align_lib.apply_gains(targets, log_gains, batch["view"], settings.channels)
                 ridge = align_lib.ridge(log_gains, batch["view"], weights, settings.align_strength)
-            loss, terms = weighted_square_error(features, compared, weights, sample_weights, maps)
+            loss, terms = weighted_square_error(features, compared, weights, sample_weights, maps,
+                                                {"irradiance": settings.irradiance_sds_weight})
             return loss + ridge, terms
 
         (loss, terms), (grad_features, grad_gains) = jax.value_and_grad(objective, argnums=(0, 1), has_aux=True)(
