@@ -35,7 +35,8 @@ from jaxdistill.errors import InputError
 IMPORT_FORMATS = ("fipt", "iris", "scannetpp", "nerfstudio", "colmap")
 
 
-def main(argv=None) -> int:
+def build_parser() -> argparse.ArgumentParser:
+    """The command's flags (the `ImportOptions` ones share their names with the main job's)."""
     parser = argparse.ArgumentParser(prog="jaxdistill import", description=__doc__.split("\n\n")[0])
     parser.add_argument("--format", required=True, choices=IMPORT_FORMATS)
     parser.add_argument("--path", required=True, help="the dataset (folder or file, per format)")
@@ -52,7 +53,11 @@ def main(argv=None) -> int:
     parser.add_argument("--allow_outside_paths", action="store_true",
                         help="a --mesh scene config may name object files outside its folder")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO, format="%(message)s")
 
     from jaxdistill import datasets

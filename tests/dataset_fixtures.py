@@ -13,6 +13,7 @@ import math
 from pathlib import Path
 
 import numpy as np
+import pytest
 import trimesh
 
 from jaxdistill.io import images as imageio
@@ -20,6 +21,17 @@ from jaxdistill.scene.shapes import box_room
 
 WIDTH, HEIGHT, FOCAL = 32, 24, 28.0
 ROOM = (4.0, 2.5, 3.0)
+
+
+@pytest.fixture(autouse=True)
+def cache(tmp_path_factory, monkeypatch):
+    """Imports' caches in the test session's folder (autouse in a module that imports it)."""
+    monkeypatch.setenv("JAXDISTILL_CACHE", str(tmp_path_factory.getbasetemp() / "dataset_cache"))
+
+
+@pytest.fixture(scope="module")
+def cams():
+    return ground_truth_cameras(3)
 
 
 def room_mesh():

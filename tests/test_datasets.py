@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 import dataset_fixtures as fx
+from dataset_fixtures import cache, cams  # noqa: F401  (fixtures)
 from jaxdistill import datasets
 from jaxdistill.io import images as imageio
 from jaxdistill.datasets.common import ImportOptions
@@ -21,16 +22,6 @@ from jaxdistill.io.exposure import HYPERSIM_TARGET
 from jaxdistill.scene.model import read_scene
 
 REPO = Path(__file__).resolve().parents[1]
-
-
-@pytest.fixture(autouse=True)
-def cache(tmp_path_factory, monkeypatch):
-    monkeypatch.setenv("JAXDISTILL_CACHE", str(tmp_path_factory.getbasetemp() / "dataset_cache"))
-
-
-@pytest.fixture(scope="module")
-def cams():
-    return fx.ground_truth_cameras(3)
 
 
 def options(tmp_path, **kw) -> ImportOptions:

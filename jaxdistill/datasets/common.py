@@ -51,7 +51,8 @@ UV_POLICIES = ("auto", "keep", "unwrap")
 
 @dataclasses.dataclass(frozen=True)
 class ImportOptions:
-    """Choices shared by every loader (`scripts/import_scene.py` flags of the same names)."""
+    """Choices shared by every loader: flags of the same names of `jaxdistill import` and of the
+    main job (`engine/config.py` IMPORT_FLAGS), so messages name them as `--NAME`."""
 
     mesh: str | None = None          # mesh file or scene config .json replacing the dataset's mesh
     exposure: str | float = "auto"   # "auto" or stops applied to every view
@@ -66,19 +67,20 @@ class ImportOptions:
     allow_outside_paths: bool = False  # scene files (scene.json, scene configs) may name files outside their folder
 
     def __post_init__(self):
+        # problems name the flag: the import command and the main job spell these options the same
         if self.uv not in UV_POLICIES:
-            raise InputError.single("options", "uv", f"unknown policy {self.uv!r}; use {', '.join(UV_POLICIES)}")
+            raise InputError.single("flags", "--uv", f"unknown policy {self.uv!r}; use {', '.join(UV_POLICIES)}")
         if self.exposure != "auto":
             try:
                 stops = float(self.exposure)
             except (TypeError, ValueError):
                 stops = float("nan")
             if not abs(stops) <= exposure_rule.MAX_STOPS:
-                raise InputError.single("options", "exposure", f"expected 'auto' or stops in [-{exposure_rule.MAX_STOPS:g}, "
+                raise InputError.single("flags", "--exposure", f"expected 'auto' or stops in [-{exposure_rule.MAX_STOPS:g}, "
                                         f"{exposure_rule.MAX_STOPS:g}], got {self.exposure!r}")
             object.__setattr__(self, "exposure", stops)
         if self.max_views < 0:
-            raise InputError.single("options", "max_views", f"must be >= 0 (0 = all), got {self.max_views}")
+            raise InputError.single("flags", "--max_views", f"must be >= 0 (0 = all), got {self.max_views}")
 
 
 @dataclasses.dataclass(frozen=True)

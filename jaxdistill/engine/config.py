@@ -16,6 +16,7 @@ from typing import Any
 from absl import flags
 
 from jaxdistill import MAP_NAMES
+from jaxdistill.datasets.common import UV_POLICIES, ImportOptions
 from jaxdistill.engine.photo import PHOTO_LOSSES, PHOTO_SCALES, PHOTO_SPACES
 from jaxdistill.errors import InputError, ProblemList
 from jaxdistill.render.gather_plan import SAMPLERS
@@ -32,8 +33,14 @@ PRIOR_DTYPES = ("float32", "bfloat16")
 RGBX_DIR_ENV = "JAXDISTILL_RGBX_DIR"
 
 # Flags that may change when a run is resumed; every other flag must match the checkpoint.
+# (--max_unwrap_faces and --unwrap_time_limit only decide whether an unwrap is attempted, never its result.)
 RESUMABLE_FLAGS = ("steps", "resume", "ckpt_every", "keep_checkpoints", "out_dir", "log_every", "eval_every", "renders",
-                   "contact_views", "rgbx_dir", "convert_cache", "allow_outside_paths", "anchor")
+                   "contact_views", "rgbx_dir", "convert_cache", "allow_outside_paths", "anchor", "max_unwrap_faces",
+                   "unwrap_time_limit")
+# Flags handed to the dataset loaders for --scene=FORMAT:PATH (`ImportOptions` fields, the import
+# command's flags of the same names).
+IMPORT_FLAGS = ("mesh", "exposure", "uv", "max_views", "max_page_size", "max_unwrap_faces", "unwrap_time_limit")
+_IMPORT = ImportOptions()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -86,6 +93,13 @@ class DistillConfig:
     renders: bool = True
     contact_views: int = 4
     allow_outside_paths: bool = False
+    mesh: str | None = _IMPORT.mesh
+    exposure: str = _IMPORT.exposure
+    uv: str = _IMPORT.uv
+    max_views: int = _IMPORT.max_views
+    max_page_size: int = _IMPORT.max_page_size
+    max_unwrap_faces: int = _IMPORT.max_unwrap_faces
+    unwrap_time_limit: float = _IMPORT.unwrap_time_limit
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-able {flag: value}, as recorded in checkpoints and metrics.json."""
@@ -184,6 +198,19 @@ def define_flags(fv: flags.FlagValues = flags.FLAGS, *, main_module: bool = Fals
     flags.DEFINE_bool("allow_outside_paths", d.allow_outside_paths, "let scene files (scene.json, gt.json, "
                       "scene configs) name files outside their folder (../, absolute paths); off: refused, for "
                       "scenes from elsewhere", **where)
+    dataset = "--scene=FORMAT:PATH (a dataset read directly): "
+    flags.DEFINE_string("mesh", d.mesh, dataset + "mesh file or scene config .json replacing the dataset's (nerfstudio "
+                        "and colmap have none of their own)", **where)
+    flags.DEFINE_string("exposure", d.exposure, dataset + "'auto' (HDR: Hypersim rule, LDR: 0) or stops", **where)
+    flags.DEFINE_enum("uv", d.uv, UV_POLICIES, dataset + "auto: unwrap objects whose UVs are unusable; keep: refuse "
+                      "them; unwrap: all", **where)
+    flags.DEFINE_integer("max_views", d.max_views, dataset + "0 = all views, else that many evenly spread", **where)
+    flags.DEFINE_integer("max_page_size", d.max_page_size, dataset + "largest texture page an unwrap is packed for",
+                         **where)
+    flags.DEFINE_integer("max_unwrap_faces", d.max_unwrap_faces, dataset + "objects with more faces are refused, not "
+                         "unwrapped", **where)
+    flags.DEFINE_float("unwrap_time_limit", d.unwrap_time_limit, dataset + "seconds; objects whose unwrap would take "
+                       "longer are refused", **where)
 
 
 def config_from_flags(fv: flags.FlagValues = flags.FLAGS) -> DistillConfig:
@@ -269,8 +296,32 @@ def validate(config: DistillConfig) -> DistillConfig:
         bad("render_size", f"must be a multiple of 8 for the rgbx prior's VAE, got {c.render_size}")
     if c.w_t < 0 or c.w_i < 0:
         bad("w_t/--w_i", f"guidance weights must be >= 0, got {c.w_t} and {c.w_i}")
+    import_option_problems(c, p)
     p.raise_if_any()
     return config
+
+
+def import_option_problems(c: DistillConfig, p: ProblemList) -> None:
+    """Adds a problem for each bad dataset flag (IMPORT_FLAGS), and for any of them set while
+    --scene is a scene folder, which names its own mesh and images (the flag would do nothing)."""
+    from jaxdistill.datasets import split_spec
+
+    try:
+        import_options(c.as_dict())
+    except InputError as err:
+        p.problems.extend(err.problems)
+    given = [f"--{name}" for name in IMPORT_FLAGS if getattr(c, name) != getattr(_IMPORT, name)]
+    if given and c.scene and split_spec(c.scene)[0] == "scene":
+        p.add("flags", given[0], f"{', '.join(given)} {'applies' if len(given) == 1 else 'apply'} to --scene=FORMAT:PATH (a dataset read directly), and "
+              f"--scene={c.scene} is a scene folder, which names its own mesh and images; leave them out here, or "
+              "import the dataset again with them (jaxdistill import)")
+
+
+def import_options(values) -> ImportOptions:
+    """The dataset loaders' options of a run's flags (a DistillConfig's `as_dict()`, or the config a
+    checkpoint or metrics.json recorded: flags it lacks keep their defaults)."""
+    kept = {name: values[name] for name in IMPORT_FLAGS if values.get(name) is not None}
+    return ImportOptions(**kept, allow_outside_paths=bool(values.get("allow_outside_paths")))
 
 
 def out_dir_problem(out_dir: str) -> str | None:

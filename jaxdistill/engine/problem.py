@@ -21,7 +21,7 @@ from tqdm.auto import tqdm
 
 from jaxdistill.io import images as imageio
 from jaxdistill.scene.cameras import Camera
-from jaxdistill.engine.config import RGBX_DIR_ENV, DistillConfig, rgbx_dir
+from jaxdistill.engine.config import RGBX_DIR_ENV, DistillConfig, import_options, rgbx_dir
 from jaxdistill.errors import InputError, ProblemList
 from jaxdistill.scene.cameras import rgbx_camera_rotation
 from jaxdistill.scene.maps import INITIAL_VALUE, MapChannels, file_to_model
@@ -282,9 +282,9 @@ def _build_problem(config: DistillConfig, *, cache_dir=None, check_scene=None) -
     timings = {}
     t0 = time.perf_counter()
     choice = choose_prior(config)
-    from jaxdistill.datasets import ImportOptions, open_scene
+    from jaxdistill.datasets import open_scene
 
-    scene = open_scene(config.scene, ImportOptions(allow_outside_paths=config.allow_outside_paths))
+    scene = open_scene(config.scene, import_options(config.as_dict()))
     if check_scene is not None:
         check_scene(scene)
     channels = MapChannels(tuple(config.maps))

@@ -81,11 +81,12 @@ class RunDir:
             return None
 
     def _read_scene(self, override: str | None) -> Scene:
-        from jaxdistill.datasets import ImportOptions, open_scene
+        from jaxdistill.datasets import open_scene
+        from jaxdistill.engine.config import import_options
 
         spec = override or self.config["scene"]
-        try:
-            return open_scene(spec, ImportOptions(allow_outside_paths=bool(self.config.get("allow_outside_paths"))))
+        try:     # the run's own dataset flags (--mesh, --exposure, ...): the scene it distilled
+            return open_scene(spec, import_options(self.config))
         except InputError as err:
             raise InputError(err.problems + [(str(self.out), "--scene", f"the run's scene {spec!r} does not read "
                                               "from here; run the viewer from the run's folder or give --scene")]) \

@@ -1,0 +1,131 @@
+"""Your own capture, end to end: the dataset flags of the main job and of `jaxdistill import`
+(every loader's mesh problem names a flag the command that printed it has), and imports that
+place the capture's files inside the scene folder (hard links, copies, symlinks, or none)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import re
+from pathlib import Path
+
+import pytest
+from absl import flags
+
+import dataset_fixtures as fx
+from dataset_fixtures import cache, cams  # noqa: F401  (fixtures)
+from jaxdistill import import_scene
+from jaxdistill.engine import config as config_lib
+from jaxdistill.errors import InputError
+from jaxdistill.scene.model import save_mesh
+
+FLAG = re.compile(r"(?<![\w-])--([a-z][a-z0-9_]*)")
+
+
+def main_flag_values() -> flags.FlagValues:
+    """The main job's flags, as `python -m jaxdistill.main` declares them."""
+    from jaxdistill import main
+
+    fv = flags.FlagValues()
+    config_lib.define_flags(fv)
+    main.define_config_flag(fv)
+    main.define_view_flags(fv)
+    return fv
+
+
+def import_flag_names() -> set[str]:
+    return {s[2:] for action in import_scene.build_parser()._actions for s in action.option_strings
+            if s.startswith("--")}
+
+
+def run_main_job(scene: str, out: Path, *extra: str) -> InputError | None:
+    """The main job's option path (flags -> DistillConfig -> build_problem -> loader) up to the
+    scene read; the InputError it stops with, or None."""
+    from jaxdistill.engine.problem import build_problem
+
+    fv = main_flag_values()
+    fv(["main", f"--scene={scene}", f"--out_dir={out}", "--prior=views", "--maps=albedo", *extra])
+    try:
+        build_problem(config_lib.config_from_flags(fv))
+    except InputError as err:
+        return err
+    return None
+
+
+def run_import(fmt: str, path: Path, out: Path, *extra: str, capsys) -> tuple[int, str, str]:
+    code = import_scene.main([f"--format={fmt}", f"--path={path}", f"--out={out}", "--quiet", *extra])
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+def far_mesh(path: Path) -> Path:
+    """The room moved 1000 units away: no camera sees it."""
+    mesh = fx.room_mesh()
+    save_mesh(dataclasses.replace(mesh, vertices=mesh.vertices + 1000.0), path)
+    return path
+
+
+def outside_config(folder: Path, mesh: Path) -> Path:
+    """A scene config whose one object file lies outside its folder."""
+    folder.mkdir(parents=True)
+    doc = {"format": "jaxdistill-scene-config", "version": 1,
+           "meshes": [{"name": "room", "file": f"../{mesh.parent.name}/{mesh.name}"}]}
+    (folder / "objects.json").write_text(json.dumps(doc))
+    return folder / "objects.json"
+
+
+def mesh_problems(tmp_path, cams) -> list[tuple[str, Path, tuple[str, ...], str]]:
+    """(format, dataset, flags, expected text) of each loader's mesh problems."""
+    room = fx.write_mesh(tmp_path / "meshes" / "room.glb")
+    far = far_mesh(tmp_path / "meshes" / "far.glb")
+    config = outside_config(tmp_path / "config", room)
+    data = {"fipt": fx.write_fipt(tmp_path / "fipt", cams), "iris": fx.write_fipt(tmp_path / "iris", cams, ldr=True),
+            "scannetpp": fx.write_scannetpp(tmp_path / "spp", cams),
+            "nerfstudio": fx.write_nerfstudio(tmp_path / "ns", cams), "colmap": fx.write_colmap(tmp_path / "colmap", cams)}
+    cases = [(fmt, path, (f"--mesh={far}",), "no view sees") for fmt, path in data.items()]
+    cases += [(fmt, path, (f"--mesh={config}",), "resolves outside") for fmt, path in data.items()]
+    cases += [(fmt, data[fmt], (), "no mesh of its own") for fmt in ("nerfstudio", "colmap")]
+    return cases
+
+
+def test_every_loaders_mesh_problem_names_flags_of_the_command_that_printed_it(tmp_path, cams, capsys):
+    main_flags = set(main_flag_values())
+    import_flags = import_flag_names()
+    for i, (fmt, path, extra, expected) in enumerate(mesh_problems(tmp_path, cams)):
+        err = run_main_job(f"{fmt}:{path}", tmp_path / f"run{i}", *extra)
+        assert err is not None and expected in str(err), (fmt, extra, err)
+        named = set(FLAG.findall(str(err)))
+        assert named and named <= main_flags, (fmt, extra, named - main_flags, str(err))
+        code, _, stderr = run_import(fmt, path, tmp_path / f"imported{i}", *extra, capsys=capsys)
+        assert code == 2 and expected in stderr, (fmt, extra, stderr)
+        named = set(FLAG.findall(stderr))
+        assert named and named <= import_flags, (fmt, extra, named - import_flags, stderr)
+
+
+def test_the_main_job_has_every_import_option_of_the_import_command():
+    main_flags, import_flags = set(main_flag_values()), import_flag_names()
+    carried = {f.name for f in dataclasses.fields(config_lib.ImportOptions)}
+    assert set(config_lib.IMPORT_FLAGS) | {"allow_outside_paths"} == carried & import_flags
+    assert set(config_lib.IMPORT_FLAGS) <= main_flags
+    defaults = config_lib.DistillConfig(scene="", out_dir="")
+    for name in config_lib.IMPORT_FLAGS:              # the same defaults in both commands
+        assert getattr(defaults, name) == getattr(config_lib.ImportOptions(), name), name
+        assert main_flag_values()[name].default == import_scene.build_parser().get_default(name), name
+
+
+def test_dataset_flags_reach_the_loader_and_are_refused_for_a_scene_folder(tmp_path, cams):
+    from jaxdistill.engine.problem import build_problem
+
+    mesh = fx.write_mesh(tmp_path / "room.glb")
+    fv = main_flag_values()
+    fv(["main", f"--scene=nerfstudio:{fx.write_nerfstudio(tmp_path / 'ns', cams)}", f"--out_dir={tmp_path / 'run'}",
+        "--prior=views", "--maps=albedo", f"--mesh={mesh}", "--max_views=2", "--exposure=1.5"])
+    config = config_lib.config_from_flags(fv)
+    options = config_lib.import_options(config.as_dict())
+    assert (options.mesh, options.max_views, options.exposure) == (str(mesh), 2, 1.5)
+    with pytest.raises(InputError, match=r"has no albedo target"):       # read with the mesh: the views prior
+        build_problem(config)                                           # then asks for its targets
+    with pytest.raises(InputError, match=r"--mesh: --mesh, --exposure, --max_views apply to --scene=FORMAT:PATH"):
+        config_lib.validate(dataclasses.replace(config, scene="bedroom"))
+    with pytest.raises(InputError, match=r"flags: --uv: unknown policy 'bad'"):
+        config_lib.validate(dataclasses.replace(config, uv="bad"))
