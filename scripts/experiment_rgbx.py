@@ -195,7 +195,7 @@ def check_reusable(path: Path, row_doc: dict, settings: dict, code: dict) -> Non
 
 def row(metrics: dict | None) -> dict:
     keys = ("albedo_psnr", "albedo_ssim", "albedo_si_psnr", "albedo_si_ssim", "normal_angular_deg", "roughness_mse",
-            "metallic_mse", "irradiance_si_psnr")
+            "metallic_mse", "irradiance_si_psnr", "albedo_shading_leak")
     return {k: metrics.get(k) for k in keys} if metrics else {}
 
 
@@ -295,7 +295,8 @@ def plot(table: dict, path: Path) -> None:
 def markdown(table: dict) -> str:
     cols = [("albedo_psnr", "albedo PSNR"), ("albedo_si_psnr", "si-PSNR"), ("albedo_ssim", "SSIM"),
             ("albedo_si_ssim", "si-SSIM"), ("normal_angular_deg", "normal °"), ("roughness_mse", "rough. L2"),
-            ("metallic_mse", "metal. L2"), ("irradiance_si_psnr", "irr. si-PSNR"), ("seconds", "wall s")]
+            ("metallic_mse", "metal. L2"), ("irradiance_si_psnr", "irr. si-PSNR"), ("albedo_shading_leak", "shading leak β"),
+            ("seconds", "wall s")]
     lines = ["| scene | row | " + " | ".join(c for _, c in cols) + " |", "|" + "---|" * (len(cols) + 2)]
     for scene, rows in table.items():
         for run, values in rows.items():

@@ -271,7 +271,8 @@ def test_evaluate_view_values():
     pred, gt = constructed_view()
     got = metrics.evaluate_view(pred, gt)
     assert set(got) == {"albedo_psnr", "albedo_ssim", "albedo_si_psnr", "albedo_si_ssim", "roughness_mse",
-                        "metallic_mse", "normal_angular_deg", "irradiance_si_psnr"}
+                        "metallic_mse", "normal_angular_deg", "irradiance_si_psnr", "albedo_shading_leak"}
+    assert got["albedo_shading_leak"] == pytest.approx(0.0, abs=1e-12)   # an overall scale is no leak
     assert got["albedo_psnr"] == pytest.approx(20.0, abs=1e-9)                     # sRGB 0.9 vs 1
     assert got["albedo_ssim"] == pytest.approx((2 * 0.9 + C1) / (0.81 + 1 + C1), rel=1e-9)
     assert got["albedo_si_psnr"] >= 100.0
@@ -283,6 +284,30 @@ def test_evaluate_view_values():
     s = (8 * 2 + 12 * 10) / (8 + 12 * 4)
     error = (8 * (s - 2) ** 2 + 12 * (2 * s - 5) ** 2) / 20
     assert got["irradiance_si_psnr"] == pytest.approx(10 * math.log10(25 / error), abs=1e-10)
+
+
+@pytest.mark.parametrize("beta", [0.0, 0.35, 1.0, -0.5])
+def test_the_shading_leak_is_the_exponent_of_the_light_baked_into_the_albedo(beta):
+    """An albedo that is GT albedo × irradiance^β × any scale leaks exactly β (1: the photo itself);
+    noise unrelated to the light leaves β in place; masked-out and dark pixels do not count."""
+    rng = np.random.default_rng(3)
+    h, w = 24, 32
+    albedo = rng.uniform(0.05, 0.9, (h, w, 3))
+    light = np.exp(rng.normal(0.0, 0.8, (h, w, 1))) * np.array([1.0, 0.9, 0.8])
+    grey = np.mean(light, axis=2, keepdims=True)         # the metric regresses luminances
+    pred = 3.7 * albedo * grey ** beta
+    assert metrics.shading_leak(pred, albedo, light) == pytest.approx(beta, abs=1e-9)
+    noisy = pred * np.exp(rng.normal(0.0, 0.05, (h, w, 1)))
+    assert metrics.shading_leak(noisy, albedo, light) == pytest.approx(beta, abs=0.03)
+    mask = np.zeros((h, w), bool)
+    mask[:, :10] = True
+    broken = pred.copy()
+    broken[:, 10:] = 1e-9                               # outside the mask: ignored
+    assert metrics.shading_leak(broken, albedo, light, mask) == pytest.approx(beta, abs=1e-9)
+    assert math.isnan(metrics.shading_leak(pred, albedo, np.ones((h, w, 3))))    # uniform light: undefined
+    got = metrics.evaluate_view({"albedo": pred}, {"albedo": albedo, "irradiance": light})
+    assert got["albedo_shading_leak"] == pytest.approx(beta, abs=1e-9)
+    assert "albedo_shading_leak" not in metrics.evaluate_view({"albedo": pred}, {"albedo": albedo})
 
 
 def test_evaluate_view_skips_maps_missing_on_one_side_and_honours_the_mask():

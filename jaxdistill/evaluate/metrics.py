@@ -244,6 +244,8 @@ def evaluate_view(pred: Mapping[str, np.ndarray], gt: Mapping[str, np.ndarray], 
     - normal (H, W, 3) unit vectors (world or camera space, both maps the same): normal_angular_deg.
     - irradiance (H, W, C) linear HDR: irradiance_si_psnr, data_range = max of gt over the mask
       (1 when that is not positive), so it depends on neither map's exposure.
+    - albedo_shading_leak (`shading_leak`) when pred has albedo and gt has albedo and irradiance:
+      how much of the light the albedo carries (0 none, 1 all of it, as the photo).
     Map names outside `MAP_NAMES` raise ValueError.
     """
     for name in list(pred) + list(gt):
@@ -257,7 +259,40 @@ def evaluate_view(pred: Mapping[str, np.ndarray], gt: Mapping[str, np.ndarray], 
             out.update(_map_metrics(name, pred[name], gt[name], mask))
         except ValueError as error:
             raise ValueError(f"{name}: {error}") from None
+    if "albedo" in pred and "albedo" in gt and "irradiance" in gt:
+        out["albedo_shading_leak"] = shading_leak(pred["albedo"], gt["albedo"], gt["irradiance"], mask)
     return out
+
+
+LEAK_FLOOR = 1e-3      # albedo luminance and irradiance below this (relative to the view's mean) are left out
+
+
+def shading_leak(pred_albedo, gt_albedo, gt_irradiance, mask=None) -> float:
+    """How much of the lighting an albedo map carries: the least-squares slope β of
+    log(pred / gt) on log(irradiance GT), luminances (channel means, linear), over the masked
+    pixels where all three are above LEAK_FLOOR times their mean (both sides centred, so an
+    overall scale does not count). β = 0: the albedo's error is unrelated to the light; β = 1:
+    the albedo is the photo (albedo × irradiance), all shading baked in; β < 0: it divides out
+    more light than there is. NaN with fewer than two usable pixels or a uniform irradiance.
+    """
+    a, g = _pair(pred_albedo, gt_albedo)
+    e = _image(gt_irradiance, "irradiance")
+    e = e[..., None] if e.ndim == 2 else e
+    if e.shape[:2] != g.shape[:2]:
+        raise ValueError(f"irradiance GT {e.shape[:2]} and albedo GT {g.shape[:2]} differ in size")
+    m = _mask(mask, g.shape[:2])
+    la, lg, le = (np.mean(x, axis=2)[m] for x in (a, g, e))
+    if la.size < 2:
+        return math.nan
+    usable = ((la > LEAK_FLOOR * max(np.mean(la), 1e-12)) & (lg > LEAK_FLOOR * max(np.mean(lg), 1e-12))
+              & (le > LEAK_FLOOR * max(np.mean(le), 1e-12)))
+    if np.count_nonzero(usable) < 2:
+        return math.nan
+    x = np.log(le[usable])
+    y = np.log(la[usable]) - np.log(lg[usable])
+    x, y = x - np.mean(x), y - np.mean(y)
+    den = float(np.sum(x * x))
+    return float(np.sum(x * y) / den) if den > 1e-12 else math.nan
 
 
 def _map_metrics(name: str, pred, gt, mask) -> dict[str, float]:
