@@ -8,28 +8,32 @@
 
 Formats: fipt (HDR .exr photos), iris (same layout, LDR .png), scannetpp, nerfstudio, colmap
 (see `jaxdistill/datasets/`). `--mesh` replaces the dataset's mesh: a mesh file or a scene
-config .json listing objects with transforms (`jaxdistill/scene/objects.py`). The photos stay
-where they are (scene.json points at them, outside --out: the main job then needs
---allow_outside_paths, which the printed run command includes); derived images (undistorted photos, masks) and
+config .json listing objects with transforms (`jaxdistill/scene/objects.py`). The photos, masks
+and images the dataset keeps come into --out too (`--link`: hard links, copies where the file system
+has none, by default; or copies, symlinks, or none: left in place, see `jaxdistill/scene/place.py`),
+so the folder reads without --allow_outside_paths and can be moved whole; derived images (undistorted photos, masks) and
 the unwrapped mesh are written into --out, with import.json (what was decided and how long
 each step took, and per view the fraction of its rays that hit the mesh). The hit fractions are
 printed (min / median / max and the views that see least): a wrong camera convention or units
 show at once, and a mesh that no view sees stops the import. Objects whose UVs are missing, tiled, collapsed or overlapping are unwrapped
 with xatlas at the density the cameras observe (cached by mesh hash).
 
-The same loaders run when the main job is given `--scene=FORMAT:PATH` directly. Bad input is
+The same loaders, with the same dataset flags (--mesh, --exposure, --uv, --max_views, ...), run when
+the main job is given `--scene=FORMAT:PATH` directly. Bad input is
 reported as a list of problems naming file and field, exit status 2.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import sys
 import time
 from pathlib import Path
 
+from jaxdistill.scene.place import LINK_MODES
 from jaxdistill.errors import InputError
 
 IMPORT_FORMATS = ("fipt", "iris", "scannetpp", "nerfstudio", "colmap")
@@ -52,6 +56,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--unwrap_time_limit", type=float, default=1800.0, help="seconds")
     parser.add_argument("--allow_outside_paths", action="store_true",
                         help="a --mesh scene config may name object files outside its folder")
+    parser.add_argument("--link", default="hardlink", choices=LINK_MODES,
+                        help="how the dataset's photos, masks and images come into --out: hard links (copies where "
+                             "the file system has none), symlinks (need --allow_outside_paths in the main job), "
+                             "copies, or none (left in place: need --allow_outside_paths)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     return parser
 
@@ -62,6 +70,7 @@ def main(argv=None) -> int:
 
     from jaxdistill import datasets
     from jaxdistill.datasets.common import ImportOptions
+    from jaxdistill.scene.place import place_files
     from jaxdistill.render.visibility import MIN_HIT_FRACTION
     from jaxdistill.scene.model import read_scene, write_scene
     from jaxdistill.scene.paths import ALLOW_FLAG, is_inside
@@ -75,13 +84,15 @@ def main(argv=None) -> int:
                                 allow_outside_paths=args.allow_outside_paths)
         report: dict = {}
         scene = datasets.load(args.format, args.path, options, split=args.split, report=report)
+        scene, placement = place_files(scene, out, args.link)
         scene_json = write_scene(scene, out)
-        read_scene(scene_json, check_pixels=False, allow_outside_paths=True)  # self-check: what we wrote reads back
+        outside = args.link in ("none", "symlink")           # self-check: what we wrote reads back
+        read_scene(scene_json, check_pixels=False, allow_outside_paths=outside)
     except InputError as err:
         print(err, file=sys.stderr)
         return 2
     report.update({"format": args.format, "path": str(Path(args.path).resolve()), "total_s": time.perf_counter() - start,
-                   "command": " ".join(sys.argv)})
+                   "command": " ".join(sys.argv), "files": dataclasses.asdict(placement)})
     (out / "import.json").write_text(json.dumps(report, indent=1))
     print(report["coverage"])
     if report["blind_views"]:
@@ -90,13 +101,15 @@ def main(argv=None) -> int:
     print(f"exposure: {report['exposure']}")
     print("timings: " + ", ".join(f"{k} {v:.1f} s" for k, v in report["timings"].items()) + f", total {report['total_s']:.1f} s")
     print(f"wrote {scene_json} ({report['views']} views, {report['faces']} faces, {len(report['objects'])} objects)")
+    print(placement.summary(out))
     files = [p for v in scene.views for p in (v.photo, v.mask, *v.targets.values(), *v.ground_truth.values()) if p]
     outside = sum(not is_inside(p, out) for p in files)
     allow = ""
     if outside:
         allow = f" {ALLOW_FLAG}"
-        print(f"note: scene.json names {outside} files where the dataset keeps them, outside {out}; the main job "
-              f"reads them with {ALLOW_FLAG} (or copy them into {out} and edit the paths)")
+        where = "through symlinks that lead to" if args.link == "symlink" else "where the dataset keeps them,"
+        print(f"note: scene.json names {outside} files {where} outside {out}; the main job reads them with "
+              f"{ALLOW_FLAG} (or import again with --link=hardlink or --link=copy to place them in {out})")
     print(f"run:  jaxdistill distill --scene={out} --out_dir=runs/{scene.name}{allow}")
     return 0
 

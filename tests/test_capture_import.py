@@ -129,3 +129,99 @@ def test_dataset_flags_reach_the_loader_and_are_refused_for_a_scene_folder(tmp_p
         config_lib.validate(dataclasses.replace(config, scene="bedroom"))
     with pytest.raises(InputError, match=r"flags: --uv: unknown policy 'bad'"):
         config_lib.validate(dataclasses.replace(config, uv="bad"))
+
+
+# ----------------------------------------------------------------------------- self-contained imports
+
+def capture(fmt: str, root: Path, cams) -> tuple[Path, tuple[str, ...]]:
+    """(a tiny capture of `fmt`, the import flags it needs beyond format, path and out)."""
+    mesh = fx.write_mesh(root / "meshes" / "room.ply")
+    path = fx.write_nerfstudio(root / "ns", cams) if fmt == "nerfstudio" else fx.write_colmap(root / "colmap", cams)
+    return path, (f"--mesh={mesh}",)
+
+
+def photo_pairs(out: Path, path: Path):
+    """(photo in the scene folder, the capture's photo) per view of the scene at `out`."""
+    from jaxdistill.scene.model import read_scene
+
+    scene = read_scene(out, allow_outside_paths=True, check_pixels=False)
+    sources = {p.stem: p for p in path.parent.rglob("*.png") if "meshes" not in p.parts}
+    return [(v.photo, sources[v.photo.stem]) for v in scene.views]
+
+
+@pytest.mark.parametrize("fmt", ["nerfstudio", "colmap"])
+def test_a_default_import_is_self_contained_runs_in_the_main_job_and_moves(fmt, tmp_path, cams, rgbx_dir, capsys):
+    import shutil
+
+    from jaxdistill import pipeline
+    from jaxdistill.scene.model import read_scene
+
+    path, extra = capture(fmt, tmp_path / "capture", cams)
+    out = tmp_path / "scenes" / "room"
+    code, stdout, stderr = run_import(fmt, path, out, *extra, capsys=capsys)
+    assert code == 0, stderr
+    assert f"files: 3 placed in {out} (--link=hardlink): 3 hard links; 0 bytes copied" in stdout
+    assert "--allow_outside_paths" not in stdout and "note:" not in stdout
+    assert json.loads((out / "import.json").read_text())["files"]["linked"] == 3
+    for inside, source in photo_pairs(out, path):     # one file, two names (tmp_path is one device)
+        assert inside.parent == out / "photos" and inside.stat().st_ino == source.stat().st_ino
+    assert len(read_scene(out).views) == 3             # no --allow_outside_paths
+    moved = tmp_path / "elsewhere" / "room"
+    moved.parent.mkdir()
+    shutil.move(out, moved)
+    config = config_lib.validate(config_lib.DistillConfig(
+        scene=str(moved), out_dir=str(tmp_path / "run"), steps=2, views_per_step=1, prior="rgbx",
+        rgbx_dir=str(rgbx_dir), maps=("albedo",), renders=False, contact_views=1))
+    assert config.allow_outside_paths is False
+    summary = pipeline.run(config, progress=False)
+    assert summary["steps"] == 2 and (tmp_path / "run" / "metrics.json").is_file()
+
+
+def test_link_copy_writes_copies_and_symlinks_need_the_outside_flag(tmp_path, cams, capsys):
+    from jaxdistill.scene.model import read_scene
+
+    path, extra = capture("nerfstudio", tmp_path / "capture", cams)
+    copies = tmp_path / "copies"
+    code, stdout, stderr = run_import("nerfstudio", path, copies, *extra, "--link=copy", capsys=capsys)
+    assert code == 0, stderr
+    pairs = photo_pairs(copies, path)
+    size = sum(source.stat().st_size for _, source in pairs)
+    assert re.search(rf"3 copies; {size} bytes \([0-9.]+ kB\) copied", stdout), stdout
+    for inside, source in pairs:
+        assert not inside.is_symlink() and inside.stat().st_ino != source.stat().st_ino
+        assert inside.read_bytes() == source.read_bytes()
+    read_scene(copies)
+
+    links = tmp_path / "links"
+    code, stdout, stderr = run_import("nerfstudio", path, links, *extra, "--link=symlink", capsys=capsys)
+    assert code == 0, stderr
+    assert "3 symlinks; 0 bytes copied" in stdout and f"--scene={links} --out_dir=runs/ns --allow_outside_paths" in stdout
+    for inside, source in photo_pairs(links, path):
+        assert inside.is_symlink() and inside.resolve() == source.resolve()
+    with pytest.raises(InputError, match=r"views\[0\]\.photo: 'photos/frame_00001\.png' resolves outside"):
+        read_scene(links)                             # a symlink out of the folder is refused like ../
+    assert len(read_scene(links, allow_outside_paths=True).views) == 3
+
+
+def test_hard_links_fall_back_to_copies_where_the_file_system_has_none(tmp_path, cams, monkeypatch):
+    import errno
+    import os
+
+    from jaxdistill import datasets
+    from jaxdistill.datasets.common import ImportOptions
+    from jaxdistill.scene import place
+
+    path, extra = capture("colmap", tmp_path / "capture", cams)
+    scene = datasets.load("colmap", path, ImportOptions(mesh=extra[0].split("=", 1)[1], progress=False,
+                                                        work_dir=str(tmp_path / "out")))
+
+    def no_link(src, dst):
+        raise OSError(errno.EXDEV, os.strerror(errno.EXDEV))
+
+    monkeypatch.setattr(place.os, "link", no_link)
+    placed, placement = place.place_files(scene, tmp_path / "out")
+    assert (placement.linked, placement.copied) == (0, 3) and placement.bytes_copied > 0
+    assert "3 copies (hard links not possible: Invalid cross-device link)" in placement.summary(tmp_path / "out")
+    assert all(v.photo.parent == tmp_path / "out" / "photos" and v.photo.is_file() for v in placed.views)
+    with pytest.raises(InputError, match=r"--link: unknown mode 'move'"):
+        place.place_files(scene, tmp_path / "out", "move")

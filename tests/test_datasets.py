@@ -169,10 +169,10 @@ def test_import_script_writes_a_scene_that_reads_back(tmp_path, cams):
     root = fx.write_scannetpp(tmp_path / "spp", cams)
     out = tmp_path / "imported"
     proc = subprocess.run([sys.executable, str(REPO / "scripts" / "import_scene.py"), "--format=scannetpp",
-                           f"--path={root}", f"--out={out}", "--quiet"], capture_output=True, text=True,
+                           f"--path={root}", f"--out={out}", "--quiet", "--link=none"], capture_output=True, text=True,
                           env={**__import__("os").environ})
     assert proc.returncode == 0, proc.stderr
-    # the photos stay in the dataset, outside `out`: refused by default, read with the opt-in
+    # --link=none: the photos stay in the dataset, outside `out`: refused by default, read with the opt-in
     with pytest.raises(InputError, match=r"views\[0\]\.photo: '\.\./spp/dslr/undistorted_images/DSC00000\.JPG' "
                        r"resolves outside the scene folder"):
         read_scene(out)
