@@ -127,6 +127,52 @@ def test_the_smoothness_term_counts_only_pairs_of_covered_pixels():
                         wpair = 0.5 * (weights[b, y, x] + weights[b, yy, xx])
                         want[b] += wpair * np.sum((log_e[b, yy, xx] - log_e[b, y, x]) ** 2)
     assert_close(np.asarray(got), want, rtol=2e-5)
+    # a guide multiplies each pair's weight: channel 0 the (x, x+1) pairs, channel 1 the (y, y+1) pairs
+    guide = rng.uniform(0, 1, (2, 4, 5, 2))
+    guided = photo.pair_penalty(jnp.asarray(log_e, jnp.float32), jnp.asarray(weights, jnp.float32), jnp.asarray(hit),
+                                "l2", jnp.asarray(guide, jnp.float32))
+    want = np.zeros(2)
+    for b in range(2):
+        for y in range(4):
+            for x in range(5):
+                for dy, dx, ch in ((0, 1, 0), (1, 0, 1)):
+                    yy, xx = y + dy, x + dx
+                    if yy < 4 and xx < 5 and hit[b, y, x] and hit[b, yy, xx]:
+                        wpair = 0.5 * (weights[b, y, x] + weights[b, yy, xx]) * guide[b, y, x, ch]
+                        want[b] += wpair * np.sum((log_e[b, yy, xx] - log_e[b, y, x]) ** 2)
+    assert_close(np.asarray(guided), want, rtol=2e-5)
+
+
+def test_the_chroma_guide_lets_colour_edges_through_and_smooths_light_edges():
+    """A brightness step at constant colour (a shadow edge) keeps the albedo pair's full weight; a
+    step of colour at constant brightness drops it to ~0; unusable pixels and the border give 0;
+    the weight is exp(-|Δc|^2 / (2 σ^2)) of the 3 x 3 box-filtered chromaticity (by hand)."""
+    h, w = 6, 8
+    colour = np.array([0.6, 0.3, 0.1])
+    shadow = np.ones((h, w, 3)) * colour
+    shadow[:, 4:] *= 0.2                                  # the right half in shadow: same chromaticity
+    g = photo.chroma_guide(shadow)
+    assert g.shape == (h, w, 2) and g.dtype == np.float32
+    assert_close(g[:, :-1, 0], np.ones((h, w - 1)), rtol=1e-4)        # 1 up to CHROMA_FLOOR
+    assert np.all(g[:, -1, 0] == 0) and np.all(g[-1, :, 1] == 0)
+    paint = np.ones((h, w, 3)) * colour
+    paint[:, 4:] = np.array([0.1, 0.3, 0.6]) * (colour.sum() / 1.0)   # the same brightness, another colour
+    g = photo.chroma_guide(paint)
+    assert np.all(g[:, 2:5, 0] < 1e-6) and np.all(g[:, :2, 0] > 0.999)
+    usable = np.ones((h, w), bool)
+    usable[2, 3] = False
+    g = photo.chroma_guide(shadow, usable)
+    assert g[2, 2, 0] == 0 and g[2, 3, 0] == 0 and g[1, 3, 1] == 0 and g[2, 3, 1] == 0 and g[2, 1, 0] > 0.999
+    rng = np.random.default_rng(2)
+    noisy = rng.uniform(0.1, 1.0, (h, w, 3))
+    pad = np.pad(noisy, ((1, 1), (1, 1), (0, 0)), mode="edge")
+    box = np.zeros_like(noisy)
+    for y in range(h):
+        for x in range(w):
+            box[y, x] = pad[y:y + 3, x:x + 3].mean(axis=(0, 1))
+    c = box / (box.sum(-1, keepdims=True) + photo.CHROMA_FLOOR * noisy.mean() * 3)
+    want = np.exp(-np.sum((c[:, 1:] - c[:, :-1]) ** 2, -1) / (2 * photo.CHROMA_SIGMA ** 2))
+    assert_close(photo.chroma_guide(noisy)[:, :-1, 0], want, rtol=1e-5)
 
 
 # ----------------------------------------------------------------------------- in the step
@@ -198,7 +244,7 @@ def test_photo_weight_zero_is_todays_step_exactly(tiny_scene, tmp_path):
                           num_train_timesteps=1000, reuse_steps=config.reuse_steps, align=config.align,
                           align_strength=config.align_strength)       # how the loop built it before the term
     odd = dataclasses.replace(config, photo_space="linear", photo_loss="l2", photo_scale="none",
-                              irradiance_smoothness=2.0, photo_size=16)
+                              irradiance_smoothness=2.0, photo_size=16, albedo_smoothness=3.0)
     now = loop.step_settings(odd, problem)
     optimizer = make_optimizer(config.lr, 0.0)
     state = init_state(problem.initial_texels(), optimizer, 0)
@@ -286,6 +332,13 @@ def test_the_photo_flags_are_checked_naming_the_flag(tiny_scene, tmp_path):
         tiny_config(tiny_scene, tmp_path / "o", photo_weight=-1.0)
     with pytest.raises(InputError, match=r"--photo_size"):
         tiny_config(tiny_scene, tmp_path / "o", photo_size=4)
+    for name in ("irradiance_smoothness", "albedo_smoothness"):     # no silent no-op without the term
+        with pytest.raises(InputError, match=rf"--{name}: is part of the re-rendering term"):
+            tiny_config(tiny_scene, tmp_path / "o", **{name: 1.0})
+    with pytest.raises(InputError, match=r"--albedo_smoothness: must be >= 0"):
+        tiny_config(tiny_scene, tmp_path / "o", photo_weight=1.0, albedo_smoothness=-1.0)
+    with pytest.raises(InputError, match=r"--irradiance_sds_weight: must be >= 0"):
+        tiny_config(tiny_scene, tmp_path / "o", irradiance_sds_weight=-0.5)
 
 
 def test_evaluation_reuses_the_photo_plans_it_would_otherwise_build_again(tiny_scene, tmp_path):

@@ -79,6 +79,7 @@ class DistillConfig:
     photo_scale: str = "batch"
     irradiance_smoothness: float = 0.0
     irradiance_sds_weight: float = 1.0
+    albedo_smoothness: float = 0.0
     render_size: int = 0
     texture_size: str = "auto"
     max_texture_size: int = 4096
@@ -176,6 +177,10 @@ def define_flags(fv: flags.FlagValues = flags.FLAGS, *, main_module: bool = Fals
     flags.DEFINE_float("irradiance_sds_weight", d.irradiance_sds_weight, "weight of the irradiance map's SDS term "
                        "(1: as every map; lower leaves more of the albedo/irradiance split to the photos and "
                        "--irradiance_smoothness)", **where)
+    flags.DEFINE_float("albedo_smoothness", d.albedo_smoothness, "weight of a penalty on log-albedo differences "
+                       "between neighbouring pixels of the re-rendered photos, weighted by how little the photo's "
+                       "colour (chromaticity) changes there: shadow and sun-patch edges are pushed out of the "
+                       "albedo (colour Retinex); part of the re-rendering term", **where)
     flags.DEFINE_integer("reuse_steps", d.reuse_steps, "rgbx prior: take K AdamW steps on the same views towards "
                          "one x_pred before the prior runs again (1 = a new x_pred every step, the thesis; K > 1 costs "
                          "1/K of the prior per step, like Instruct-NeRF2NeRF's iterative dataset update)", **where)
@@ -283,6 +288,12 @@ def validate(config: DistillConfig) -> DistillConfig:
         bad("photo_size", f"must be 0 (the photos' size) or >= 8, got {c.photo_size}")
     if not c.irradiance_smoothness >= 0:
         bad("irradiance_smoothness", f"must be >= 0, got {c.irradiance_smoothness}")
+    for name in ("irradiance_smoothness", "albedo_smoothness"):
+        if getattr(c, name) > 0 and c.photo_weight == 0:
+            bad(name, "is part of the re-rendering term, which --photo_weight=0 turns off; give --photo_weight > 0 "
+                f"or --{name}=0")
+    if not c.albedo_smoothness >= 0:
+        bad("albedo_smoothness", f"must be >= 0, got {c.albedo_smoothness}")
     if not c.irradiance_sds_weight >= 0:
         bad("irradiance_sds_weight", f"must be >= 0, got {c.irradiance_sds_weight}")
     if c.reuse_steps < 1:

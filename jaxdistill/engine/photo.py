@@ -22,13 +22,17 @@ H·W / (Hp·Wp) gives one photo the pixel budget of one map of the prior's rende
 
 `--irradiance_smoothness` adds λ_s Σ W ρ(Δ log E) over neighbouring covered pixels of the same
 render: the classic prior that shading varies slowly where albedo changes (Retinex), pushing
-texture detail into albedo.
+texture detail into albedo. `--albedo_smoothness` adds λ_a Σ W g ρ(Δ log a) with g the photo's
+`chroma_guide` (colour Retinex: a brightness step at constant chromaticity is light, a shadow
+or sun-patch edge, so it is pushed out of the albedo into the irradiance; a colour change is not
+penalised), which also averages the photos' noise out of uniformly coloured albedo.
 """
 
 from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 PHOTO_EPS = 0.01            # log(x + eps): relative errors above eps, absolute below (dark noise)
 CHARBONNIER_DELTA = 0.05    # ρ is quadratic below this residual, linear above
@@ -95,28 +99,68 @@ def residual(photo, rendered, log_s, space: str) -> jax.Array:
     return photo - jnp.exp(log_s) * rendered
 
 
-def smoothness(irradiance, weights, hit, loss: str) -> jax.Array:
+def pair_penalty(log_x, weights, hit, loss: str, guide=None) -> jax.Array:
     """(B,) Σ over horizontally and vertically neighbouring covered pixels of the mean of their
-    weights times ρ(Δ log E), summed over channels (`irradiance` model space)."""
-    log_e = jnp.log(jnp.maximum(0.5 * (irradiance + 1.0), 0.0) + PHOTO_EPS)
+    weights (times guide[..., 0] for the pair (x, x+1), guide[..., 1] for (y, y+1), when given)
+    times ρ(Δ log_x), summed over channels."""
     total = 0.0
     for axis in (1, 2):
-        n = log_e.shape[axis]
+        n = log_x.shape[axis]
         first = [slice(None)] * 4
         second = [slice(None)] * 4
         first[axis], second[axis] = slice(0, n - 1), slice(1, n)
-        diff = log_e[tuple(second)] - log_e[tuple(first)]
+        diff = log_x[tuple(second)] - log_x[tuple(first)]
         pair = (hit[tuple(second[:3])] & hit[tuple(first[:3])]).astype(jnp.float32)
         w = 0.5 * (weights[tuple(second[:3])] + weights[tuple(first[:3])]) * pair
+        if guide is not None:
+            w = w * guide[tuple(first[:3])][..., 2 - axis]     # axis 2 (x) → channel 0, axis 1 (y) → 1
         total = total + jnp.sum(w * jnp.sum(penalty(diff, loss), axis=-1), axis=(1, 2))
     return total
 
 
+def log_map(image) -> jax.Array:
+    """log(x + eps) of a model-space render of a linear map (values below 0 count as 0)."""
+    return jnp.log(jnp.maximum(0.5 * (image + 1.0), 0.0) + PHOTO_EPS)
+
+
+def smoothness(irradiance, weights, hit, loss: str) -> jax.Array:
+    """(B,) `pair_penalty` of log-irradiance (`irradiance` model space)."""
+    return pair_penalty(log_map(irradiance), weights, hit, loss)
+
+
+CHROMA_SIGMA = 0.02     # chromaticity step (r, g, b)/(r + g + b) at which a pair's albedo weight falls to e^-1/2
+CHROMA_FLOOR = 1e-4     # added to r + g + b, times the photo's mean: keeps black pixels' chromaticity finite
+
+
+def chroma_guide(photo: np.ndarray, usable: np.ndarray | None = None) -> np.ndarray:
+    """(H, W, 2) float32 weights of the albedo smoothness for the pairs (x, x+1) and (y, y+1) of a
+    linear photo (H, W, 3): exp(−|Δc|² / (2 σ²)) with c the chromaticity of the photo box-filtered
+    over 3 × 3 (path-tracing and sensor noise), σ = CHROMA_SIGMA. Light changes brightness, not
+    chromaticity (white light), so a step in brightness at constant chromaticity — a shadow or sun
+    patch edge — is smoothed out of the albedo (colour Retinex), while a change of colour stays.
+    The last column / row (no pair) and pairs touching an unusable pixel are 0."""
+    p = np.maximum(np.asarray(photo, np.float64), 0.0)
+    padded = np.pad(p, ((1, 1), (1, 1), (0, 0)), mode="edge")
+    h, w = p.shape[:2]
+    box = sum(padded[i:i + h, j:j + w] for i in range(3) for j in range(3)) / 9.0
+    total = np.sum(box, axis=-1, keepdims=True) + CHROMA_FLOOR * max(float(np.mean(p)) * 3.0, 1e-12)
+    c = box / total
+    out = np.zeros((h, w, 2), np.float64)
+    out[:, :-1, 0] = np.exp(-np.sum(np.square(c[:, 1:] - c[:, :-1]), axis=-1) / (2 * CHROMA_SIGMA ** 2))
+    out[:-1, :, 1] = np.exp(-np.sum(np.square(c[1:] - c[:-1]), axis=-1) / (2 * CHROMA_SIGMA ** 2))
+    if usable is not None:
+        u = np.asarray(usable, bool)
+        out[:, :-1, 0] *= u[:, 1:] & u[:, :-1]
+        out[:-1, :, 1] *= u[1:] & u[:-1]
+    return out.astype(np.float32)
+
+
 def photo_loss(images: dict, photo, weights, hit, *, loss: str, space: str, scale: str, pixel_ratio: float,
-               smooth: float = 0.0) -> tuple[jax.Array, dict]:
-    """(L_photo (+ the smoothness term), metrics) for renders {map: (B, Hp, Wp, C)} of a batch,
+               smooth: float = 0.0, albedo_smooth: float = 0.0, guide=None) -> tuple[jax.Array, dict]:
+    """(L_photo (+ the smoothness terms), metrics) for renders {map: (B, Hp, Wp, C)} of a batch,
     photos (B, Hp, Wp, 3) linear and exposed, weights (B, Hp, Wp) (visibility x masks x valid),
-    hit (B, Hp, Wp) bool; `pixel_ratio` = H·W / (Hp·Wp) (the module docstring)."""
+    hit (B, Hp, Wp) bool; `pixel_ratio` = H·W / (Hp·Wp) (the module docstring); `guide`
+    (B, Hp, Wp, 2) the photos' `chroma_guide` when albedo_smooth > 0."""
     rendered = diffuse_photo(images)
     w = pixel_weights(images, weights)
     log_s = log_scale(photo, rendered, w, scale, space)
@@ -128,6 +172,11 @@ def photo_loss(images: dict, photo, weights, hit, *, loss: str, space: str, scal
     if smooth > 0:
         term = smooth * pixel_ratio * jnp.sum(smoothness(images["irradiance"], weights, hit, loss)) / batch
         metrics["loss_smooth"] = term
+        total = total + term
+    if albedo_smooth > 0:
+        term = albedo_smooth * pixel_ratio * jnp.sum(
+            pair_penalty(log_map(images["albedo"]), weights, hit, loss, guide)) / batch
+        metrics["loss_albedo_smooth"] = term
         total = total + term
     return total, metrics
 

@@ -21,6 +21,7 @@ from tqdm.auto import tqdm
 
 from jaxdistill.io import images as imageio
 from jaxdistill.scene.cameras import Camera
+from jaxdistill.engine import photo as photo_lib
 from jaxdistill.engine.config import RGBX_DIR_ENV, DistillConfig, import_options, rgbx_dir
 from jaxdistill.errors import InputError, ProblemList
 from jaxdistill.scene.cameras import rgbx_camera_rotation
@@ -118,7 +119,8 @@ class PhotoData:
     """What the re-rendering term needs (`photo.py`), per view at (height, width): gather plans
     index (V, P, T) int32, weight (V, P, T) float32, hit (V, P) bool; photos (V, H, W, 3) float32
     linear and exposed; pixel_weight (V, H, W) float32: the visibility weights times the view's
-    mask times the photo's usable pixels."""
+    mask times the photo's usable pixels; guide (V, H, W, 2) float32 the photos' `chroma_guide`
+    (--albedo_smoothness > 0) or None."""
 
     height: int
     width: int
@@ -127,10 +129,14 @@ class PhotoData:
     hit: np.ndarray
     photos: np.ndarray
     pixel_weight: np.ndarray
+    guide: np.ndarray | None = None
 
     def batch(self, ids: np.ndarray) -> dict:
-        return {"photo_index": self.index[ids], "photo_tap_weight": self.weight[ids], "photo_hit": self.hit[ids],
-                "photo": self.photos[ids], "photo_pixel_weight": self.pixel_weight[ids]}
+        out = {"photo_index": self.index[ids], "photo_tap_weight": self.weight[ids], "photo_hit": self.hit[ids],
+               "photo": self.photos[ids], "photo_pixel_weight": self.pixel_weight[ids]}
+        if self.guide is not None:
+            out["photo_guide"] = self.guide[ids]
+        return out
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -386,11 +392,14 @@ def _photo_data(config: DistillConfig, scene: Scene, photo_frags, space: TexelSp
         weights = np.asarray(plan.hit, np.float32).reshape(len(photo_frags), height, width)
     weights = np.array(_masked(weights, scene, height, width))
     photos = np.zeros((len(scene.views), height, width, 3), np.float32)
+    guide = np.zeros((len(scene.views), height, width, 2), np.float32) if config.albedo_smoothness > 0 else None
     for v, view in enumerate(tqdm(scene.views, desc="photos", unit="view", dynamic_ncols=True)):
         photos[v], usable = read_photo_linear(view.photo, view.exposure, height, width)
         weights[v] *= usable
+        if guide is not None:
+            guide[v] = photo_lib.chroma_guide(photos[v], usable)
     return PhotoData(height=height, width=width, index=np.asarray(plan.index), weight=np.asarray(plan.weight),
-                     hit=np.asarray(plan.hit), photos=photos, pixel_weight=weights)
+                     hit=np.asarray(plan.hit), photos=photos, pixel_weight=weights, guide=guide)
 
 
 def initial_file_values(maps: Sequence[str]) -> dict[str, float]:

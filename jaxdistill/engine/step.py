@@ -79,6 +79,7 @@ class StepSettings:
     photo_scale: str = DistillConfig.photo_scale
     irradiance_smoothness: float = 0.0
     irradiance_sds_weight: float = 1.0    # scales the irradiance map's SDS term (1: untouched, not traced)
+    albedo_smoothness: float = 0.0         # the photo-guided albedo smoothness (photo.py); needs batch["photo_guide"]
     photo_height: int = 0
     photo_width: int = 0
 
@@ -296,7 +297,8 @@ def _photo_fn(settings: StepSettings, batch: dict, frozen: dict) -> Callable:
         images = used.split(render(texels[:, columns], plan))     # only the maps the photo is made of
         return photo_lib.photo_loss(images, batch["photo"], batch["photo_pixel_weight"], hit,
                                     loss=settings.photo_loss, space=settings.photo_space, scale=settings.photo_scale,
-                                    pixel_ratio=ratio, smooth=settings.irradiance_smoothness)
+                                    pixel_ratio=ratio, smooth=settings.irradiance_smoothness,
+                                    albedo_smooth=settings.albedo_smoothness, guide=batch.get("photo_guide"))
 
     return photo_of
 
