@@ -68,6 +68,7 @@ def summary_table(result: dict, out: Path) -> str:
         lines.append(f"wall time {wall:.1f} s ({result.get('steps_this_run', 0)} steps at "
                      f"{result.get('seconds_per_step', 0.0):.2f} s/step)")
     lines.append(f"outputs in {out}: maps/ (EXR + PNG per map and page), scene.glb (textured mesh, cameras), "
+                 + ("scene.usdc (the same in USD), " if (out / "scene.usdc").is_file() else "")
                  + ("renders/, " if (out / "renders").is_dir() else "")
                  + "contact_<map>.png, loss.png, metrics.json")
     return "\n".join(lines)

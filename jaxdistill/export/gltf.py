@@ -133,6 +133,12 @@ ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER = 34962, 34963
 ZNEAR_FRACTION = 1e-3  # a camera's znear, as a fraction of the mesh's bounding-box diagonal
 
 
+def mesh_diagonal(mesh: Mesh) -> float:
+    """The length of the mesh's bounding-box diagonal (at least 1e-6): the scale of camera clip planes."""
+    lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
+    return max(float(np.linalg.norm(hi - lo)), 1e-6)
+
+
 def gltf_camera(name: str, camera: Camera, znear: float) -> tuple[dict, list[float]]:
     """(glTF camera object, node matrix column-major (16,)) of an OpenCV camera.
 
@@ -211,8 +217,7 @@ def complete_glb(data: bytes, mesh: Mesh, cameras: Sequence[tuple[str, Camera]] 
                 [(primitive["indices"], ELEMENT_ARRAY_BUFFER)] if "indices" in primitive else []):
             views[accessors[accessor]["bufferView"]].setdefault("target", target)
     if cameras:
-        lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
-        znear = ZNEAR_FRACTION * max(float(np.linalg.norm(hi - lo)), 1e-6)
+        znear = ZNEAR_FRACTION * mesh_diagonal(mesh)
         nodes, scene_nodes = doc.setdefault("nodes", []), doc["scenes"][doc.get("scene", 0)].setdefault("nodes", [])
         for name, camera in cameras:
             obj, matrix = gltf_camera(name, camera, znear)

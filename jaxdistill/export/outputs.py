@@ -1,10 +1,11 @@
-"""A finished run's files: maps/ and scene.glb, renders/, evidence/, loss.png, contact sheets."""
+"""A finished run's files: maps/, scene.glb and scene.usdc, renders/, evidence/, loss.png, contact sheets."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 import numpy as np
+from absl import logging
 
 from jaxdistill import MAP_NAMES
 from jaxdistill.engine.config import DistillConfig
@@ -12,7 +13,7 @@ from jaxdistill.engine.problem import Problem
 from jaxdistill.evaluate import ground_truth as evaluation
 from jaxdistill.evaluate import scoring
 from jaxdistill.evaluate.scoring import Baseline, EvalContext, training_plan
-from jaxdistill.export import gltf, pages as page_files, plots, run_dir as run_files
+from jaxdistill.export import gltf, pages as page_files, plots, run_dir as run_files, usd
 from jaxdistill.io import images as imageio
 from jaxdistill.io.view_images import resize
 from jaxdistill.render import charts
@@ -31,7 +32,8 @@ def texel_trust(problem: Problem) -> np.ndarray:
 
 def write_map_files(out: Path, problem: Problem, texels: np.ndarray, trust: np.ndarray) -> list[Path]:
     """maps/ (one map at a time: full float pages of all maps at once would be 20 GiB at 30 pages
-    of 4096²) and scene.glb with the views as cameras; returns the map files written."""
+    of 4096²), scene.glb with the views as cameras and scene.usdc (`write_usd_scene`); returns the
+    map files written."""
     scene, channels, space = problem.scene, problem.channels, problem.space
     written, layers = [], {}
     for m in [m for m in MAP_NAMES if m in channels.maps]:
@@ -41,10 +43,30 @@ def write_map_files(out: Path, problem: Problem, texels: np.ndarray, trust: np.n
         if layer is not None:
             layers[m] = layer
         del pages
+    cameras = [(v.name, v.camera) for v in scene.views]
     gltf.write_gltf_images(out / "scene.glb", scene.mesh, space.layout.object_page,
-                             gltf.combine_material_layers(layers, space.layout.num_pages),
-                             [(v.name, v.camera) for v in scene.views])
-    return written
+                             gltf.combine_material_layers(layers, space.layout.num_pages), cameras)
+    return written + write_usd_scene(out, scene.mesh, space.layout.object_page, layers, cameras)
+
+
+def write_usd_scene(out: Path, mesh, object_page, layers: dict, cameras) -> list[Path]:
+    """scene.usdc (`usd.write_usd`) when usd-core is installed, else one log line saying how to get
+    it. Its materials read maps/' albedo, roughness and metallic PNGs and maps/normal_tangent
+    (.png, or /<page>.png), the tangent-space normal pages of scene.glb (`layers`, from
+    `gltf.material_layers`), written here; returns those."""
+    if not usd.usd_available():
+        logging.warning("scene.usdc not written: usd-core is not installed (%s writes it beside scene.glb)",
+                        usd.USD_INSTALL)
+        return []
+    stems = page_files.page_names(mesh.object_names, object_page)
+    png = lambda name: [page_files.page_file(out / "maps", name, stems, p, ".png") for p in range(len(stems))]
+    textures = {m: png(m) for m in layers if m != "normal"}
+    if "normal" in layers:
+        textures["normal"] = png("normal_tangent")
+        for path, page in zip(textures["normal"], layers["normal"]):
+            imageio.write_image(path, page.astype(np.float32) / 255.0, encode_srgb=False)
+    usd.write_usd(out / "scene.usdc", mesh, object_page, textures, cameras)
+    return list(textures.get("normal", []))
 
 
 def write_evidence(out: Path, problem: Problem, ctx: EvalContext, baseline: list[dict] | None) -> list[Path]:
@@ -102,7 +124,7 @@ def write_loss_plot(out: Path, problem: Problem, history: dict) -> None:
 
 def write_outputs(config: DistillConfig, problem: Problem, texels: np.ndarray, history: dict,
                   ctx: EvalContext, trust: np.ndarray, baseline: Baseline) -> dict:
-    """maps/, scene.glb, renders/, evidence/, loss.png, contact sheets; returns the metrics part
+    """maps/, scene.glb, scene.usdc, renders/, evidence/, loss.png, contact sheets; returns the metrics part
     of metrics.json. trust: (N,) each texel's weight in the exported pages (`texel_trust`);
     baseline: what the run is scored against (`scoring.per_view_baseline`)."""
     out = Path(config.out_dir)
