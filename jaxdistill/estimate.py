@@ -3,6 +3,7 @@
     python -m jaxdistill.estimate --prior_dir=RGBX_DIR (--scene=SCENE | --photo=FILE) --out_dir=OUT
         [--maps=albedo,normal,roughness,metallic,irradiance] [--steps=50] [--seed=0]
         [--views=all|NAME,NAME] [--dtype=float32|bfloat16] [--convert_cache=DIR]
+        [--mesh=FILE --exposure=auto --uv=auto --max_views=0 ...]   (the main job's dataset flags)
 
 Writes OUT/<map>/<view>.png in the encoding of our scene targets, so that a scene can list them
 as per-view targets for the `views` prior: albedo and irradiance sRGB-encoded (the model's
@@ -24,6 +25,8 @@ import numpy as np
 from absl import app, flags, logging
 from tqdm import tqdm
 
+from jaxdistill.datasets import ImportOptions
+from jaxdistill.engine import config as config_lib
 from jaxdistill.io import images as imageio
 from jaxdistill.errors import InputError
 from jaxdistill.models import convert, prior
@@ -32,20 +35,24 @@ from jaxdistill.models.tokenizer import MAP_PROMPTS
 FLAGS = flags.FLAGS
 
 
-def define_flags() -> None:
+def define_flags(fv: flags.FlagValues = FLAGS) -> None:
     """Declares this command's flags (only when run as a command, so that importing this module
     next to other commands, e.g. in tests, declares nothing)."""
-    flags.DEFINE_string("prior_dir", None, "RGB↔X folder in diffusers format (zheng95z/rgb-to-x)")
-    flags.DEFINE_string("scene", None, "scene.json (or its folder): estimate every view's photo")
-    flags.DEFINE_string("photo", None, "a single photo instead of a scene")
-    flags.DEFINE_string("out_dir", None, "output folder")
-    flags.DEFINE_list("maps", list(MAP_PROMPTS), "maps to estimate")
-    flags.DEFINE_integer("steps", 50, "DDIM steps (the authors' demo uses 50)")
-    flags.DEFINE_integer("seed", 0, "noise seed")
-    flags.DEFINE_list("views", ["all"], "view names, or 'all'")
-    flags.DEFINE_enum("dtype", "float32", ["float32", "bfloat16"], "activation dtype of the networks")
-    flags.DEFINE_string("convert_cache", None, "cache folder for converted weights (faster second load)")
-    flags.DEFINE_bool("allow_outside_paths", False, "let the scene file name files outside its folder")
+    flags.DEFINE_string("prior_dir", None, "RGB↔X folder in diffusers format (zheng95z/rgb-to-x)", flag_values=fv)
+    flags.DEFINE_string("scene", None, "scene.json (or its folder), or a dataset read directly as FORMAT:PATH "
+                        "(the main job's --scene): estimate every view's photo", flag_values=fv)
+    flags.DEFINE_string("photo", None, "a single photo instead of a scene", flag_values=fv)
+    flags.DEFINE_string("out_dir", None, "output folder", flag_values=fv)
+    flags.DEFINE_list("maps", list(MAP_PROMPTS), "maps to estimate", flag_values=fv)
+    flags.DEFINE_integer("steps", 50, "DDIM steps (the authors' demo uses 50)", flag_values=fv)
+    flags.DEFINE_integer("seed", 0, "noise seed", flag_values=fv)
+    flags.DEFINE_list("views", ["all"], "view names, or 'all'", flag_values=fv)
+    flags.DEFINE_enum("dtype", "float32", ["float32", "bfloat16"], "activation dtype of the networks",
+                      flag_values=fv)
+    flags.DEFINE_string("convert_cache", None, "cache folder for converted weights (faster second load)",
+                        flag_values=fv)
+    flags.DEFINE_bool("allow_outside_paths", False, "let the scene file name files outside its folder", flag_values=fv)
+    config_lib.define_dataset_flags(fv, main_module=True)   # listed by --helpshort with the rest
 
 
 @dataclasses.dataclass(frozen=True)
@@ -61,24 +68,26 @@ class EstimateConfig:
     dtype: str = "float32"
     convert_cache: str | None = None
     allow_outside_paths: bool = False
+    dataset: ImportOptions = ImportOptions()   # the dataset flags (--scene=FORMAT:PATH); allow_outside_paths: above
 
 
-def config_from_flags() -> EstimateConfig:
+def config_from_flags(fv: flags.FlagValues = FLAGS) -> EstimateConfig:
     """The frozen config, with errors naming the flag."""
     for name in ("prior_dir", "out_dir"):
-        if not getattr(FLAGS, name):
+        if not getattr(fv, name):
             raise InputError.single("flags", f"--{name}", "is required")
-    if bool(FLAGS.scene) == bool(FLAGS.photo):
+    if bool(fv.scene) == bool(fv.photo):
         raise InputError.single("flags", "--scene/--photo", "give exactly one of them")
-    bad = [m for m in FLAGS.maps if m not in MAP_PROMPTS]
+    bad = [m for m in fv.maps if m not in MAP_PROMPTS]
     if bad:
         raise InputError.single("flags", "--maps", f"unknown maps {bad}; choose from {list(MAP_PROMPTS)}")
-    if FLAGS.steps < 1:
-        raise InputError.single("flags", "--steps", f"must be ≥ 1, got {FLAGS.steps}")
-    return EstimateConfig(prior_dir=FLAGS.prior_dir, out_dir=FLAGS.out_dir, scene=FLAGS.scene, photo=FLAGS.photo,
-                          maps=tuple(FLAGS.maps), steps=FLAGS.steps, seed=FLAGS.seed, views=tuple(FLAGS.views),
-                          dtype=FLAGS.dtype, convert_cache=FLAGS.convert_cache,
-                          allow_outside_paths=FLAGS.allow_outside_paths)
+    if fv.steps < 1:
+        raise InputError.single("flags", "--steps", f"must be ≥ 1, got {fv.steps}")
+    return EstimateConfig(prior_dir=fv.prior_dir, out_dir=fv.out_dir, scene=fv.scene, photo=fv.photo,
+                          maps=tuple(fv.maps), steps=fv.steps, seed=fv.seed, views=tuple(fv.views),
+                          dtype=fv.dtype, convert_cache=fv.convert_cache,
+                          allow_outside_paths=fv.allow_outside_paths,
+                          dataset=config_lib.dataset_options(fv.scene, fv))
 
 
 def photos_to_estimate(cfg: EstimateConfig) -> list[tuple[str, Path, float]]:
@@ -88,9 +97,9 @@ def photos_to_estimate(cfg: EstimateConfig) -> list[tuple[str, Path, float]]:
         if not path.is_file():
             raise InputError.single("flags", "--photo", f"{path} not found")
         return [(path.stem, path, 0.0)]
-    from jaxdistill.datasets import ImportOptions, open_scene
+    from jaxdistill.datasets import open_scene
 
-    scene = open_scene(cfg.scene, ImportOptions(allow_outside_paths=cfg.allow_outside_paths))
+    scene = open_scene(cfg.scene, dataclasses.replace(cfg.dataset, allow_outside_paths=cfg.allow_outside_paths))
     views = [(v.name, v.photo, v.exposure) for v in scene.views]
     if cfg.views != ("all",):
         names = {n for n, _, _ in views}

@@ -2,6 +2,7 @@
 
     python -m jaxdistill.precompute --scene=DIR_OR_scene.json --out_dir=OUT [--texture_size=auto]
         [--max_texture_size=4096] [--sampler=bilinear|trilinear] [--tile_size=0] [--cache_dir=DIR]
+        [--mesh=FILE --exposure=auto --uv=auto --max_views=0 ...]   (the main job's dataset flags)
 
 Writes to OUT: `visibility/visibility_<page>_<object>.{exr,png}` (view counts V per texel, the
 thesis's Visibility Accumulation Map), `weights/<view>.png` (per-pixel loss weights W, x2 so
@@ -26,16 +27,27 @@ from jaxdistill.render.gather_plan import SAMPLERS, build_gather_plans, build_te
 from jaxdistill.render.layout import make_layout
 from jaxdistill.render.visibility import pixel_weights, view_counts, write_visibility_pages
 from jaxdistill.datasets import ImportOptions, open_scene
+from jaxdistill.engine import config as config_lib
 
 FLAGS = flags.FLAGS
-flags.DEFINE_string("scene", None, "scene.json or the folder holding it")
-flags.DEFINE_string("out_dir", None, "where to write visibility images and precompute.json")
-flags.DEFINE_string("texture_size", "auto", "page side (power of two) or 'auto' (from the closest view)")
-flags.DEFINE_integer("max_texture_size", 4096, "cap for --texture_size=auto")
-flags.DEFINE_enum("sampler", "bilinear", list(SAMPLERS), "texture sampler")
-flags.DEFINE_integer("tile_size", 0, "parameter tile side (power of two); 0 picks 1 (bilinear) or 16 (trilinear)")
-flags.DEFINE_string("cache_dir", None, "fragment cache (default $JAXDISTILL_CACHE or ~/.cache/jaxdistill)")
-flags.DEFINE_bool("allow_outside_paths", False, "let the scene file name files outside its folder")
+
+
+def define_flags(fv: flags.FlagValues = FLAGS) -> None:
+    """Declares this command's flags (only when run as a command, so that importing this module
+    next to other commands, e.g. in tests, declares nothing)."""
+    flags.DEFINE_string("scene", None, "scene.json or the folder holding it, or a dataset read directly as "
+                        "FORMAT:PATH (the main job's --scene)", flag_values=fv)
+    flags.DEFINE_string("out_dir", None, "where to write visibility images and precompute.json", flag_values=fv)
+    flags.DEFINE_string("texture_size", "auto", "page side (power of two) or 'auto' (from the closest view)",
+                        flag_values=fv)
+    flags.DEFINE_integer("max_texture_size", 4096, "cap for --texture_size=auto", flag_values=fv)
+    flags.DEFINE_enum("sampler", "bilinear", list(SAMPLERS), "texture sampler", flag_values=fv)
+    flags.DEFINE_integer("tile_size", 0, "parameter tile side (power of two); 0 picks 1 (bilinear) or 16 "
+                         "(trilinear)", flag_values=fv)
+    flags.DEFINE_string("cache_dir", None, "fragment cache (default $JAXDISTILL_CACHE or ~/.cache/jaxdistill)",
+                        flag_values=fv)
+    flags.DEFINE_bool("allow_outside_paths", False, "let the scene file name files outside its folder", flag_values=fv)
+    config_lib.define_dataset_flags(fv, main_module=True)   # listed by --helpshort with the rest
 
 
 @dataclasses.dataclass(frozen=True)
@@ -48,20 +60,22 @@ class PrecomputeConfig:
     tile_size: int = 0
     cache_dir: str | None = None
     allow_outside_paths: bool = False
+    dataset: ImportOptions = ImportOptions()   # the dataset flags (--scene=FORMAT:PATH); allow_outside_paths: above
 
 
-def config_from_flags() -> PrecomputeConfig:
+def config_from_flags(fv: flags.FlagValues = FLAGS) -> PrecomputeConfig:
     """The frozen config of this command, with flag errors that name the flag."""
     for name in ("scene", "out_dir"):
-        if not getattr(FLAGS, name):
+        if not getattr(fv, name):
             raise InputError.single("flags", f"--{name}", "is required")
-    size = FLAGS.texture_size
+    size = fv.texture_size
     if size != "auto" and not (size.isdigit() and int(size) > 0 and int(size) & (int(size) - 1) == 0):
         raise InputError.single("flags", "--texture_size", f"must be 'auto' or a power of two, got {size!r}")
-    return PrecomputeConfig(scene=FLAGS.scene, out_dir=FLAGS.out_dir, texture_size=size,
-                            max_texture_size=FLAGS.max_texture_size, sampler=FLAGS.sampler,
-                            tile_size=FLAGS.tile_size, cache_dir=FLAGS.cache_dir,
-                            allow_outside_paths=FLAGS.allow_outside_paths)
+    return PrecomputeConfig(scene=fv.scene, out_dir=fv.out_dir, texture_size=size,
+                            max_texture_size=fv.max_texture_size, sampler=fv.sampler,
+                            tile_size=fv.tile_size, cache_dir=fv.cache_dir,
+                            allow_outside_paths=fv.allow_outside_paths,
+                            dataset=config_lib.dataset_options(fv.scene, fv))
 
 
 def run(config: PrecomputeConfig) -> dict:
@@ -69,7 +83,8 @@ def run(config: PrecomputeConfig) -> dict:
     out = Path(config.out_dir)
     timings = {}
     start = time.perf_counter()
-    scene = open_scene(config.scene, ImportOptions(allow_outside_paths=config.allow_outside_paths))
+    options = dataclasses.replace(config.dataset, allow_outside_paths=config.allow_outside_paths)
+    scene = open_scene(config.scene, options)
     timings["read_scene_s"] = time.perf_counter() - start
     logging.info("scene %s: %d faces, %d objects, %d views", scene.name, scene.mesh.num_faces,
                  scene.num_objects, len(scene.views))
@@ -128,4 +143,5 @@ def main(argv):
 
 
 if __name__ == "__main__":
+    define_flags()
     app.run(main)

@@ -1,5 +1,5 @@
-"""Your own capture, end to end: the dataset flags of the main job and of `jaxdistill import`
-(every loader's mesh problem names a flag the command that printed it has), and imports that
+"""Your own capture, end to end: the dataset flags of the main job, of `jaxdistill import` and of
+estimate and precompute (every loader's mesh problem names a flag the command that printed it has), and imports that
 place the capture's files inside the scene folder (hard links, copies, symlinks, or none)."""
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from absl import flags
 
 import dataset_fixtures as fx
 from dataset_fixtures import cache, cams  # noqa: F401  (fixtures)
-from jaxdistill import import_scene
+from jaxdistill import estimate, import_scene, precompute
 from jaxdistill.engine import config as config_lib
 from jaxdistill.errors import InputError
 from jaxdistill.scene.model import save_mesh
@@ -47,6 +47,29 @@ def run_main_job(scene: str, out: Path, *extra: str) -> InputError | None:
     fv(["main", f"--scene={scene}", f"--out_dir={out}", "--prior=views", "--maps=albedo", *extra])
     try:
         build_problem(config_lib.config_from_flags(fv))
+    except InputError as err:
+        return err
+    return None
+
+
+def command_flag_values(command) -> flags.FlagValues:
+    """The flags of `python -m jaxdistill.estimate` or `.precompute` (`command`), as it declares them."""
+    fv = flags.FlagValues()
+    command.define_flags(fv)
+    return fv
+
+
+def run_command(command, scene: str, out: Path, *extra: str) -> InputError | None:
+    """estimate's or precompute's option path (flags -> config -> the scene read); the InputError
+    it stops with, or None (estimate stops before loading a model, precompute after its run)."""
+    fv = command_flag_values(command)
+    fv([command.__name__, f"--scene={scene}", f"--out_dir={out}", "--prior_dir=unused", *extra]
+       if command is estimate else [command.__name__, f"--scene={scene}", f"--out_dir={out}", *extra])
+    try:
+        if command is estimate:
+            estimate.photos_to_estimate(estimate.config_from_flags(fv))
+        else:
+            precompute.run(precompute.config_from_flags(fv))
     except InputError as err:
         return err
     return None
@@ -100,6 +123,11 @@ def test_every_loaders_mesh_problem_names_flags_of_the_command_that_printed_it(t
         assert code == 2 and expected in stderr, (fmt, extra, stderr)
         named = set(FLAG.findall(stderr))
         assert named and named <= import_flags, (fmt, extra, named - import_flags, stderr)
+        for command in (estimate, precompute):
+            err = run_command(command, f"{fmt}:{path}", tmp_path / f"{command.__name__}{i}", *extra)
+            assert err is not None and expected in str(err), (command.__name__, fmt, extra, err)
+            named, declared = set(FLAG.findall(str(err))), set(command_flag_values(command))
+            assert named and named <= declared, (command.__name__, fmt, extra, named - declared, str(err))
 
 
 def test_the_main_job_has_every_import_option_of_the_import_command():
@@ -111,6 +139,40 @@ def test_the_main_job_has_every_import_option_of_the_import_command():
     for name in config_lib.IMPORT_FLAGS:              # the same defaults in both commands
         assert getattr(defaults, name) == getattr(config_lib.ImportOptions(), name), name
         assert main_flag_values()[name].default == import_scene.build_parser().get_default(name), name
+        for command in (estimate, precompute):
+            assert command_flag_values(command)[name].default == main_flag_values()[name].default, name
+
+
+def test_estimate_and_precompute_pass_the_dataset_flags_to_the_loader(tmp_path, cams):
+    mesh = fx.write_mesh(tmp_path / "room.glb")
+    capture = f"nerfstudio:{fx.write_nerfstudio(tmp_path / 'ns', cams)}"
+    fv = command_flag_values(estimate)
+    fv(["estimate", f"--scene={capture}", f"--out_dir={tmp_path / 'est'}", "--prior_dir=unused", f"--mesh={mesh}",
+        "--max_views=2", "--exposure=1.5"])
+    config = estimate.config_from_flags(fv)
+    assert (config.dataset.mesh, config.dataset.max_views, config.dataset.exposure) == (str(mesh), 2, 1.5)
+    photos = estimate.photos_to_estimate(config)
+    assert len(photos) == 2 and {stops for _, _, stops in photos} == {1.5}
+    summary = precompute.run(precompute.config_from_flags(command_flag_values_of(
+        precompute, ["precompute", f"--scene={capture}", f"--out_dir={tmp_path / 'pre'}", f"--mesh={mesh}",
+                     "--max_views=2", "--texture_size=16"])))
+    assert summary["views"] == 2
+    for command, extra in ((estimate, ["--prior_dir=unused"]), (precompute, [])):
+        fv = command_flag_values_of(command, [command.__name__, "--scene=bedroom", f"--out_dir={tmp_path / 'x'}",
+                                              f"--mesh={mesh}", *extra])
+        with pytest.raises(InputError, match=r"--mesh: --mesh applies to --scene=FORMAT:PATH"):
+            command.config_from_flags(fv)
+        fv = command_flag_values_of(command, [command.__name__, f"--scene={capture}", f"--out_dir={tmp_path / 'x'}",
+                                              "--max_views=-1", *extra])
+        with pytest.raises(InputError, match=r"flags: --max_views: must be >= 0"):
+            command.config_from_flags(fv)
+
+
+def command_flag_values_of(command, argv: list[str]) -> flags.FlagValues:
+    """`command_flag_values` parsed from `argv`."""
+    fv = command_flag_values(command)
+    fv(argv)
+    return fv
 
 
 def test_dataset_flags_reach_the_loader_and_are_refused_for_a_scene_folder(tmp_path, cams):

@@ -11,7 +11,7 @@ import dataclasses
 import os
 import sys
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 from absl import flags
 
@@ -203,6 +203,16 @@ def define_flags(fv: flags.FlagValues = flags.FLAGS, *, main_module: bool = Fals
     flags.DEFINE_bool("allow_outside_paths", d.allow_outside_paths, "let scene files (scene.json, gt.json, "
                       "scene configs) name files outside their folder (../, absolute paths); off: refused, for "
                       "scenes from elsewhere", **where)
+    define_dataset_flags(fv, main_module=main_module)
+
+
+def define_dataset_flags(fv: flags.FlagValues = flags.FLAGS, *, main_module: bool = False) -> None:
+    """Declares the dataset flags (IMPORT_FLAGS: the loaders' options for --scene=FORMAT:PATH, as
+    `jaxdistill import` spells them) on `fv`, defaults ImportOptions'. The main job, estimate and
+    precompute declare them with this; `dataset_options` reads them back. `main_module` as in
+    `define_flags`."""
+    d = _IMPORT
+    where = {"flag_values": fv, "module_name": sys.argv[0]} if main_module else {"flag_values": fv}
     dataset = "--scene=FORMAT:PATH (a dataset read directly): "
     flags.DEFINE_string("mesh", d.mesh, dataset + "mesh file or scene config .json replacing the dataset's (nerfstudio "
                         "and colmap have none of their own)", **where)
@@ -313,19 +323,36 @@ def validate(config: DistillConfig) -> DistillConfig:
 
 
 def import_option_problems(c: DistillConfig, p: ProblemList) -> None:
-    """Adds a problem for each bad dataset flag (IMPORT_FLAGS), and for any of them set while
-    --scene is a scene folder, which names its own mesh and images (the flag would do nothing)."""
+    """`dataset_option_problems` of a run's config."""
+    dataset_option_problems(c.scene, c.as_dict(), p)
+
+
+def dataset_option_problems(scene: str | None, values: Mapping[str, Any], p: ProblemList) -> None:
+    """Adds a problem for each bad dataset flag (IMPORT_FLAGS) in `values` ({flag: value}), and for
+    any of them set while `scene` (--scene) is a scene folder, which names its own mesh and images
+    (the flag would do nothing)."""
     from jaxdistill.datasets import split_spec
 
     try:
-        import_options(c.as_dict())
+        import_options(values)
     except InputError as err:
         p.problems.extend(err.problems)
-    given = [f"--{name}" for name in IMPORT_FLAGS if getattr(c, name) != getattr(_IMPORT, name)]
-    if given and c.scene and split_spec(c.scene)[0] == "scene":
+    given = [f"--{name}" for name in IMPORT_FLAGS
+             if values.get(name, getattr(_IMPORT, name)) != getattr(_IMPORT, name)]
+    if given and scene and split_spec(scene)[0] == "scene":
         p.add("flags", given[0], f"{', '.join(given)} {'applies' if len(given) == 1 else 'apply'} to --scene=FORMAT:PATH (a dataset read directly), and "
-              f"--scene={c.scene} is a scene folder, which names its own mesh and images; leave them out here, or "
+              f"--scene={scene} is a scene folder, which names its own mesh and images; leave them out here, or "
               "import the dataset again with them (jaxdistill import)")
+
+
+def dataset_options(scene: str | None, fv: flags.FlagValues) -> ImportOptions:
+    """The loader options of a command's dataset flags (`define_dataset_flags`) and its
+    --allow_outside_paths on `fv`, for `scene` (--scene); InputError naming each bad flag."""
+    values = {name: fv[name].value for name in (*IMPORT_FLAGS, "allow_outside_paths")}
+    p = ProblemList()
+    dataset_option_problems(scene, values, p)
+    p.raise_if_any()
+    return import_options(values)
 
 
 def import_options(values) -> ImportOptions:
