@@ -16,6 +16,7 @@ import trimesh
 from jaxdistill import pipeline
 from jaxdistill.engine import config as config_lib
 from jaxdistill.engine.config import DistillConfig
+from jaxdistill.evaluate.summary import summary_table
 from jaxdistill.export import outputs, usd
 from jaxdistill.scene.model import read_scene
 from conftest import look_at_camera
@@ -60,6 +61,7 @@ def test_tiny_run_writes_a_stage_with_meshes_materials_and_cameras(tiny_run):
     mesh = scene.mesh
     stage = Usd.Stage.Open(str(out / "scene.usdc"))
     glb = trimesh.load(out / "scene.glb", force="scene")
+    assert "scene.usdc (the same in USD)" in summary_table({}, out)           # the run's end summary names it
     assert UsdGeom.GetStageUpAxis(stage) == UsdGeom.Tokens.y and UsdGeom.GetStageMetersPerUnit(stage) == 1.0
     assert stage.GetDefaultPrim().GetPath() == "/World"
 
