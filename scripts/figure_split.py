@@ -88,7 +88,7 @@ def main(argv=None) -> int:
         from PIL import Image
         Image.open(png).convert("RGB").save(args.out, quality=88)
         png.unlink()
-    doc = {"scene": args.scene, "runs": {label: str(folder) for label, folder in runs}, "views": picks,
+    doc = {"scene": args.scene, "runs": {label: folder.name for label, folder in runs}, "views": picks,
            "per_view": {label: dict(zip(names, v)) for label, v in leaks.items()},
            "mean": {label: float(np.nanmean(v)) for label, v in leaks.items()}}
     if args.json:
