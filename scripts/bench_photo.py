@@ -34,8 +34,10 @@ def child(args) -> dict:
 
     fv = flags.FlagValues()
     config_lib.define_flags(fv)
+    # without the term its smoothness flags go too (the config's are part of the term)
+    off = ["--irradiance_smoothness=0", "--albedo_smoothness=0"] if args.photo_weight == 0 else []
     fv(["bench", f"--flagfile={args.config}", "--out_dir=out/bench_photo", f"--photo_weight={args.photo_weight}",
-        f"--photo_size={args.photo_size}", f"--sampler={args.sampler}"])
+        f"--photo_size={args.photo_size}", f"--sampler={args.sampler}", *off])
     config = config_lib.config_from_flags(fv)
     t0 = time.perf_counter()
     problem = build_problem(config)
