@@ -1,6 +1,12 @@
 """Writes an LDR copy of a scene: photos as an 8-bit sRGB capture gives them, all else unchanged.
 
     python scripts/make_ldr_scene.py --scene=bedroom --out=data/bedroom_ldr
+    python scripts/make_ldr_scene.py --scene=bedroom --exposure_jitter=1 --white_balance_jitter=0.1 \
+        --out=data/bedroom_ldr_phone
+
+With --exposure_jitter / --white_balance_jitter each view also gets its own random exposure
+(uniform in ± stops) and white balance (per-channel log-gains of that standard deviation, their
+mean 0), as a phone's auto-exposure and auto white balance give them; ldr.json records each.
 
 Each view's photo becomes sRGB(clip(linear photo x 2**exposure, 0, 1)) in an 8-bit PNG with
 `exposure` 0 (`jaxdistill.datasets.ldr.write_ldr_scene`); the mesh, masks, targets,
@@ -28,10 +34,17 @@ def main(argv=None) -> int:
     parser.add_argument("--out", type=Path, required=True, help="new or empty folder for the copy")
     parser.add_argument("--allow_outside_paths", action="store_true",
                         help="read a scene naming files outside its folder (they are copied under external/)")
+    parser.add_argument("--exposure_jitter", type=float, default=0.0,
+                        help="each view's exposure offset is uniform in +- this many stops (auto-exposure)")
+    parser.add_argument("--white_balance_jitter", type=float, default=0.0,
+                        help="standard deviation of each view's per-channel log-gains (auto white balance)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the per-view exposure and white balance")
     args = parser.parse_args(argv)
     try:
         source = resolve_scene_path(args.scene)
-        path = write_ldr_scene(source, args.out, allow_outside_paths=args.allow_outside_paths)
+        path = write_ldr_scene(source, args.out, allow_outside_paths=args.allow_outside_paths,
+                               exposure_jitter=args.exposure_jitter, white_balance_jitter=args.white_balance_jitter,
+                               seed=args.seed)
         scene = read_scene(path)
         gt = read_ground_truth(scene)
     except (InputError, ValueError) as err:

@@ -71,3 +71,34 @@ def test_ldr_copy_refuses_a_folder_in_use(tiny, tmp_path):
     (out / "x.txt").write_text("x")
     with pytest.raises(ValueError, match="not empty"):
         write_ldr_scene(tiny, out)
+
+
+def test_jittered_ldr_copy_applies_each_views_recorded_exposure_and_white_balance(tiny, tmp_path):
+    out = tmp_path / "phone"
+    write_ldr_scene(tiny, out, exposure_jitter=1.0, white_balance_jitter=0.1, seed=3)
+    record = json.loads((out / "ldr.json").read_text())
+    assert record["exposure_jitter"] == 1.0 and record["white_balance_jitter"] == 0.1 and record["seed"] == 3
+    source, copy = read_scene(tiny), read_scene(out)
+    offsets = []
+    for a, b in zip(source.views, copy.views):
+        entry = record["views"][a.name]
+        offset, balance = entry["exposure_offset"], np.asarray(entry["white_balance"])
+        assert -1.0 <= offset <= 1.0
+        assert np.prod(balance) == pytest.approx(1.0, rel=1e-5)           # a cast, not a brightness change
+        assert np.abs(np.log(balance)).max() > 1e-3
+        offsets.append(offset)
+        linear = imageio.read_image(a.photo)[..., :3].astype(np.float64) * balance
+        want = srgb_codes(linear, a.exposure + offset)
+        got = np.round(imageio.read_image(b.photo, linear=False)[..., :3] * 255.0)
+        assert np.abs(got - want).max() <= 1
+        assert np.mean(got == want) > 0.999
+    assert len(set(offsets)) == len(offsets)                               # each view its own exposure
+    again = tmp_path / "phone_again"
+    write_ldr_scene(tiny, again, exposure_jitter=1.0, white_balance_jitter=0.1, seed=3)
+    assert json.loads((again / "ldr.json").read_text())["views"] == record["views"]   # the seed decides
+
+
+@pytest.mark.parametrize("field", ["exposure_jitter", "white_balance_jitter"])
+def test_ldr_copy_refuses_a_negative_jitter(tiny, tmp_path, field):
+    with pytest.raises(ValueError, match=field):
+        write_ldr_scene(tiny, tmp_path / "x", **{field: -0.5})
