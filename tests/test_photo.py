@@ -54,9 +54,14 @@ def numpy_photo_loss(images, photo, weights, *, loss, space, scale, ratio):
     p = np.asarray(photo, np.float64)
     eps = 0.01
     total = 0.0
-    groups = [slice(i, i + 1) for i in range(p.shape[0])] if scale == "view" else [slice(None)]
+    if scale == "view":
+        groups = [(slice(i, i + 1),) for i in range(p.shape[0])]
+    elif scale == "view_rgb":      # one gain per view and colour channel
+        groups = [(slice(i, i + 1), Ellipsis, slice(c, c + 1)) for i in range(p.shape[0]) for c in range(3)]
+    else:
+        groups = [(slice(None),)]
     for g in groups:
-        ww = np.broadcast_to(w[g][..., None], p[g].shape)
+        ww = np.broadcast_to(w[..., None], p.shape)[g]
         if scale == "none":
             log_s = 0.0
         elif space == "log":       # the root of Σ w (log(p + eps) − log(s d + eps)) = 0, by bisection
@@ -78,7 +83,8 @@ def numpy_photo_loss(images, photo, weights, *, loss, space, scale, ratio):
 
 
 @pytest.mark.parametrize("space,loss,scale", [("log", "charbonnier", "batch"), ("linear", "l2", "view"),
-                                              ("log", "l2", "none"), ("linear", "charbonnier", "batch")])
+                                              ("log", "l2", "none"), ("linear", "charbonnier", "batch"),
+                                              ("log", "charbonnier", "view_rgb"), ("linear", "l2", "view_rgb")])
 def test_the_photo_loss_is_the_documented_formula(space, loss, scale):
     rng = np.random.default_rng(3)
     b, h, w = 3, 5, 7
@@ -106,6 +112,38 @@ def test_a_photo_that_is_the_product_scaled_costs_nothing_with_a_fitted_scale():
                                           loss="l2", space=space, scale="batch", pixel_ratio=1.0)
         assert float(value) < 1e-8
         assert_close(float(metrics["photo_log_scale"]), np.log(3.0), rtol=1e-4)
+
+
+def test_a_per_view_white_balance_and_exposure_cost_nothing_with_view_rgb_alone():
+    """Each view's photo is the product times its own RGB gain (auto-exposure and white balance):
+    view_rgb recovers every gain and the loss is 0; one scale per view or batch cannot."""
+    rng = np.random.default_rng(1)
+    images = {"albedo": jnp.asarray(rng.uniform(-0.8, 0.8, (3, 6, 5, 3)), jnp.float32),
+              "irradiance": jnp.asarray(rng.uniform(-0.8, 0.8, (3, 6, 5, 3)), jnp.float32)}
+    gains = np.exp(rng.normal(0.0, 0.4, (3, 1, 1, 3)))
+    photo_img = gains * np.asarray(photo.diffuse_photo(images))
+    ones, hit = jnp.ones((3, 6, 5)), jnp.ones((3, 6, 5), bool)
+    for space in photo.PHOTO_SPACES:
+        losses = {}
+        for scale in ("view_rgb", "view", "batch"):
+            losses[scale], metrics = photo.photo_loss(images, jnp.asarray(photo_img, jnp.float32), ones, hit,
+                                                      loss="l2", space=space, scale=scale, pixel_ratio=1.0)
+        assert float(losses["view_rgb"]) < 1e-8
+        assert float(losses["view"]) > 1e3 * max(float(losses["view_rgb"]), 1e-10)
+        assert float(losses["batch"]) >= float(losses["view"])
+        log_s = photo.log_scale(jnp.asarray(photo_img, jnp.float32), photo.diffuse_photo(images), ones,
+                                "view_rgb", space)
+        assert log_s.shape == (3, 1, 1, 3)
+        assert_close(np.asarray(log_s), np.log(gains), rtol=1e-3)
+
+
+def test_photo_scale_auto_is_per_view_and_channel_for_ldr_photos_and_per_batch_for_hdr():
+    assert photo.resolve_scale("auto", ldr=True) == "view_rgb"
+    assert photo.resolve_scale("auto", ldr=False) == "batch"
+    for mode in ("batch", "view", "view_rgb", "none"):
+        assert photo.resolve_scale(mode, ldr=True) == photo.resolve_scale(mode, ldr=False) == mode
+    with pytest.raises(ValueError, match="not resolved"):
+        photo.log_scale(jnp.ones((1, 2, 2, 3)), jnp.ones((1, 2, 2, 3)), jnp.ones((1, 2, 2)), "auto", "log")
 
 
 def test_the_smoothness_term_counts_only_pairs_of_covered_pixels():
@@ -260,6 +298,20 @@ def test_photo_weight_zero_is_todays_step_exactly(tiny_scene, tmp_path):
     a = np.load(tmp_path / "a" / "texel_space.npz")
     b = np.load(tmp_path / "b" / "texel_space.npz")
     assert all(np.array_equal(a[k], b[k]) for k in a.files if k != "config")
+
+
+def test_the_photo_scale_auto_resolves_by_the_scenes_photos(tiny_scene, tmp_path):
+    """HDR photos (the tiny scene's EXRs) get one scale per batch; an LDR copy of the scene
+    (PNGs, a phone's per-shot exposure and white balance) a gain per view and channel."""
+    from jaxdistill.datasets.ldr import write_ldr_scene
+    config, problem = photo_problem(tiny_scene, tmp_path / "hdr")
+    assert config.photo_scale == "auto" and problem.photos.scale == "batch"
+    assert loop.step_settings(config, problem).photo_scale == "batch"
+    write_ldr_scene(tiny_scene, tmp_path / "ldr_scene", exposure_jitter=1.0, white_balance_jitter=0.1)
+    config, problem = photo_problem(tmp_path / "ldr_scene", tmp_path / "ldr")
+    assert problem.photos.scale == "view_rgb" and loop.step_settings(config, problem).photo_scale == "view_rgb"
+    config, problem = photo_problem(tmp_path / "ldr_scene", tmp_path / "ldr_view", photo_scale="view")
+    assert problem.photos.scale == "view"
 
 
 def test_a_run_with_the_term_explains_its_photos_better_and_says_so(tiny_scene, tmp_path):

@@ -76,7 +76,7 @@ class DistillConfig:
     photo_size: int = 0
     photo_space: str = "log"
     photo_loss: str = "charbonnier"
-    photo_scale: str = "batch"
+    photo_scale: str = "auto"
     irradiance_smoothness: float = 0.0
     irradiance_sds_weight: float = 1.0
     albedo_smoothness: float = 0.0
@@ -169,8 +169,9 @@ def define_flags(fv: flags.FlagValues = flags.FLAGS, *, main_module: bool = Fals
     flags.DEFINE_enum("photo_loss", d.photo_loss, PHOTO_LOSSES, "penalty of the re-rendering residual: charbonnier "
                       "(robust to highlights and noise) or l2", **where)
     flags.DEFINE_enum("photo_scale", d.photo_scale, PHOTO_SCALES, "the photos' scale against albedo x irradiance: "
-                      "fitted per batch, per view (auto-exposed captures) or none (irradiance in the exposed "
-                      "photo's units)", **where)
+                      "fitted per batch, per view (auto-exposure), per view and colour channel (view_rgb: "
+                      "auto-exposure and white balance) or none (irradiance in the exposed photo's units); auto: "
+                      "view_rgb for LDR photos (PNG/JPG), batch for HDR", **where)
     flags.DEFINE_float("irradiance_smoothness", d.irradiance_smoothness, "weight of a penalty on log-irradiance "
                        "differences between neighbouring pixels of the re-rendered photos (with --photo_weight > 0)",
                        **where)

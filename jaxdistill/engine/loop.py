@@ -38,7 +38,8 @@ class NonFiniteLoss(RuntimeError):
 def step_settings(config: DistillConfig, problem: Problem) -> StepSettings:
     """The step's static settings for this problem (`StepSettings.from_config`)."""
     return StepSettings.from_config(config, problem.channels, problem.height, problem.width,
-                                    problem.prior.num_train_timesteps, problem.photo_shape)
+                                    problem.prior.num_train_timesteps, problem.photo_shape,
+                                    problem.photos.scale if problem.photos is not None else None)
 
 
 def batch_views(problem: Problem, config: DistillConfig, step: int) -> np.ndarray:

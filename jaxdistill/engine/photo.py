@@ -15,7 +15,10 @@ colour comes from reflections, not from albedo x irradiance, so metal pixels dro
 pulling metallic towards 0), ρ the Charbonnier penalty sqrt(r² + δ²) − δ (robust to the
 highlights and the path-tracing noise no diffuse product explains) or the square, and s the
 photo's scale against the maps: the least-squares value given the current maps (held fixed,
-closed form) over the batch, per view (auto-exposed LDR captures), or 1. A free scale leaves the
+closed form) over the batch, per view (a camera's auto-exposure), per view and colour channel
+(auto-exposure and auto white balance: s is then an RGB gain), or 1. `resolve_scale` turns
+"auto" into "view_rgb" for scenes with LDR photos (phones and consumer cameras set exposure and
+white balance per shot) and "batch" for HDR photos (one known exposure). A free scale leaves the
 maps' overall brightness to the prior, as RGB<->X's irradiance has no absolute unit. The factor
 H·W / (Hp·Wp) gives one photo the pixel budget of one map of the prior's renders, so
 --photo_weight=1 weighs the photo like one distilled map.
@@ -38,7 +41,7 @@ PHOTO_EPS = 0.01            # log(x + eps): relative errors above eps, absolute 
 CHARBONNIER_DELTA = 0.05    # ρ is quadratic below this residual, linear above
 PHOTO_SPACES = ("log", "linear")
 PHOTO_LOSSES = ("charbonnier", "l2")
-PHOTO_SCALES = ("batch", "view", "none")
+PHOTO_SCALES = ("auto", "batch", "view", "view_rgb", "none")
 
 
 def penalty(r, loss: str):
@@ -68,14 +71,25 @@ def pixel_weights(images: dict, weights) -> jax.Array:
 SCALE_ITERATIONS = 4        # fixed-point steps of the log-space scale (each shrinks its error by Σ w·eps/(s·d + eps) / Σ w)
 
 
+def resolve_scale(mode: str, ldr: bool) -> str:
+    """The photo scale a run uses: `mode`, or for "auto" "view_rgb" when the photos are LDR
+    (per-shot exposure and white balance) and "batch" when they are HDR."""
+    if mode != "auto":
+        return mode
+    return "view_rgb" if ldr else "batch"
+
+
 def log_scale(photo, rendered, weights, mode: str, space: str) -> jax.Array:
     """(B, 1, 1, 1) log s, the photo's scale against the rendered image (held fixed): the weighted
-    least-squares value over the batch ("batch") or per view ("view"), or 0 ("none"). In log space
+    least-squares value over the batch ("batch") or per view ("view"), or 0 ("none"); (B, 1, 1, 3)
+    per view and channel ("view_rgb"). In log space
     it solves Σ w (log(photo + eps) − log(s·d + eps)) = 0 by fixed-point steps from the ratio of
     the means; in linear space s = Σ w·photo·d / Σ w·d²."""
     if mode == "none":
         return jnp.zeros((photo.shape[0], 1, 1, 1), jnp.float32)
-    axes = (1, 2, 3) if mode == "view" else (0, 1, 2, 3)
+    if mode not in ("batch", "view", "view_rgb"):
+        raise ValueError(f"photo scale {mode!r} is not resolved: one of batch, view, view_rgb, none")
+    axes = {"batch": (0, 1, 2, 3), "view": (1, 2, 3), "view_rgb": (1, 2)}[mode]
     w = jnp.broadcast_to(weights[..., None], photo.shape)
     if space == "log":
         total = jnp.maximum(jnp.sum(w, axis=axes, keepdims=True), 1e-12)
@@ -88,7 +102,7 @@ def log_scale(photo, rendered, weights, mode: str, space: str) -> jax.Array:
         num = jnp.sum(w * photo * rendered, axis=axes, keepdims=True)
         den = jnp.sum(w * rendered * rendered, axis=axes, keepdims=True)
         value = jnp.log(jnp.maximum(num, 1e-12) / jnp.maximum(den, 1e-12))
-    value = jnp.broadcast_to(value, (photo.shape[0], 1, 1, 1))
+    value = jnp.broadcast_to(value, (photo.shape[0], 1, 1, value.shape[-1]))
     return jax.lax.stop_gradient(value)
 
 

@@ -120,7 +120,8 @@ class PhotoData:
     index (V, P, T) int32, weight (V, P, T) float32, hit (V, P) bool; photos (V, H, W, 3) float32
     linear and exposed; pixel_weight (V, H, W) float32: the visibility weights times the view's
     mask times the photo's usable pixels; guide (V, H, W, 2) float32 the photos' `chroma_guide`
-    (--albedo_smoothness > 0) or None."""
+    (--albedo_smoothness > 0) or None; scale the photo scale --photo_scale resolved to
+    (`photo.resolve_scale`: "auto" by whether the photos are LDR)."""
 
     height: int
     width: int
@@ -130,6 +131,7 @@ class PhotoData:
     photos: np.ndarray
     pixel_weight: np.ndarray
     guide: np.ndarray | None = None
+    scale: str = "batch"
 
     def batch(self, ids: np.ndarray) -> dict:
         out = {"photo_index": self.index[ids], "photo_tap_weight": self.weight[ids], "photo_hit": self.hit[ids],
@@ -398,8 +400,13 @@ def _photo_data(config: DistillConfig, scene: Scene, photo_frags, space: TexelSp
         weights[v] *= usable
         if guide is not None:
             guide[v] = photo_lib.chroma_guide(photos[v], usable)
+    ldr = any(not imageio.is_linear_format(view.photo) for view in scene.views)
+    scale = photo_lib.resolve_scale(config.photo_scale, ldr)
+    if scale != config.photo_scale:
+        print(f"--photo_scale=auto: {scale} ({'LDR' if ldr else 'HDR'} photos: "
+              f"{'a gain per view and colour channel, their exposure and white balance' if ldr else 'one scale per batch, their exposure known'})")
     return PhotoData(height=height, width=width, index=np.asarray(plan.index), weight=np.asarray(plan.weight),
-                     hit=np.asarray(plan.hit), photos=photos, pixel_weight=weights, guide=guide)
+                     hit=np.asarray(plan.hit), photos=photos, pixel_weight=weights, guide=guide, scale=scale)
 
 
 def initial_file_values(maps: Sequence[str]) -> dict[str, float]:

@@ -85,11 +85,14 @@ class StepSettings:
 
     @classmethod
     def from_config(cls, config: DistillConfig, channels: MapChannels, height: int, width: int,
-                    num_train_timesteps: int, photo_shape: tuple[int, int] = (0, 0)) -> "StepSettings":
+                    num_train_timesteps: int, photo_shape: tuple[int, int] = (0, 0),
+                    photo_scale: str | None = None) -> "StepSettings":
         """The step's settings: every field the config shares by name, plus the problem's shapes
-        (renders; photos for the re-rendering term) and the prior's number of diffusion timesteps
-        (`Prior.num_train_timesteps`)."""
+        (renders; photos for the re-rendering term), the photo scale --photo_scale resolved to
+        (`PhotoData.scale`; "auto" alone resolves as HDR) and the prior's number of diffusion
+        timesteps (`Prior.num_train_timesteps`)."""
         shared = {f.name: getattr(config, f.name) for f in dataclasses.fields(cls) if hasattr(config, f.name)}
+        shared["photo_scale"] = photo_lib.resolve_scale(photo_scale or config.photo_scale, ldr=False)
         return cls(channels=channels, height=height, width=width, total_steps=config.steps,
                    num_train_timesteps=num_train_timesteps, photo_height=photo_shape[0], photo_width=photo_shape[1],
                    **shared)
