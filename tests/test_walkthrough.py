@@ -88,7 +88,7 @@ def environment(rgbx_dir: Path, jax_cache: Path) -> dict[str, str]:
 
 
 def run(text: str, cwd: Path, env: dict[str, str]) -> str:
-    done = subprocess.run(["bash", "-c", text], cwd=cwd, env=env, capture_output=True, text=True, timeout=300)
+    done = subprocess.run(["bash", "-c", text], cwd=cwd, env=env, capture_output=True, text=True, timeout=900)   # a hang guard, not a speed test
     assert done.returncode == 0, f"exit {done.returncode}:\n{text}\n{done.stdout[-3000:]}\n{done.stderr[-5000:]}"
     return done.stdout + done.stderr
 
