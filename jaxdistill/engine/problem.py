@@ -403,8 +403,8 @@ def _photo_data(config: DistillConfig, scene: Scene, photo_frags, space: TexelSp
     ldr = any(not imageio.is_linear_format(view.photo) for view in scene.views)
     scale = photo_lib.resolve_scale(config.photo_scale, ldr)
     if scale != config.photo_scale:
-        print(f"--photo_scale=auto: {scale} ({'LDR' if ldr else 'HDR'} photos: "
-              f"{'a gain per view and colour channel, their exposure and white balance' if ldr else 'one scale per batch, their exposure known'})")
+        logging.info("--photo_scale=auto: %s (%s)", scale, "LDR photos: a gain per view and colour channel, their "
+                     "exposure and white balance" if ldr else "HDR photos: one scale per batch, their exposure known")
     return PhotoData(height=height, width=width, index=np.asarray(plan.index), weight=np.asarray(plan.weight),
                      hit=np.asarray(plan.hit), photos=photos, pixel_weight=weights, guide=guide, scale=scale)
 
