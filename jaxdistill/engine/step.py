@@ -76,7 +76,7 @@ class StepSettings:
     photo_weight: float = 0.0          # the re-rendering term (photo.py); 0: off, nothing of it is traced
     photo_space: str = DistillConfig.photo_space
     photo_loss: str = DistillConfig.photo_loss
-    photo_scale: str = DistillConfig.photo_scale
+    photo_scale: str = "batch"          # resolved (photo.resolve_scale: from_config turns "auto" into a mode)
     irradiance_smoothness: float = 0.0
     irradiance_sds_weight: float = 1.0    # scales the irradiance map's SDS term (1: untouched, not traced)
     albedo_smoothness: float = 0.0         # the photo-guided albedo smoothness (photo.py); needs batch["photo_guide"]
