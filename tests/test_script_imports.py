@@ -1,6 +1,6 @@
 """Library code lives in the package: no file of scripts/ or jaxdistill/ imports from tests/, no
-script imports another script, and tests reach scripts only as command lines, but for the two
-listed below that test a script's own code (not library code) by loading the script."""
+script imports another script, and tests reach scripts only as command lines, but for the
+tests listed below that test a script's own code (not library code) by loading the script."""
 
 from __future__ import annotations
 
@@ -11,7 +11,8 @@ REPO = Path(__file__).resolve().parents[1]
 SCRIPTS = {p.stem for p in (REPO / "scripts").glob("*.py")}
 TEST_MODULES = {p.stem for p in (REPO / "tests").glob("*.py")}
 # tests that load a script to test that script's own code (its objects, generation, checks)
-LOADS_ITS_SCRIPT = {"test_bedroom.py": "make_bedroom", "test_room_scene.py": "make_room_scene"}
+LOADS_ITS_SCRIPT = {"test_bedroom.py": "make_bedroom", "test_room_scene.py": "make_room_scene",
+                    "test_photo_light_scale.py": "photo_light_scale"}
 
 
 def imported_names(path: Path) -> set[str]:
