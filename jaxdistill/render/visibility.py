@@ -93,13 +93,13 @@ def texel_view_statistics(plan: GatherPlan, images: Sequence[np.ndarray],
     second = np.zeros((num_texels, channels), np.float64)
     for v, image in enumerate(images):
         view = plan.select(v)
-        weight = np.asarray(_evidence(view, zeros_1), np.float64)
-        value = np.asarray(_splat(view, jnp.asarray(image, jnp.float32), zeros), np.float64)
-        seen = weight > 0
-        mean = np.where(seen[:, None], value / np.where(seen, weight, 1.0)[:, None], 0.0)
-        count += seen
-        first += mean
-        second += mean ** 2
+        weight = np.asarray(_evidence(view, zeros_1))
+        seen = np.flatnonzero(weight > 0)              # a view reads a small share of the texels
+        value = np.asarray(_splat(view, jnp.asarray(image, jnp.float32), zeros))[seen].astype(np.float64)
+        mean = value / weight[seen].astype(np.float64)[:, None]
+        count[seen] += 1
+        first[seen] += mean
+        second[seen] += mean ** 2
     views = np.maximum(count, 1)[:, None]
     mean = first / views
     return count, mean.astype(np.float32), np.maximum(second / views - mean ** 2, 0.0).astype(np.float32)
