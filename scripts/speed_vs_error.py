@@ -178,10 +178,11 @@ def base_config(args, out_dir: str):
     config = config_lib.config_from_flags(fv)
     # the views prior at the photos' size and 32 views per step, as this sweep was measured (bedroom.cfg
     # now renders at 128 with 16 views per step, the shipped rgbx model's setting)
-    # and without the re-rendering term (bedroom.cfg now has it; this sweep measured the distillation alone)
+    # and without the re-rendering term (bedroom.cfg now has it; this sweep measured the distillation alone);
+    # x̂0 reuse is the rgbx prior's (bedroom.cfg's --reuse_steps=2), the views prior refuses it
     changes = dict(out_dir=out_dir, maps=tuple(args.maps.split(",")), prior="views", eval_every=0, ckpt_every=0,
                    renders=False, contact_views=0, resume=False, render_size=0, views_per_step=32,
-                   photo_weight=0.0, irradiance_smoothness=0.0, albedo_smoothness=0.0)
+                   photo_weight=0.0, irradiance_smoothness=0.0, albedo_smoothness=0.0, reuse_steps=1)
     if args.scene:
         changes["scene"] = args.scene
     if args.quick:
