@@ -177,7 +177,7 @@ def base_config(args, out_dir: str):
     fv(["speed_vs_error", f"--flagfile={Path(args.config).resolve()}"])
     config = config_lib.config_from_flags(fv)
     # the views prior at the photos' size and 32 views per step, as this sweep was measured (bedroom.cfg
-    # now renders at 128 with 16 views per step, the shipped rgbx model's setting)
+    # now renders at 128 with 8 views per step, the shipped rgbx model's setting)
     # and without the re-rendering term (bedroom.cfg now has it; this sweep measured the distillation alone);
     # x̂0 reuse is the rgbx prior's (bedroom.cfg's --reuse_steps=2), the views prior refuses it
     changes = dict(out_dir=out_dir, maps=tuple(args.maps.split(",")), prior="views", eval_every=0, ckpt_every=0,
