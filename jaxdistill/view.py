@@ -15,6 +15,7 @@ import importlib.util
 import socket
 import sys
 import threading
+import zipfile
 from pathlib import Path
 
 from jaxdistill.errors import InputError
@@ -90,7 +91,7 @@ class Follower:
             except InputError as err:
                 print(f"jaxdistill view: {err}", file=sys.stderr)
                 return
-            except (OSError, EOFError, ValueError, KeyError) as err:      # a file caught mid-write: try again
+            except (OSError, EOFError, ValueError, KeyError, zipfile.BadZipFile) as err:   # a file caught mid-copy: retry
                 print(f"jaxdistill view: not ready yet ({err}); retrying", file=sys.stderr)
         print(f"jaxdistill view: following the run at {self.url}", file=sys.stderr, flush=True)
         self.viewer.follow(self.stopping, self.interval)

@@ -309,6 +309,9 @@ def test_the_follower_serves_once_the_run_has_written_its_texel_space(smoke_run,
     try:
         time.sleep(1.0)
         assert follower.viewer is None and follower.thread.is_alive()          # waits for the run's set-up
+        (out / "texel_space.npz").write_bytes((smoke_run / "texel_space.npz").read_bytes()[:200])
+        time.sleep(1.5)                                    # a copy caught mid-write (not a zip yet): retried
+        assert follower.viewer is None and follower.thread.is_alive()
         shutil.copytree(smoke_run, out, dirs_exist_ok=True, ignore=shutil.ignore_patterns("metrics.json"))
         end = time.monotonic() + 60
         while (follower.viewer is None or follower.viewer.snapshot.source != "checkpoint of step 20") and \
