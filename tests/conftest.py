@@ -3,8 +3,20 @@
 from __future__ import annotations
 
 import os
+import shutil
+import tempfile
+from pathlib import Path
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
+# One persistent XLA compilation cache for the whole run, its workers and the main jobs they start
+# as subprocesses: the tests compile the same small programs many times over (every pipeline.run
+# jits its own closures; every subprocess starts cold). Set here, before jax is imported; the
+# controller's folder is inherited by the xdist workers, and removed when the run ends. A cache of
+# one's own (JAX_COMPILATION_CACHE_DIR set) is used as it is and left alone.
+_OWN_XLA_CACHE = "JAX_COMPILATION_CACHE_DIR" not in os.environ
+if _OWN_XLA_CACHE:
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = tempfile.mkdtemp(prefix="jaxdistill-tests-xla-")
+    os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.2")
 
 import numpy as np
 import pytest
@@ -18,6 +30,11 @@ from jaxdistill.scene import cameras
 # them, instead of one of them running alone at the end.
 SLOW_MODULES = ("test_train_rgbx.py", "test_view.py", "test_prepare_scene.py", "test_smoke_outputs.py", "test_main.py",
                 "test_photo.py", "test_walkthrough.py")
+
+
+def pytest_sessionfinish(session, exitstatus):
+    if _OWN_XLA_CACHE and not hasattr(session.config, "workerinput"):         # the controller, or a run without -n
+        shutil.rmtree(Path(os.environ["JAX_COMPILATION_CACHE_DIR"]), ignore_errors=True)
 
 
 def pytest_collection_modifyitems(config, items):

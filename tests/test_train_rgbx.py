@@ -25,10 +25,17 @@ from jaxdistill.models.unet import UNet2DCondition, UNetConfig  # noqa: E402
 from jaxdistill.models.vae import AutoencoderKL, VAEConfig  # noqa: E402
 from tiny_rgbx import nchw, nhwc, rel_err  # noqa: E402
 
-TINY_VAE = dict(recipe.VAE, block_out_channels=(8, 16, 16, 16), norm_num_groups=8)
-TINY_UNET = dict(recipe.UNET, block_out_channels=(8, 16, 16, 16), norm_num_groups=8, attention_head_dim=(2, 2, 4, 4),
-                 cross_attention_dim=16)
-TINY_TEXT = dict(recipe.TEXT, hidden_size=16, intermediate_size=32, num_attention_heads=2, projection_dim=16)
+# two blocks each (a VAE of factor 2; one UNet level with cross-attention, one without), one text
+# layer: every kind of block the recipe has, at a fraction of its compile time. The recipe's own four
+# blocks go through the same export in tests/test_shipped_model.py (diffusers and transformers
+# read the shipped folder to our networks).
+TINY_VAE = dict(recipe.VAE, block_out_channels=(8, 16), down_block_types=("DownEncoderBlock2D",) * 2,
+                up_block_types=("UpDecoderBlock2D",) * 2, norm_num_groups=8)
+TINY_UNET = dict(recipe.UNET, block_out_channels=(8, 16), norm_num_groups=8, attention_head_dim=(2, 2),
+                 cross_attention_dim=16, down_block_types=("CrossAttnDownBlock2D", "DownBlock2D"),
+                 up_block_types=("UpBlock2D", "CrossAttnUpBlock2D"))
+TINY_TEXT = dict(recipe.TEXT, hidden_size=16, intermediate_size=32, num_attention_heads=2, projection_dim=16,
+                 num_hidden_layers=1)
 
 
 def random_params(module, key, *inputs):

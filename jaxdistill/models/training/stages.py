@@ -43,6 +43,10 @@ def run_stage(name: str, work: Path, state, step_fn, batch_fn, steps: int, ckpt_
         start = store.latest_step() or 0
         if start:
             state, _ = store.restore(start, state)
+            # restored arrays are committed to a device, a fresh state's are not: as host copies
+            # the step sees the same arguments either way and compiles the same program (a
+            # persistent compilation cache then serves a resumed run)
+            state = jax.tree.map(lambda x: jax.numpy.asarray(np.asarray(x)), state)
             print(f"{name}: resumed at step {start} of {steps}")
         if start >= steps:
             return state
