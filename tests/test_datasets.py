@@ -264,7 +264,7 @@ def test_main_job_runs_on_a_fipt_dataset_directly_and_scores_its_image_ground_tr
     config = config_lib.validate(DistillConfig(scene=f"fipt:{root}", out_dir=str(tmp_path / "run"), steps=2,
                                                views_per_step=1, prior="rgbx", rgbx_dir=str(rgbx_dir),
                                                maps=("albedo", "roughness"), renders=False, eval_every=0,
-                                               contact_views=1))
+                                               contact_views=1, estimate_steps=4))
     problem = build_problem(config)
     assert (problem.pixel_weight[:, :4, :5] == 0).all()              # the emitter corner is out of the loss
     pipeline.run(config, progress=False)

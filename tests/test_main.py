@@ -250,7 +250,8 @@ def test_bad_flags_are_named_before_any_compute():
     for flag in ("--p_keep", "--maps", "--t_min/--t_max", "--texture_size", "--views_per_step"):
         assert flag in text
     for args, message in ((["--reuse_steps=0"], "--reuse_steps: must be >= 1, got 0"),
-                          (["--reuse_steps=2", "--prior=views"], "--reuse_steps: the views prior's targets never change")):
+                          (["--reuse_steps=2", "--prior=views"], "--reuse_steps: the views prior's targets never change"),
+                          (["--estimate_steps=0"], "--estimate_steps: must be >= 1, got 0")):
         fv = flags.FlagValues()
         config_lib.define_flags(fv)
         fv([sys.argv[0], "--scene=x", "--out_dir=y", *args])

@@ -478,7 +478,7 @@ def test_prepared_scene_runs_in_the_main_job_with_evaluation(source, tmp_path, m
     assert all(abs(v.exposure - stops) < 0.01 for v in scene.views), ([v.exposure for v in scene.views], stops)
     log = run_command(["-m", "jaxdistill.main", "--flagfile=configs/bedroom.cfg", f"--scene={scene_dir}",
                        f"--out_dir={run_dir}", "--steps=2", "--views_per_step=3", "--eval_every=1",
-                       "--max_texture_size=64"], REPO, cache=tmp_path / "cache")
+                       "--max_texture_size=64", "--estimate_steps=4"], REPO, cache=tmp_path / "cache")
     doc = json.loads((run_dir / "metrics.json").read_text())
     for key in ("albedo_psnr", "albedo_ssim", "normal_angular_deg", "roughness_mse", "metallic_mse",
                 "irradiance_si_psnr"):
@@ -486,7 +486,7 @@ def test_prepared_scene_runs_in_the_main_job_with_evaluation(source, tmp_path, m
     assert doc["history"]["eval_step"] == [1, 2] and np.isfinite(doc["history"]["albedo_psnr"]).all()
     # the README's command runs SDS with the default prior: the shipped model unless weights are given
     assert doc["prior"]["kind"] == "rgbx" and doc["prior"]["model"]["source"] == "shipped", doc["prior"]
-    assert doc["baseline_source"].startswith("the model's own per-view estimates")
+    assert doc["baseline_source"].startswith("the model's own per-view estimates (4 DDIM steps")
     # Independently: the albedo PSNR over each view's mask from the written renders (8-bit sRGB PNGs)
     psnrs = []
     for view in scene.views:

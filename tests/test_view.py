@@ -7,7 +7,6 @@ with that reason where it is missing. WebGL runs on SwiftShader.
 
 from __future__ import annotations
 
-import functools
 import json
 import shutil
 import socket
@@ -41,17 +40,16 @@ REPO = Path(__file__).resolve().parents[1]
 
 @pytest.fixture(scope="module")
 def smoke_run(tmp_path_factory):
-    """The out_dir of `python -m jaxdistill.main --flagfile=configs/smoke.cfg`."""
+    """The out_dir of `python -m jaxdistill.main --flagfile=configs/smoke.cfg --estimate_steps=4`: the
+    model's per-view estimates (the baseline the viewer shows) in 4 DDIM steps instead of the demo's
+    50; what the viewer shows of them does not depend on how they were sampled
+    (tests/test_model_estimates.py checks them against `jaxdistill.estimate`)."""
     out = tmp_path_factory.mktemp("view") / "smoke"
     fv = flags.FlagValues()
     config_lib.define_flags(fv)
-    fv([sys.argv[0], f"--flagfile={REPO / 'configs' / 'smoke.cfg'}", f"--out_dir={out}"])
+    fv([sys.argv[0], f"--flagfile={REPO / 'configs' / 'smoke.cfg'}", f"--out_dir={out}", "--estimate_steps=4"])
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("JAXDISTILL_CACHE", str(tmp_path_factory.mktemp("view_cache")))
-        # the model's per-view estimates (the baseline the viewer shows) in 4 DDIM steps instead of
-        # the demo's 50: what the viewer shows of them does not depend on how they were sampled
-        # (tests/test_model_estimates.py checks them against `jaxdistill.estimate`)
-        mp.setattr(model_estimates, "cached_estimates", functools.partial(model_estimates.cached_estimates, steps=4))
         pipeline.run(config_lib.config_from_flags(fv), progress=False)
         yield out
 

@@ -32,7 +32,7 @@ from dataset_fixtures import cache, cams  # noqa: F401  (fixtures)
 REPO = Path(__file__).resolve().parents[1]
 HEADING = "## Your own capture: from photos to Blender"
 READER_SETS = ("CAPTURE", "FORMAT")                  # the variables a reader sets; the rest runs as written
-TINY_FLAGS = ("--steps=2", "--views_per_step=1", "--render_size=32")     # appended to the distill line
+TINY_FLAGS = ("--steps=2", "--views_per_step=1", "--render_size=32", "--estimate_steps=4")     # appended to the distill line
 ASSIGNMENT = re.compile(r"^([A-Z_]+)=(.*)$")
 MAPS = ("albedo", "normal", "roughness", "metallic", "irradiance")
 

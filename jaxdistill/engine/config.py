@@ -35,8 +35,8 @@ RGBX_DIR_ENV = "JAXDISTILL_RGBX_DIR"
 # Flags that may change when a run is resumed; every other flag must match the checkpoint.
 # (--max_unwrap_faces and --unwrap_time_limit only decide whether an unwrap is attempted, never its result.)
 RESUMABLE_FLAGS = ("steps", "resume", "ckpt_every", "keep_checkpoints", "out_dir", "log_every", "eval_every", "renders",
-                   "contact_views", "rgbx_dir", "convert_cache", "allow_outside_paths", "anchor", "max_unwrap_faces",
-                   "unwrap_time_limit")
+                   "contact_views", "rgbx_dir", "convert_cache", "allow_outside_paths", "anchor", "estimate_steps",
+                   "max_unwrap_faces", "unwrap_time_limit")
 # Flags handed to the dataset loaders for --scene=FORMAT:PATH (`ImportOptions` fields, the import
 # command's flags of the same names).
 IMPORT_FLAGS = ("mesh", "exposure", "uv", "max_views", "max_page_size", "max_unwrap_faces", "unwrap_time_limit")
@@ -72,6 +72,7 @@ class DistillConfig:
     align: str = "none"
     align_strength: float = 0.01
     anchor: str = "auto"
+    estimate_steps: int = 50                 # models.estimates.ESTIMATE_STEPS, the default of `jaxdistill estimate`
     photo_weight: float = 0.0
     photo_size: int = 0
     photo_space: str = "log"
@@ -154,6 +155,9 @@ def define_flags(fv: flags.FlagValues = flags.FLAGS, *, main_module: bool = Fals
                       "geometric mean 1)", **where)
     flags.DEFINE_float("align_strength", d.align_strength, "ridge on the per-view log-gains, per unit of pixel "
                        "weight (--align=gain)", **where)
+    flags.DEFINE_integer("estimate_steps", d.estimate_steps, "rgbx prior: DDIM steps of the model's own per-view "
+                         "estimates after the loop, the baseline the run is scored against and (--anchor=auto) the "
+                         "overall scale it is anchored to; fewer is faster and coarser (50: RGB<->X's demo)", **where)
     flags.DEFINE_enum("anchor", d.anchor, ANCHOR_MODES, "overall scale of the distilled albedo and irradiance: "
                       "estimates (after the loop, one gain per channel sets the renders' sRGB mean over the views to "
                       "the per-view estimates': the model's own with the rgbx prior, the scene's targets with views), "
@@ -279,6 +283,8 @@ def validate(config: DistillConfig) -> DistillConfig:
             bad(name, f"must be >= 0, got {getattr(c, name)}")
     if c.log_every == 0:
         bad("log_every", "must be >= 1")
+    if c.estimate_steps < 1:
+        bad("estimate_steps", f"must be >= 1, got {c.estimate_steps}")
     if c.anchor not in ANCHOR_MODES:
         bad("anchor", f"must be one of {', '.join(ANCHOR_MODES)}, got {c.anchor!r}")
     if c.align_strength < 0:

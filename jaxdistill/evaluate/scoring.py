@@ -90,9 +90,9 @@ def per_view_baseline(config: DistillConfig, problem: Problem, shapes: list[tupl
         return Baseline(evaluation.read_baseline(scene, channels.maps, shapes), "the scene's per-view target images")
     folder = model_estimates.cached_estimates(
         problem.rgbx_model, [(v.name, v.photo, v.exposure) for v in scene.views], channels.maps, problem.height,
-        problem.width, dtype=config.prior_dtype, seed=config.seed)
+        problem.width, dtype=config.prior_dtype, steps=config.estimate_steps, seed=config.seed)
     views = model_estimates.read_estimates(folder, [v.name for v in scene.views], channels.maps, shapes)
-    return Baseline(views, f"the model's own per-view estimates ({model_estimates.ESTIMATE_STEPS} DDIM steps, "
+    return Baseline(views, f"the model's own per-view estimates ({config.estimate_steps} DDIM steps, "
                     f"{folder})", folder)
 
 
