@@ -143,6 +143,13 @@ def test_anchor_gains_give_the_renders_the_estimates_mean_in_srgb():
                            [np.ones(100, bool)], ["albedo"])["albedo"]
     assert_close(srgb_mean(g * ren.repeat(3, -1)), srgb_mean(est.repeat(3, -1)), rtol=1e-6)
     assert (g > 2).all()
+    # targets out of reach inside ANCHOR_GAIN_RANGE get the range's ends
+    low, high = anchor.ANCHOR_GAIN_RANGE
+    for value, target, end in ((1e-4, 0.999, high), (0.9, 1e-5, low)):
+        g = anchor.anchor_gains([{"albedo": np.full((10, 10, 3), value, np.float32)}],
+                                [{"albedo": np.full((10, 10, 3), target, np.float32)}], [np.ones((10, 10), bool)],
+                                ["albedo"])["albedo"]
+        assert_close(g, np.full(3, end), rtol=1e-6)
 
 
 def test_anchored_texels_scale_the_colour_maps_in_linear_light_and_leave_the_rest(problem):
