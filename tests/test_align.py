@@ -210,3 +210,16 @@ def test_anchor_estimates_without_a_colour_map_says_so(problem, caplog):
         out, record = anchor_to_baseline(config, prob, texels, ctx, baseline)
     assert record is None and out is texels
     assert "nothing to anchor" in caplog.text and "albedo or irradiance" in caplog.text
+
+
+def test_srgb_slope_is_x_times_the_encodings_derivative():
+    from jaxdistill.io.images import linear_to_srgb, linear_to_srgb_and_slope
+
+    x = np.concatenate([np.linspace(-0.1, 1.2, 2001), [0.0031308, 1.0]]).astype(np.float32)
+    value, slope = linear_to_srgb_and_slope(x)
+    assert_close(value, linear_to_srgb(x), rtol=1e-6)            # float32, to an ulp
+    inside = (x > 1e-3) & (x < 0.98) & (np.abs(x - 0.0031308) > 1e-4)
+    xd = x[inside].astype(np.float64)
+    exact = np.where(xd <= 0.0031308, 12.92, 1.055 / 2.4 * xd ** (1 / 2.4 - 1)) * xd
+    assert_close(slope[inside], exact, rtol=1e-5)
+    assert (slope[(x <= 0) | (x >= 1)] == 0).all()

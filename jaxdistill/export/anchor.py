@@ -27,7 +27,7 @@ from jaxdistill.engine.gains import ALIGNED_MAPS
 from jaxdistill.engine.problem import Problem
 from jaxdistill.evaluate import ground_truth as evaluation
 from jaxdistill.evaluate.scoring import Baseline, EvalContext
-from jaxdistill.io.images import linear_to_srgb, srgb_to_linear
+from jaxdistill.io.images import linear_to_srgb, linear_to_srgb_and_slope, srgb_to_linear
 from jaxdistill.scene.maps import MapChannels
 
 ANCHOR_GAIN_RANGE = (1.0 / 64.0, 64.0)
@@ -43,12 +43,8 @@ def _display_mean_gain(render: np.ndarray, target_mean: float, tol: float = 1e-7
 
     def side(u: float) -> tuple[float, float]:
         """mean(srgb(clip(e^u r))) − target and its derivative in u."""
-        x = np.maximum(np.float32(np.exp(u)) * r, np.float32(0.0))
-        low, mid = x <= 0.0031308, (x > 0.0031308) & (x < 1.0)
-        y = np.power(np.where(mid, x, 1.0), np.float32(1 / 2.4))
-        value = np.where(low, 12.92 * x, np.where(mid, 1.055 * y - 0.055, 1.0)).mean(dtype=np.float64)
-        slope = np.where(low, 12.92 * x, np.where(mid, (1.055 / 2.4) * y, 0.0)).mean(dtype=np.float64)
-        return value - target_mean, slope
+        value, slope = linear_to_srgb_and_slope(np.float32(np.exp(u)) * r)
+        return value.mean(dtype=np.float64) - target_mean, slope.mean(dtype=np.float64)
 
     start = float(srgb_to_linear(np.float32(np.clip(target_mean, 0.0, 1.0)))) / max(float(r.mean()), 1e-12)     # as if linear
     u = float(np.clip(np.log(max(start, 1e-12)), lo, hi))
@@ -62,10 +58,10 @@ def _display_mean_gain(render: np.ndarray, target_mean: float, tol: float = 1e-7
             hi = u
         step = -f / slope if slope > 0 else None
         nxt = u + step if step is not None and lo < u + step < hi else 0.5 * (lo + hi)
-        if abs(nxt - u) < tol or hi - lo < tol:
-            u = nxt
-            break
+        converged = abs(nxt - u) < tol or hi - lo < tol
         u = nxt
+        if converged:
+            break
     return float(np.exp(u))
 
 

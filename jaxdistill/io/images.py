@@ -45,6 +45,17 @@ def linear_to_srgb(x: np.ndarray) -> np.ndarray:
     return np.where(x <= 0.0031308, x * 12.92, 1.055 * x ** (1 / 2.4) - 0.055).astype(np.float32)
 
 
+def linear_to_srgb_and_slope(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`linear_to_srgb(x)` and x · d/dx of it (0 where x is clipped): the derivative of the
+    encoding with respect to log x, for solving for a gain in log space."""
+    x = np.maximum(np.asarray(x, np.float32), np.float32(0.0))
+    low, mid = x <= 0.0031308, (x > 0.0031308) & (x < 1.0)
+    y = np.power(np.where(mid, x, 1.0), np.float32(1 / 2.4))
+    value = np.where(low, 12.92 * x, np.where(mid, 1.055 * y - 0.055, 1.0)).astype(np.float32)
+    slope = np.where(low, 12.92 * x, np.where(mid, (1.055 / 2.4) * y, 0.0)).astype(np.float32)
+    return value, slope
+
+
 def image_size(path) -> tuple[int, int, int]:
     """(width, height, channels) from the file header, without reading pixels."""
     inp = oiio.ImageInput.open(os.fspath(path))
