@@ -4,6 +4,7 @@
     python scripts/bench_step.py --rgbx_dir=data/random-rgbx/rgb-to-x \\
         [--render_sizes=256,512] [--map_counts=1,5] [--dtypes=float32,bfloat16] [--frameworks=jax,torch]
         [--views_per_step=1] [--repeats=3] [--threads=N] [--json]
+        [--torch_device=cuda] [--last_stage=unet] [--stage_cases=last] [--peak_tflops=989.4]
     python scripts/bench_step.py --size=tiny          # a tiny random folder: a quick check of this script
 
 One run measures, side by side, for every render size (longer side; the bedroom is 4:3) and
@@ -26,6 +27,12 @@ Fairness: both sides use the same weights (one diffusers folder), scene, views, 
 count (`--threads`, default all cores: each child is pinned to that many cores, XLA sizes its
 pool by them and torch.set_num_threads gets the count); each does a warm-up (compilation for JAX) before `--repeats` timed runs; figures
 are medians. Each framework runs in a fresh child process so peak RSS is its own.
+On a GPU (`scripts/bench_gpu.sh` runs the thesis's setting there): `--torch_device=cuda` puts the
+recipe on the card (its clocks read after a synchronise), each row reports the device's peak
+memory, and the UNet's FLOP/s is given as a share of the card's dense bf16 peak. FLOPs are XLA's
+count of each program before optimisation: after it, a GPU program's convolutions and matrix
+products are cuDNN/cuBLAS calls that the count leaves out. A failed worker is reported and the
+others still run; every row is also logged as it is measured (`ROW {...}` on stderr).
 The weights are random: the figures are timings; the images are meaningless.
 The last line with --json is a JSON object whose "headline" states the ratio.
 """
@@ -47,6 +54,7 @@ from pathlib import Path
 import numpy as np
 
 ALL_MAPS = ("albedo", "normal", "roughness", "metallic", "irradiance")
+THESIS_STEPS = 17_000          # the thesis's steps per map (§5.2)
 STAGES = ("render", "vae_encode", "unet", "vae_decode", "loss_grad", "optimizer")
 TORCH_STAGES = ("render", "photo_encode", "vae_encode", "unet", "vae_decode", "loss_grad", "optimizer")
 
@@ -65,6 +73,17 @@ def parse_args(argv=None):
     p.add_argument("--repeats", type=int, default=3, help="timed runs after the warm-up")
     p.add_argument("--threads", type=int, default=os.cpu_count(), help="CPU threads for both frameworks")
     p.add_argument("--convert_cache", default=None, help="cache of converted weights (faster JAX loading)")
+    p.add_argument("--torch_device", default="cpu", choices=("cpu", "cuda"),
+                   help="where the PyTorch recipe runs (JAX runs on its default backend)")
+    p.add_argument("--last_stage", default=STAGES[-1], choices=STAGES,
+                   help="time the stages alone up to this one (each is compiled on its own; on a GPU the "
+                        "UNet's compile dominates, so `unet` saves the decode's and the optimizer's)")
+    p.add_argument("--stage_cases", default="all", choices=("all", "last"),
+                   help="time the stages alone in every case, or only in the last (largest) one")
+    p.add_argument("--fragment_cache", default=None,
+                   help="folder caching the rasterised fragments, so each worker rasterises once")
+    p.add_argument("--peak_tflops", type=float, default=None,
+                   help="the card's dense bf16 peak for the utilisation figure (default: from the device name)")
     p.add_argument("--json", action="store_true")
     p.add_argument("--worker", help=argparse.SUPPRESS)     # jax:<dtype> or torch: a child process
     args = p.parse_args(argv)
@@ -97,6 +116,28 @@ def peak_rss_gb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20
 
 
+# dense bf16 tensor-core peaks from the vendors' datasheets (TFLOP/s, no sparsity), by device name
+BF16_PEAK_TFLOPS = {"H100": 989.4, "H200": 989.4, "A100": 312.0, "L40S": 362.1, "RTX 3090": 71.0, "RTX 4090": 165.2}
+
+
+def bf16_peak_tflops(device_name: str, given: float | None) -> float | None:
+    if given:
+        return given
+    for key, value in BF16_PEAK_TFLOPS.items():
+        if key.lower() in device_name.lower():
+            return value
+    return None
+
+
+def jax_device_peak_gb() -> float | None:
+    """Peak bytes the first device's allocator held so far (GPU/TPU); None on the CPU backend."""
+    import jax
+
+    stats = jax.local_devices()[0].memory_stats() or {}
+    peak = stats.get("peak_bytes_in_use")
+    return peak / 2 ** 30 if peak else None
+
+
 def views_problem(args, size: int, maps):
     """The bedroom at `size` with the views prior: scene, plans, weights (no networks)."""
     from jaxdistill.engine import config as config_lib
@@ -105,7 +146,7 @@ def views_problem(args, size: int, maps):
     config = config_lib.validate(config_lib.DistillConfig(
         scene="bedroom", out_dir="unused", maps=tuple(maps), prior="views", render_size=size,
         views_per_step=args.views_per_step, max_texture_size=args.max_texture_size, sampler="bilinear", steps=1000))
-    problem = build_problem(config)
+    problem = build_problem(config, cache_dir=args.fragment_cache)
     if problem.height % 8 or problem.width % 8:
         raise SystemExit(f"render size {problem.width}x{problem.height}: sides must be multiples of 8")
     return config, problem
@@ -129,9 +170,12 @@ def batch_photos(problem, view_ids):
             for i in view_ids]
 
 
-def cost_flops(compiled) -> float | None:
-    """FLOPs of a compiled XLA program from its cost analysis (None when the backend gives none)."""
-    analysis = compiled.cost_analysis()
+def cost_flops(lowered) -> float | None:
+    """FLOPs of a program from XLA's cost analysis of its HLO before optimisation (None when the
+    backend gives none). Not the compiled program's: on a GPU, convolutions and matrix products
+    compile to cuDNN/cuBLAS custom calls, whose FLOPs the compiled analysis leaves out (measured on
+    an H200: the same UNet counted 71 GFLOP in float32 and 172 in bfloat16)."""
+    analysis = lowered.cost_analysis()
     if isinstance(analysis, (list, tuple)):
         analysis = analysis[0] if analysis else {}
     flops = (analysis or {}).get("flops")
@@ -152,12 +196,15 @@ def jax_worker(args, folder: str, dtype_name: str) -> list[dict]:
     from jaxdistill.engine.priors import make_rgbx_prior
     from jaxdistill.render.gather_plan import GatherPlan
 
+    device_name = jax.devices()[0].device_kind
+    peak_tflops = bf16_peak_tflops(device_name, args.peak_tflops) if jax.default_backend() == "gpu" else None
     t0 = time.perf_counter()
     dtype = {"float32": jnp.float32, "bfloat16": jnp.bfloat16}[dtype_name]
     model = rgbx.load_prior(convert.load_rgbx(folder, dtype=dtype, cache_dir=args.convert_cache))
     load_s = time.perf_counter() - t0
     rows = []
-    for maps, config, problem, ids in cases(args):
+    num_cases = len(args.render_sizes) * len(args.map_counts)
+    for case, (maps, config, problem, ids) in enumerate(cases(args)):
         count = len(maps)
         t0 = time.perf_counter()
         prior, prior_frozen = make_rgbx_prior(model, problem.channels, batch_photos(problem, ids),
@@ -178,9 +225,10 @@ def jax_worker(args, folder: str, dtype_name: str) -> list[dict]:
         batch = jax.device_put(batch_host, stepper.by_view)
         state = jax.device_put(stepper.state, stepper.replicated)
         t0 = time.perf_counter()
-        compiled = step.lower(state, batch, frozen).compile()
+        lowered = step.lower(state, batch, frozen)
+        compiled = lowered.compile()
         compile_s = time.perf_counter() - t0
-        step_flops = cost_flops(compiled)
+        step_flops = cost_flops(lowered)
         state, metrics = compiled(state, batch, frozen)          # warm-up
         jax.block_until_ready(metrics["loss"])
         step_times = []
@@ -227,12 +275,19 @@ def jax_worker(args, folder: str, dtype_name: str) -> list[dict]:
         }
         outputs, stage_s, stage_flops = {}, {}, {}
         for name, (fn, inputs_of) in stages.items():
+            if args.stage_cases == "last" and case < num_cases - 1:
+                break
             inputs = inputs_of(outputs)
-            compiled_stage = jax.jit(fn).lower(*inputs).compile()
-            stage_flops[name] = cost_flops(compiled_stage)
+            lowered_stage = jax.jit(fn).lower(*inputs)
+            compiled_stage = lowered_stage.compile()
+            stage_flops[name] = cost_flops(lowered_stage)
             outputs[name] = jax.block_until_ready(compiled_stage(*inputs))
             stage_s[name] = median_of(lambda: jax.block_until_ready(compiled_stage(*inputs)), args.repeats)
+            if name == args.last_stage:
+                break
         median = float(np.median(step_times))
+        unet_tflops = (stage_flops["unet"] / stage_s["unet"] / 1e12
+                       if stage_flops.get("unet") and stage_s.get("unet") else None)
         rows.append({
             "framework": "jax", "dtype": dtype_name, "render": [problem.height, problem.width], "maps": list(maps),
             "views_per_step": len(ids), "unet_batch_per_step": len(ids) * count,
@@ -241,7 +296,11 @@ def jax_worker(args, folder: str, dtype_name: str) -> list[dict]:
             "flops_per_step": step_flops, "stage_flops": stage_flops,
             "achieved_gflops_per_s": step_flops / median / 1e9 if step_flops else None,
             "texels": problem.space.num_texels, "load_s": load_s, "photo_latents_s": photo_s,
+            "device": device_name, "device_peak_gb": jax_device_peak_gb(),
+            "unet_tflops_per_s": unet_tflops, "bf16_peak_tflops": peak_tflops,
+            "unet_fraction_of_bf16_peak": unet_tflops / peak_tflops if unet_tflops and peak_tflops else None,
         })
+        print("ROW " + json.dumps(rows[-1]), file=sys.stderr)          # survives a later case's failure
         print(f"[jax {dtype_name}] {problem.width}x{problem.height} {count} map(s): {median:.2f} s/step "
               f"(stages {', '.join(f'{k} {v:.2f}' for k, v in stage_s.items())})", file=sys.stderr)
         del state, step, compiled, outputs
@@ -253,6 +312,8 @@ def jax_worker(args, folder: str, dtype_name: str) -> list[dict]:
 # ----------------------------------------------------------------------------- the thesis recipe (PyTorch)
 
 def torch_worker(args, folder: str) -> list[dict]:
+    # the scene and plans are built with JAX on the host: keep it off the GPU the recipe is timed on
+    os.environ["JAX_PLATFORMS"] = "cpu"
     import torch
     from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
     from transformers import CLIPTextModel, CLIPTokenizer
@@ -262,91 +323,104 @@ def torch_worker(args, folder: str) -> list[dict]:
     from jaxdistill.models.tokenizer import MAP_PROMPTS
 
     torch.set_num_threads(args.threads)
+    dev = torch.device(args.torch_device)
+    cuda = dev.type == "cuda"
+    device_name = torch.cuda.get_device_name(dev) if cuda else platform.processor() or "cpu"
+
+    def now():
+        """A host clock read after the device's queued work is done (CUDA runs asynchronously)."""
+        if cuda:
+            torch.cuda.synchronize(dev)
+        return time.perf_counter()
+
     folder = Path(folder)
     t0 = time.perf_counter()
-    unet = UNet2DConditionModel.from_pretrained(folder / "unet").eval()
-    vae = AutoencoderKL.from_pretrained(folder / "vae").eval()
+    unet = UNet2DConditionModel.from_pretrained(folder / "unet").eval().to(dev)
+    vae = AutoencoderKL.from_pretrained(folder / "vae").eval().to(dev)
     tokenizer = CLIPTokenizer.from_pretrained(folder / "tokenizer")
     text_encoder = CLIPTextModel.from_pretrained(folder / "text_encoder").eval()
     with torch.inference_mode():
         ids = tokenizer([MAP_PROMPTS[m] for m in ALL_MAPS] + [""], padding="max_length",
                         max_length=tokenizer.model_max_length, truncation=True, return_tensors="pt").input_ids
         hidden = text_encoder(ids)[0]
+    hidden = hidden.to(dev)
     prompt_of = {m: hidden[i:i + 1] for i, m in enumerate(ALL_MAPS)}
     empty = hidden[-1:]
     del text_encoder
     scheduler = DDIMScheduler.from_pretrained(folder / "scheduler", **DEMO_SCHEDULER_OVERRIDES)
-    alphas = scheduler.alphas_cumprod.float()
+    alphas = scheduler.alphas_cumprod.float().to(dev)
     sf = vae.config.scaling_factor
     load_s = time.perf_counter() - t0
-    gen = torch.Generator().manual_seed(0)
+    gen = torch.Generator(device=dev).manual_seed(0)
     rows = []
     for maps, config, problem, view_ids in cases(args):
         count = len(maps)
         b = problem.batch(view_ids)
-        index = torch.from_numpy(b["index"]).long()                  # (B, P, T)
-        weight = torch.from_numpy(b["weight"])                       # (B, P, T)
-        pixel_weight = torch.from_numpy(b["pixel_weight"])           # (B, H, W)
-        rotation = torch.from_numpy(b["normal_rotation"])            # (B, 3, 3)
+        if cuda:
+            torch.cuda.reset_peak_memory_stats(dev)
+        index = torch.from_numpy(b["index"]).long().to(dev)         # (B, P, T)
+        weight = torch.from_numpy(b["weight"]).to(dev)              # (B, P, T)
+        pixel_weight = torch.from_numpy(b["pixel_weight"]).to(dev)  # (B, H, W)
+        rotation = torch.from_numpy(b["normal_rotation"]).to(dev)   # (B, 3, 3)
         photos = torch.from_numpy(np.asarray(photo_to_model_space(np.stack(batch_photos(problem, view_ids)))))
-        photos = photos.permute(0, 3, 1, 2).contiguous()             # (B, 3, H, W) in [-1, 1]
-        texels = torch.tensor(problem.initial_texels(), requires_grad=True)
+        photos = photos.permute(0, 3, 1, 2).contiguous().to(dev)    # (B, 3, H, W) in [-1, 1]
+        texels = torch.tensor(problem.initial_texels(), requires_grad=True, device=dev)
         opt = torch.optim.AdamW([texels], lr=config.lr, weight_decay=config.weight_decay)
         h, w, nb = problem.height, problem.width, len(view_ids)
         lo, hi = config.t_min * 1000, config.t_max * 1000
 
         def step():
             times = {}
-            t0 = time.perf_counter()
+            t0 = now()
             image = (texels[index] * weight[..., None]).sum(-2).reshape(nb, h, w, -1)
             images = {m: image[..., problem.channels.slice(m)] for m in maps}
             if "normal" in images:
                 images["normal"] = torch.einsum("bhwi,bij->bhwj", images["normal"], rotation)
-            times["render"] = time.perf_counter() - t0
+            times["render"] = now() - t0
             targets = {}
             for k in ("photo_encode", "vae_encode", "unet", "vae_decode"):
                 times[k] = 0.0
             for m in maps:                     # the thesis: one map per run, so one pass per map
                 with torch.inference_mode():
-                    t0 = time.perf_counter()
+                    t0 = now()
                     photo_latent = vae.encode(photos).latent_dist.mode() * sf        # re-encoded every step
-                    times["photo_encode"] += time.perf_counter() - t0
-                    t0 = time.perf_counter()
+                    times["photo_encode"] += now() - t0
+                    t0 = now()
                     x = images[m].detach()
                     x = x.repeat(1, 1, 1, 3) if x.shape[-1] == 1 else x
                     z0 = vae.encode(x.permute(0, 3, 1, 2)).latent_dist.mode() * sf
-                    times["vae_encode"] += time.perf_counter() - t0
-                    t0 = time.perf_counter()
-                    t = torch.randint(int(lo), int(hi) + 1, (nb,), generator=gen)
+                    times["vae_encode"] += now() - t0
+                    t0 = now()
+                    t = torch.randint(int(lo), int(hi) + 1, (nb,), generator=gen, device=dev)
                     a = alphas[t].view(-1, 1, 1, 1)
-                    z_t = a.sqrt() * z0 + (1 - a).sqrt() * torch.randn(z0.shape, generator=gen)
+                    z_t = a.sqrt() * z0 + (1 - a).sqrt() * torch.randn(z0.shape, generator=gen, device=dev)
                     sample = torch.cat([torch.cat([z_t, photo_latent], 1), torch.cat([z_t, photo_latent], 1),
                                         torch.cat([z_t, torch.zeros_like(photo_latent)], 1)])
                     context = torch.cat([prompt_of[m].expand(nb, -1, -1), empty.expand(2 * nb, -1, -1)])
                     v_full, v_image, v_uncond = unet(sample, t.repeat(3), context).sample.chunk(3)
                     v = v_uncond + 1.0 * (v_full - v_image) + 1.0 * (v_image - v_uncond)
                     x0 = a.sqrt() * z_t - (1 - a).sqrt() * v
-                    times["unet"] += time.perf_counter() - t0
-                    t0 = time.perf_counter()
+                    times["unet"] += now() - t0
+                    t0 = now()
                     decoded = vae.decode(x0 / sf).sample.clamp(-1, 1).permute(0, 2, 3, 1)
                     targets[m] = decoded[..., :1] if m in GREY_MAPS else decoded
-                    times["vae_decode"] += time.perf_counter() - t0
-            t0 = time.perf_counter()
+                    times["vae_decode"] += now() - t0
+            t0 = now()
             loss = sum(((images[m] - targets[m].clone()) ** 2).sum(-1).mul(pixel_weight).sum() for m in maps) / nb
             loss.backward()
-            times["loss_grad"] = time.perf_counter() - t0
-            t0 = time.perf_counter()
+            times["loss_grad"] = now() - t0
+            t0 = now()
             opt.step()
             opt.zero_grad(set_to_none=True)
-            times["optimizer"] = time.perf_counter() - t0
+            times["optimizer"] = now() - t0
             return times, float(loss.detach())
 
         step()                                                       # warm-up
         runs = []
         for _ in range(args.repeats):
-            t0 = time.perf_counter()
+            t0 = now()
             times, loss = step()
-            runs.append((time.perf_counter() - t0, times))
+            runs.append((now() - t0, times))
         step_times = [r[0] for r in runs]
         stage_s = {k: float(np.median([r[1][k] for r in runs])) for k in TORCH_STAGES}
         rows.append({
@@ -354,8 +428,10 @@ def torch_worker(args, folder: str) -> list[dict]:
             "views_per_step": nb, "unet_batch_per_step": 3 * nb * count,
             "step_s": float(np.median(step_times)), "step_s_all": step_times, "stages_s": stage_s,
             "stages_sum_s": float(sum(stage_s.values())), "finite": int(np.isfinite(loss)),
-            "load_s": load_s, "torch_threads": torch.get_num_threads(),
+            "load_s": load_s, "torch_threads": torch.get_num_threads(), "device": device_name,
+            "device_peak_gb": torch.cuda.max_memory_allocated(dev) / 2 ** 30 if cuda else None,
         })
+        print("ROW " + json.dumps(rows[-1]), file=sys.stderr)
         print(f"[torch] {w}x{h} {count} map(s): {rows[-1]['step_s']:.2f} s/step "
               f"(stages {', '.join(f'{k} {v:.2f}' for k, v in stage_s.items())})", file=sys.stderr)
     for row in rows:
@@ -370,7 +446,13 @@ def run_child(args, folder: str, worker: str) -> list[dict]:
     cmd = [sys.executable, __file__, f"--worker={worker}", f"--rgbx_dir={folder}",
            f"--render_sizes={','.join(map(str, args.render_sizes))}",
            f"--map_counts={','.join(map(str, args.map_counts))}", f"--views_per_step={args.views_per_step}",
-           f"--max_texture_size={args.max_texture_size}", f"--repeats={args.repeats}", f"--threads={args.threads}"]
+           f"--max_texture_size={args.max_texture_size}", f"--repeats={args.repeats}", f"--threads={args.threads}",
+           f"--torch_device={args.torch_device}", f"--last_stage={args.last_stage}",
+           f"--stage_cases={args.stage_cases}"]
+    if args.fragment_cache:
+        cmd.append(f"--fragment_cache={args.fragment_cache}")
+    if args.peak_tflops:
+        cmd.append(f"--peak_tflops={args.peak_tflops}")
     if args.convert_cache:
         cmd.append(f"--convert_cache={args.convert_cache}")
     cores = sorted(os.sched_getaffinity(0))[:args.threads]
@@ -378,7 +460,9 @@ def run_child(args, folder: str, worker: str) -> list[dict]:
     # both frameworks see the same cores (XLA sizes its pool by them; torch also gets the count)
     proc = subprocess.run(cmd, stdout=subprocess.PIPE, text=True, preexec_fn=lambda: os.sched_setaffinity(0, cores))
     if proc.returncode:
-        raise SystemExit(f"the {worker} worker failed (exit {proc.returncode}); its log is above")
+        print(f"the {worker} worker failed (exit {proc.returncode}); its log is above; the others still run",
+              file=sys.stderr)
+        return None
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
@@ -398,7 +482,7 @@ def summarise(rows: list[dict]) -> dict:
             entry[f"{name}_s"] = r["step_s"]
         ref = g.get("torch_float32")
         ours = g.get("jax_float32")
-        if ref and ours and all(ours["stage_flops"].get(k) for k in ("vae_encode", "unet", "vae_decode")):
+        if ref and ours and all(ours.get("stage_flops", {}).get(k) for k in ("vae_encode", "unet", "vae_decode")):
             # the recipe's work in our XLA counts: the photo encoded as often as the renders, three
             # UNet branches, one decode (the same images in total, one map per pass)
             f = ours["stage_flops"]
@@ -409,6 +493,13 @@ def summarise(rows: list[dict]) -> dict:
         for name in ("jax_float32", "jax_bfloat16"):
             if ref and name in g:
                 entry[f"speedup_{name}"] = ref["step_s"] / g[name]["step_s"]
+        for name, r in g.items():
+            # the thesis's run: 17 000 steps of every map (the recipe: 5 runs of one map each, which its
+            # 5-map row already does as 5 passes a step)
+            entry[f"{name}_thesis_run_min"] = THESIS_STEPS * r["step_s"] / 60 * len(ALL_MAPS) / count
+            for key in ("device_peak_gb", "compile_s", "unet_tflops_per_s", "unet_fraction_of_bf16_peak"):
+                if r.get(key) is not None:
+                    entry[f"{name}_{key}"] = r[key]
         table.append(entry)
     return {"table": table}
 
@@ -435,12 +526,29 @@ def print_tables(rows: list[dict], summary: dict, file=sys.stdout) -> None:
               f"{fmt(e.get('speedup_jax_float32')):>7s} {fmt(e.get('speedup_jax_bfloat16')):>7s}", file=file)
 
 
+def print_device_table(summary: dict, file=sys.stdout) -> None:
+    """Per case and framework/dtype: step, device memory, compile, UNet utilisation, thesis run."""
+    print("\nper case: step s, device peak GiB, compile s, UNet TFLOP/s (share of the bf16 peak), "
+          f"projected {THESIS_STEPS} steps x {len(ALL_MAPS)} maps (min)", file=file)
+    for e in summary["table"]:
+        for name in ("jax_float32", "jax_bfloat16", "torch_float32"):
+            if f"{name}_s" not in e:
+                continue
+            share = e.get(f"{name}_unet_fraction_of_bf16_peak")
+            print(f"{e['render'][1]}x{e['render'][0]:<5d} {e['maps']:4d} {name:14s} {e[f'{name}_s']:8.3f} "
+                  f"{fmt(e.get(f'{name}_device_peak_gb'), '.1f'):>6s} {fmt(e.get(f'{name}_compile_s'), '.0f'):>5s} "
+                  f"{fmt(e.get(f'{name}_unet_tflops_per_s'), '.0f'):>5s} ({fmt(share * 100 if share else None, '.0f')} %) "
+                  f"{e[f'{name}_thesis_run_min']:8.1f}", file=file)
+
+
 def headline(summary: dict) -> str:
-    ratios = [(e, e["speedup_jax_float32"]) for e in summary["table"] if "speedup_jax_float32" in e]
-    if not ratios:
+    parts = [f"{e['render'][1]}x{e['render'][0]} {e['maps']} map(s): "
+             + ", ".join(f"{name[4:]} {e[f'speedup_{name}']:.2f}x" for name in ("jax_float32", "jax_bfloat16")
+                         if f"speedup_{name}" in e)
+             for e in summary["table"] if any(k.startswith("speedup_") for k in e)]
+    if not parts:
         return "no torch/jax pair measured: no ratio"
-    parts = [f"{e['render'][1]}x{e['render'][0]} {e['maps']} map(s): {r:.2f}x" for e, r in ratios]
-    return "jax fp32 step vs the thesis's PyTorch recipe (torch s / jax s): " + "; ".join(parts)
+    return "our step vs the thesis's PyTorch recipe (torch s / jax s): " + "; ".join(parts)
 
 
 def main(argv=None) -> int:
@@ -455,12 +563,18 @@ def main(argv=None) -> int:
         from jaxdistill.models.training.random_model import write_tiny_rgbx
 
         folder = str(write_tiny_rgbx(Path(tempfile.mkdtemp()) / "rgb-to-x"))
-    rows = []
+    rows, failed = [], []
     for fw in args.frameworks:
         for dtype in (args.dtypes if fw == "jax" else ["float32"]):
-            rows += run_child(args, folder, f"{fw}:{dtype}" if fw == "jax" else "torch")
+            worker = f"{fw}:{dtype}" if fw == "jax" else "torch"
+            got = run_child(args, folder, worker)
+            if got is None:
+                failed.append(worker)
+            else:
+                rows += got
     summary = summarise(rows)
     print_tables(rows, summary)
+    print_device_table(summary)
     import jax
 
     result = {"rows": rows, **summary, "folder": folder, "threads": args.threads, "repeats": args.repeats,
@@ -468,9 +582,12 @@ def main(argv=None) -> int:
                           "cpu_count": os.cpu_count(), "platform": platform.platform()},
               "headline": headline(summary)}
     print("\n" + result["headline"])
+    if failed:
+        result["failed_workers"] = failed
+        print(f"failed workers: {', '.join(failed)}")
     if args.json:
         print(json.dumps(result))
-    return 0
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":
