@@ -12,7 +12,8 @@ SCRIPTS = {p.stem for p in (REPO / "scripts").glob("*.py")}
 TEST_MODULES = {p.stem for p in (REPO / "tests").glob("*.py")}
 # tests that load a script to test that script's own code (its objects, generation, checks)
 LOADS_ITS_SCRIPT = {"test_bedroom.py": "make_bedroom", "test_room_scene.py": "make_room_scene",
-                    "test_photo_light_scale.py": "photo_light_scale", "test_bench_step.py": "bench_step"}
+                    "test_photo_light_scale.py": "photo_light_scale", "test_bench_step.py": "bench_step",
+                    "test_bench_main.py": "bench_main"}
 
 
 def imported_names(path: Path) -> set[str]:
