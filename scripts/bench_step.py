@@ -81,7 +81,8 @@ def parse_args(argv=None):
     p.add_argument("--stage_cases", default="all", choices=("all", "last"),
                    help="time the stages alone in every case, or only in the last (largest) one")
     p.add_argument("--fragment_cache", default=None,
-                   help="folder caching the rasterised fragments, so each worker rasterises once")
+                   help="folder of the rasterised fragments' cache, shared by the workers (default: the "
+                        "package's, $JAXDISTILL_CACHE or ~/.cache/jaxdistill)")
     p.add_argument("--peak_tflops", type=float, default=None,
                    help="the card's dense bf16 peak for the utilisation figure (default: from the device name)")
     p.add_argument("--json", action="store_true")
