@@ -64,7 +64,7 @@ def pinned_config(rev: str, path: str, dest: Path) -> Path:
 def run_cold(name: str, flagfile: Path, out_dir: Path, extra: list[str]) -> dict:
     """One cold main job; its accounting, phases and scores."""
     out_dir.mkdir(parents=True, exist_ok=True)
-    log_path = out_dir.parent / f"{name}.log"
+    log_path = out_dir.parent / f"{name.replace(' ', '_')}.log"
     cmd = [sys.executable, "-m", "jaxdistill.main", f"--flagfile={flagfile}", f"--out_dir={out_dir}", *extra]
     print(f"--- {name}: {' '.join(cmd[1:])}", file=sys.stderr, flush=True)
     with tempfile.TemporaryDirectory(prefix="jaxdistill-cold-") as cache, open(log_path, "w") as log:
