@@ -364,55 +364,15 @@ def child_run(args, flag_argv) -> int:
 # ----------------------------------------------------------------------------- child: room scene
 
 def child_prep(args) -> int:
-    """Writes the synthetic >= 1M-triangle room as a scene folder (mesh.glb, photos, targets)."""
-    import numpy as np
-
-    from jaxdistill.io import images as imageio
-    from jaxdistill.render import fragments as fr
+    """Writes the synthetic >= 1M-triangle room as a scene folder (mesh.glb, photos, targets): the
+    package's capture room (`datasets.synthetic_capture`) seen by this benchmark's own square views."""
+    from jaxdistill.datasets import synthetic_capture
     from jaxdistill.scene import shapes as synthetic
-    from jaxdistill.scene.cameras import camera_normals
-    from jaxdistill.scene.mesh import face_normals
-    from jaxdistill.scene.model import Scene, View, write_scene
 
-    folder = Path(args.scene_dir)
-    n = args.faces_per_side
-    mesh = synthetic.box_room((6.0, 3.0, 5.0), subdivisions=n, furniture=True,
-                              furniture_subdivisions=max(1, n // 8), atlas=False)
+    mesh = synthetic_capture.capture_room_mesh(args.faces_per_side)
     cams = synthetic.room_cameras(args.views, resolution=args.resolution)
-    frags = fr.compute_fragments(mesh, cams, cache_dir=False, progress=False)
-    rng = np.random.default_rng(0)
-    objects = len(mesh.object_names)
-    base = rng.uniform(0.15, 0.85, (objects, 3)).astype(np.float32)
-    rough = rng.uniform(0.2, 0.9, objects).astype(np.float32)
-    metal = (rng.uniform(size=objects) < 0.2).astype(np.float32) * 0.9
-    normals = face_normals(mesh)
-    views = []
-    for i, (cam, frag) in enumerate(zip(cams, frags)):
-        hit = frag.hit
-        obj = np.where(hit, frag.object_id, 0)
-        u, v = frag.uv[..., 0], frag.uv[..., 1]
-        checker = ((np.floor(u * 16) + np.floor(v * 16)) % 2).astype(np.float32)
-        albedo = base[obj] * (0.75 + 0.25 * checker[..., None]) * hit[..., None]
-        depth = np.where(hit, frag.depth, 0.0)
-        irradiance = (1.5 / (1.0 + 0.1 * depth ** 2))[..., None] * np.array([1.0, 0.95, 0.85], np.float32) * hit[..., None]
-        name = f"view_{i:03d}"
-        paths = {"albedo": folder / "targets/albedo" / f"{name}.png",
-                 "normal": folder / "targets/normal" / f"{name}.png",
-                 "roughness": folder / "targets/roughness" / f"{name}.png",
-                 "metallic": folder / "targets/metallic" / f"{name}.png",
-                 "irradiance": folder / "targets/irradiance" / f"{name}.exr"}
-        imageio.write_image(paths["albedo"], albedo)
-        imageio.write_image(paths["normal"], 0.5 * (camera_normals(normals, frag.triangle, cam) + 1.0),
-                            encode_srgb=False)
-        imageio.write_image(paths["roughness"], rough[obj] * hit, encode_srgb=False)
-        imageio.write_image(paths["metallic"], metal[obj] * hit, encode_srgb=False)
-        imageio.write_image(paths["irradiance"], irradiance, half=True)
-        photo = folder / "photos" / f"{name}.png"
-        imageio.write_image(photo, np.clip(albedo * irradiance, 0.0, 1.0))
-        views.append(View(name=name, camera=cam, photo=photo, targets=paths))
-    write_scene(Scene(name=f"room_{mesh.num_faces}", mesh=mesh, views=tuple(views), texture_layout="pages",
-                      root=folder), folder)
-    print(json.dumps({"faces": mesh.num_faces, "objects": objects, "views": len(views)}))
+    summary = synthetic_capture.write_capture_room(args.scene_dir, mesh=mesh, cameras=cams, seed=0)
+    print(json.dumps({k: summary[k] for k in ("faces", "objects", "views")}))
     return 0
 
 

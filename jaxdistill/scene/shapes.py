@@ -90,3 +90,33 @@ def room_cameras(num_views: int, size=(6.0, 3.0, 5.0), resolution=512):
         target = rng.uniform([0.0, 0.0, 0.0], [sx, sy, sz])
         cams.append(look_at(eye, target, np.array([0.0, 1.0, 0.0]), K, resolution, resolution))
     return cams
+
+
+def walkthrough_cameras(num_views: int, size=(6.0, 3.0, 5.0), width: int = 876, height: int = 584,
+                        seed: int = 0, fov_deg: float = 70.0):
+    """`num_views` cameras of a hand-held capture walking once round a `box_room` of `size`: eyes
+    evenly spaced along an ellipse about the room's centre, at eye height with a little sway, each
+    looking ahead along the walk and turned outwards (towards the walls and furniture) by a
+    varying angle. Consecutive views overlap as a capture's frames do. `fov_deg` is the horizontal
+    field of view; seeded, so the same arguments give the same cameras."""
+    if num_views < 1 or width < 1 or height < 1:
+        raise ValueError(f"walkthrough_cameras: need num_views, width, height >= 1, got {num_views}, {width}, {height}")
+    rng = np.random.default_rng(seed)
+    sx, sy, sz = size
+    fx = 0.5 * width / np.tan(np.radians(fov_deg) / 2)
+    K = np.array([[fx, 0, width / 2], [0, fx, height / 2], [0, 0, 1.0]])
+    centre = np.array([sx / 2, 0.0, sz / 2])
+    radius = np.array([0.3 * sx, 0.3 * sz])
+    phase = rng.uniform(0, 2 * np.pi)
+    turn = rng.uniform(0.3, 1.2, num_views)                     # radians from the path towards the walls
+    cams = []
+    for i in range(num_views):
+        a = phase + 2 * np.pi * i / num_views
+        eye = centre + np.array([radius[0] * np.cos(a), min(1.6, 0.6 * sy), radius[1] * np.sin(a)])
+        eye = eye + rng.normal(0, [0.03, 0.04, 0.03])
+        heading = np.array([-np.sin(a), 0.0, np.cos(a)])                   # tangent of the walk
+        outward = np.array([np.cos(a), 0.0, np.sin(a)])
+        look = np.cos(turn[i]) * heading + np.sin(turn[i]) * outward
+        look = look + np.array([0.0, rng.uniform(-0.35, 0.1), 0.0])
+        cams.append(look_at(eye, eye + look, np.array([0.0, 1.0, 0.0]), K, width, height))
+    return cams
