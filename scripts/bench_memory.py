@@ -371,7 +371,8 @@ def child_prep(args) -> int:
 
     mesh = synthetic_capture.capture_room_mesh(args.faces_per_side)
     cams = synthetic.room_cameras(args.views, resolution=args.resolution)
-    summary = synthetic_capture.write_capture_room(args.scene_dir, mesh=mesh, cameras=cams, seed=0)
+    summary = synthetic_capture.write_capture_room(args.scene_dir, mesh=mesh, cameras=cams, seed=0,
+                                                   progress=False)
     print(json.dumps({k: summary[k] for k in ("faces", "objects", "views")}))
     return 0
 

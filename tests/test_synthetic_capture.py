@@ -34,7 +34,7 @@ def test_the_face_count_follows_the_subdivisions():
 
 
 def test_same_seed_same_files_other_seed_other_photos(tmp_path):
-    kwargs = dict(faces_per_side=3, views=4, width=24, height=16)
+    kwargs = dict(faces_per_side=3, views=4, width=24, height=16, progress=False)
     a = write_capture_room(tmp_path / "a", seed=3, **kwargs)
     write_capture_room(tmp_path / "b", seed=3, **kwargs)
     write_capture_room(tmp_path / "c", seed=4, **kwargs)

@@ -16,6 +16,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 from jaxdistill.io import images as imageio
 from jaxdistill.render import fragments as fr
@@ -37,7 +38,7 @@ def capture_room_mesh(faces_per_side: int) -> Mesh:
 
 def write_capture_room(folder: str | Path, *, faces_per_side: int = 300, views: int = 50, width: int = 876,
                        height: int = 584, seed: int = 0, cameras: list[Camera] | None = None,
-                       mesh: Mesh | None = None) -> dict:
+                       mesh: Mesh | None = None, progress: bool = True) -> dict:
     """Writes the scene folder (mesh.glb, scene.json, photos/, targets/); returns a summary.
     `cameras` and `mesh` replace the walk and the room (a benchmark that keeps its own)."""
     folder = Path(folder)
@@ -51,8 +52,10 @@ def write_capture_room(folder: str | Path, *, faces_per_side: int = 300, views: 
     tint = np.array([1.0, 0.95, 0.85], np.float32)
     normals = face_normals(mesh)
     out_views = []
-    for i, cam in enumerate(cams):            # one view at a time: memory does not grow with the views
-        (frag,) = fr.compute_fragments(mesh, [cam], cache_dir=False, progress=False)
+    caster = fr.RayCaster(mesh)              # the mesh's ray-cast structure, built once
+    # one view at a time: memory does not grow with the views
+    for i, cam in enumerate(tqdm(cams, desc="capture views", unit="view", disable=not progress, dynamic_ncols=True)):
+        frag = fr.derive_fragments(mesh, cam, *fr.cast_view(caster, cam))
         hit = frag.hit
         obj = np.where(hit, frag.object_id, 0)
         u, v = frag.uv[..., 0], frag.uv[..., 1]
