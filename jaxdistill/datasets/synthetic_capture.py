@@ -7,8 +7,9 @@ and exact per-view maps (the `views` prior's targets) made by our own ray casts,
 tracer: the albedo is a per-object colour times a checker of the object's UVs, the irradiance
 falls off with distance from the camera (a head lamp) and is warm-tinted, and the photo is
 albedo × irradiance, sRGB-encoded. Every random choice comes from `seed`, so the same arguments
-write the same files (the same pixels in the EXRs, whose headers hold a write time). It is a scale test's scene: its maps are simple, and it has no texture
-ground truth (`gt.json`), so a run on it is timed and sized, not scored.
+write the same files (the same pixels in the EXRs, whose headers hold a write time). It is a
+scale test's scene: its maps are simple, and it has no texture ground truth (`gt.json`), so a
+run on it is timed and sized, not scored (`python -m jaxdistill.main --scene=DIR --prior=views`).
 """
 
 from __future__ import annotations
