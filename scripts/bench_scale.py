@@ -1,0 +1,125 @@
+"""How the main job's cost grows with a capture's size: views, resolution, faces.
+
+    python scripts/bench_scale.py [--views=50,150] [--sizes=876x584] [--faces_per_side=300] \\
+        [--steps=5] [--prior=views] [--max_texture_size=4096] [--work=out/bench_scale] [--json=FILE]
+
+For every resolution × view count, one after the other:
+1. the capture-sized synthetic room (`scripts/make_capture_scene.py`'s scene, reused when it is
+   already in the work folder), its generation timed;
+2. the main job on it, cold (a new, empty `JAXDISTILL_CACHE` in the work folder), for `--steps`
+   steps. The script records the child's wall seconds and peak RSS (the operating system's
+   accounting), the set-up phases from `metrics.json` (scene read, fragments, gather plans,
+   prior), the loop (compilation + steps), and the size of the cache on disk.
+A run that fails (out of memory, say) is recorded with its exit status and the log's last line,
+and the next size still runs. The table prints as the runs finish; `--json` writes it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--views", default="50,150", help="view counts, comma-separated")
+    p.add_argument("--sizes", default="876x584", help="WxH resolutions, comma-separated")
+    p.add_argument("--faces_per_side", type=int, default=300, help="wall subdivisions; 300 gives 1.13M faces")
+    p.add_argument("--steps", type=int, default=5, help="distillation steps per run (the first compiles)")
+    p.add_argument("--prior", default="views", choices=("views", "auto"), help="views: the targets; auto: SDS")
+    p.add_argument("--views_per_step", type=int, default=8)
+    p.add_argument("--max_texture_size", type=int, default=4096)
+    p.add_argument("--work", default="out/bench_scale", help="scenes, caches, runs and logs")
+    p.add_argument("--json", default=None)
+    args = p.parse_args(argv)
+    try:
+        args.views = [int(v) for v in args.views.split(",")]
+        args.sizes = [tuple(int(x) for x in s.lower().split("x")) for s in args.sizes.split(",")]
+    except ValueError:
+        p.error("--views takes integers (50,150) and --sizes WxH pairs (876x584,1752x1168)")
+    if any(v < 1 for v in args.views) or any(len(s) != 2 or min(s) < 8 for s in args.sizes):
+        p.error("--views must be >= 1 and --sizes WxH with sides >= 8")
+    return args
+
+
+def run_child(cmd: list[str], log: Path, env: dict | None = None) -> dict:
+    """Runs `cmd` with its output in `log`; its wall seconds, peak RSS and exit status."""
+    with open(log, "w") as out:
+        t0 = time.monotonic()
+        proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=out, stderr=subprocess.STDOUT)
+        _, status, usage = os.wait4(proc.pid, 0)
+        wall = time.monotonic() - t0
+    lines = log.read_text(errors="replace").replace("\r", "\n").strip().splitlines()
+    return {"exit": os.waitstatus_to_exitcode(status), "wall_s": wall, "peak_rss_gb": usage.ru_maxrss / 2 ** 20,
+            "last_line": lines[-1] if lines else ""}
+
+
+def folder_bytes(folder: Path) -> int:
+    return sum(p.stat().st_size for p in folder.rglob("*") if p.is_file())
+
+
+def one_case(args, work: Path, width: int, height: int, views: int) -> dict:
+    tag = f"{width}x{height}_{views}v_{args.faces_per_side}f"
+    scene = work / f"scene_{tag}"
+    row = {"width": width, "height": height, "views": views, "faces_per_side": args.faces_per_side}
+    if not (scene / "scene.json").is_file():
+        gen = run_child([sys.executable, str(REPO / "scripts" / "make_capture_scene.py"), f"--out={scene}",
+                         f"--faces_per_side={args.faces_per_side}", f"--views={views}", f"--width={width}",
+                         f"--height={height}"], work / f"generate_{tag}.log")
+        row["generate"] = gen
+        if gen["exit"]:
+            return {**row, "status": "generation failed"}
+    cache, out = work / f"cache_{tag}", work / f"run_{tag}"
+    for folder in (cache, out):
+        subprocess.run(["rm", "-rf", str(folder)], check=True)
+    cmd = [sys.executable, "-m", "jaxdistill.main", f"--scene={scene}", f"--prior={args.prior}",
+           f"--steps={args.steps}", f"--views_per_step={min(args.views_per_step, views)}",
+           f"--max_texture_size={args.max_texture_size}", f"--out_dir={out}", "--renders=false"]
+    run = run_child(cmd, work / f"run_{tag}.log", env={**os.environ, "JAXDISTILL_CACHE": str(cache)})
+    row.update(run=run, cache_gb=folder_bytes(cache) / 2 ** 30 if cache.exists() else 0.0)
+    if run["exit"]:
+        return {**row, "status": f"main job failed (exit {run['exit']})"}
+    metrics = json.loads((out / "metrics.json").read_text())
+    row.update(status="ok", setup=metrics.get("setup_timings", {}), loop_s=metrics["loop_seconds"],
+               steps=metrics["steps"], texels=(metrics.get("parameters") or {}).get("texels"))
+    return row
+
+
+def print_row(r: dict, file=sys.stdout) -> None:
+    run = r.get("run") or {}
+    setup = r.get("setup") or {}
+    gen = (r.get("generate") or {}).get("wall_s")
+    print(f"{r['width']}x{r['height']:<5d} {r['views']:5d} {r['status']:>24s} "
+          f"{'-' if gen is None else f'{gen:.0f}':>6s} {setup.get('fragments_s', 0):8.0f} {setup.get('plans_s', 0):7.0f} "
+          f"{r.get('loop_s', 0):7.0f} {run.get('wall_s', 0):7.0f} {run.get('peak_rss_gb', 0):7.1f} {r.get('cache_gb', 0):7.2f}",
+          file=file, flush=True)
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    work = (REPO / args.work) if not Path(args.work).is_absolute() else Path(args.work)
+    work.mkdir(parents=True, exist_ok=True)
+    print(f"{'render':11s} {'views':>5s} {'status':>24s} {'gen s':>6s} {'frags s':>8s} {'plans s':>7s} "
+          f"{'loop s':>7s} {'wall s':>7s} {'RSS GB':>7s} {'cache GB':>7s}   (loop: compile + {args.steps} steps)",
+          flush=True)
+    rows = []
+    for width, height in args.sizes:
+        for views in args.views:
+            rows.append(one_case(args, work, width, height, views))
+            print_row(rows[-1])
+    if args.json:
+        Path(args.json).write_text(json.dumps({"rows": rows, "args": {k: v for k, v in vars(args).items()},
+                                               "cpu_count": os.cpu_count()}, indent=1, default=str))
+    return 0 if all(r["status"] == "ok" for r in rows) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,37 @@
+"""`scripts/bench_scale.py`'s own parts: its size arguments are parsed or refused by name, and a
+child's accounting (exit status, wall, peak RSS, last log line) comes from the child itself."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def bench():
+    spec = importlib.util.spec_from_file_location("bench_scale", REPO / "scripts" / "bench_scale.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["bench_scale"] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_sizes_and_views_are_parsed_or_refused(bench, capsys):
+    args = bench.parse_args(["--views=50,600", "--sizes=876x584,1752X1168"])
+    assert args.views == [50, 600] and args.sizes == [(876, 584), (1752, 1168)]
+    for bad in ("--sizes=876by584", "--views=0", "--sizes=4x4"):
+        with pytest.raises(SystemExit):
+            bench.parse_args([bad])
+        assert "--views" in capsys.readouterr().err
+
+
+def test_a_childs_accounting_is_its_own(bench, tmp_path):
+    code = "import sys; b = bytearray(200 * 2**20); print('first'); print('last line'); sys.exit(3)"
+    got = bench.run_child([sys.executable, "-c", code], tmp_path / "child.log")
+    assert got["exit"] == 3 and got["last_line"] == "last line"
+    assert got["peak_rss_gb"] > 0.19 and got["wall_s"] > 0
