@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -79,7 +80,7 @@ def one_case(args, work: Path, width: int, height: int, views: int) -> dict:
             return {**row, "status": "generation failed"}
     cache, out = work / f"cache_{tag}", work / f"run_{tag}"
     for folder in (cache, out):
-        subprocess.run(["rm", "-rf", str(folder)], check=True)
+        shutil.rmtree(folder, ignore_errors=True)
     cmd = [sys.executable, "-m", "jaxdistill.main", f"--scene={scene}", f"--prior={args.prior}",
            f"--steps={args.steps}", f"--views_per_step={min(args.views_per_step, views)}",
            f"--max_texture_size={args.max_texture_size}", f"--out_dir={out}", "--renders=false"]

@@ -10,7 +10,8 @@ estimates' (irradiance is scored scale-invariantly, so for it only the files cha
     mean_hit srgb(clip(g_c · render_c, 0, 1)) = mean_hit srgb(estimate_c)
 
 (solved by Newton's method in log g_c inside a bisection bracket: the left side increases with
-g_c), and scales the texels by it in linear light. Every texel keeps its place relative to the others: the structure SDS found is untouched.
+g_c), and scales the texels by it in linear light. Every texel keeps its place relative to the
+others: the structure SDS found is untouched.
 A mean in sRGB is less dominated by the brightest pixels than a linear one (on the held-out
 rooms a linear mean lowered albedo PSNR by up to 0.5 dB, the sRGB mean changed it by −0.17 to
 +0.19 dB; docs/seams.md). The per-view `gain` alignment (`engine.gains`) removes the views' disagreement

@@ -114,8 +114,9 @@ def walkthrough_cameras(num_views: int, size=(6.0, 3.0, 5.0), width: int = 876, 
         a = phase + 2 * np.pi * i / num_views
         eye = centre + np.array([radius[0] * np.cos(a), min(1.6, 0.6 * sy), radius[1] * np.sin(a)])
         eye = eye + rng.normal(0, [0.03, 0.04, 0.03])
-        heading = np.array([-np.sin(a), 0.0, np.cos(a)])                   # tangent of the walk
-        outward = np.array([np.cos(a), 0.0, np.sin(a)])
+        heading = np.array([-radius[0] * np.sin(a), 0.0, radius[1] * np.cos(a)])     # tangent of the ellipse
+        heading /= np.linalg.norm(heading)
+        outward = np.array([heading[2], 0.0, -heading[0]])                         # its outward normal
         look = np.cos(turn[i]) * heading + np.sin(turn[i]) * outward
         look = look + np.array([0.0, rng.uniform(-0.35, 0.1), 0.0])
         cams.append(look_at(eye, eye + look, np.array([0.0, 1.0, 0.0]), K, width, height))
