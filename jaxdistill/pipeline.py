@@ -57,6 +57,11 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
     texels, anchor = anchor_lib.anchor_to_baseline(config, problem, texels, ctx, baseline)
     summary = write_outputs(config, problem, texels, loop.history, ctx, trust, baseline)
     summary["rerender"] = rerender_scores(texels, problem, ctx.plan, ctx.cameras)
+    if problem.photos is not None and problem.photos.noise is not None:     # each photo's noise and term weight
+        names = [v.name for v in problem.scene.views]
+        summary["photo_noise"] = {"ref": config.photo_noise_ref,
+                                  "sigma": dict(zip(names, np.round(problem.photos.noise, 4).tolist())),
+                                  "weight": dict(zip(names, np.round(problem.photos.noise_weight, 4).tolist()))}
     summary.update(run_record(config, problem, loop, wall_start))
     summary["anchor"] = anchor
     if loop.state.align is not None:          # the learned per-view gains (geometric mean 1 per channel)

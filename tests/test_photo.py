@@ -328,6 +328,53 @@ def test_a_run_with_the_term_explains_its_photos_better_and_says_so(tiny_scene, 
     assert on["rerender"]["psnr_db"] > off["rerender"]["psnr_db"] + 1.0
 
 
+def test_the_noise_estimate_reads_gaussian_log_noise_and_ignores_edges_and_texture():
+    """`log_noise` against a known σ: a flat photo with Gaussian noise in log units reads σ within
+    3 % (90 000 pairs; the MAD's own error is about 0.5 %), a clean photo of stripes (a third
+    of the x pairs on an edge) reads 0, and wider stripes with noise read the noise."""
+    rng = np.random.default_rng(0)
+    h, w = 150, 300
+    for sigma in (0.05, 0.3, 0.8):
+        log_grey = np.log(0.4 + photo.PHOTO_EPS) + rng.normal(0.0, sigma, (h, w))
+        image = np.repeat((np.exp(log_grey) - photo.PHOTO_EPS)[..., None], 3, axis=-1)
+        assert_close(photo.log_noise(image), sigma, rtol=0.03)
+    stripes = np.where((np.arange(w) // 3) % 2 == 0, 0.8, 0.1)[None, :, None] * np.ones((h, w, 3))
+    stripes[:, :, 1] *= 0.5                                     # colour: the estimate reads brightness
+    assert photo.log_noise(stripes) == 0.0
+    wide = np.where((np.arange(w) // 8) % 2 == 0, 0.8, 0.1)[None, :, None] * np.ones((h, w, 3))
+    noisy = wide * np.exp(rng.normal(0.0, 0.2, (h, w, 1)))
+    assert_close(photo.log_noise(noisy), 0.2, rtol=0.1)         # edges (1/16 of the pairs) raise the median ~6 %
+    usable = np.zeros((h, w), np.float32)
+    usable[:4, :4] = 1                                          # 24 pairs: too few to say
+    assert photo.log_noise(noisy, usable) == 0.0
+
+
+def test_the_noise_weight_is_inverse_variance_above_the_reference_and_one_below():
+    assert photo.noise_weight(0.6, 0.3) == pytest.approx(0.25, rel=1e-12)
+    assert photo.noise_weight(0.2, 0.3) == 1.0 and photo.noise_weight(0.3, 0.3) == 1.0
+    assert photo.noise_weight(5.0, 0.0) == 1.0 and photo.noise_weight(0.0, 0.3) == 1.0
+
+
+def test_photo_noise_ref_weighs_each_views_pixels_by_its_photos_noise(tiny_scene, tmp_path):
+    """--photo_noise_ref scales every pixel weight of a view by noise_weight(σ_v) of its own photo
+    and nothing else; metrics.json records each view's σ and weight."""
+    _, plain = photo_problem(tiny_scene, tmp_path / "plain")
+    sigma = plain.photos.noise
+    assert sigma.shape == (4,) and np.all(sigma >= 0) and np.all(plain.photos.noise_weight == 1.0)
+    ref = float(np.median(sigma[sigma > 0])) if np.any(sigma > 0) else 1.0
+    _, guarded = photo_problem(tiny_scene, tmp_path / "guarded", photo_noise_ref=ref)
+    expected = np.array([photo.noise_weight(s, ref) for s in sigma])
+    assert np.any(expected < 1.0)
+    assert_close(guarded.photos.noise_weight, expected, rtol=1e-12)
+    assert_close(guarded.photos.pixel_weight, plain.photos.pixel_weight * expected[:, None, None].astype(np.float32),
+                 rtol=1e-6)
+    assert np.array_equal(guarded.photos.photos, plain.photos.photos)
+    summary = pipeline.run(tiny_config(tiny_scene, tmp_path / "run", photo_weight=1.0, photo_noise_ref=ref),
+                           progress=False)
+    assert summary["photo_noise"]["ref"] == ref
+    assert_close(np.array(list(summary["photo_noise"]["weight"].values())), expected, rtol=1e-3)
+
+
 # ----------------------------------------------------------------------------- photos
 
 
@@ -384,9 +431,11 @@ def test_the_photo_flags_are_checked_naming_the_flag(tiny_scene, tmp_path):
         tiny_config(tiny_scene, tmp_path / "o", photo_weight=-1.0)
     with pytest.raises(InputError, match=r"--photo_size"):
         tiny_config(tiny_scene, tmp_path / "o", photo_size=4)
-    for name in ("irradiance_smoothness", "albedo_smoothness"):     # no silent no-op without the term
+    for name in ("irradiance_smoothness", "albedo_smoothness", "photo_noise_ref"):     # no silent no-op
         with pytest.raises(InputError, match=rf"--{name}: is part of the re-rendering term"):
             tiny_config(tiny_scene, tmp_path / "o", **{name: 1.0})
+    with pytest.raises(InputError, match=r"--photo_noise_ref: must be >= 0"):
+        tiny_config(tiny_scene, tmp_path / "o", photo_weight=1.0, photo_noise_ref=-0.1)
     with pytest.raises(InputError, match=r"--albedo_smoothness: must be >= 0"):
         tiny_config(tiny_scene, tmp_path / "o", photo_weight=1.0, albedo_smoothness=-1.0)
     with pytest.raises(InputError, match=r"--irradiance_sds_weight: must be >= 0"):

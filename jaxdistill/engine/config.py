@@ -81,6 +81,7 @@ class DistillConfig:
     irradiance_smoothness: float = 0.0
     irradiance_sds_weight: float = 1.0
     albedo_smoothness: float = 0.0
+    photo_noise_ref: float = 0.0
     render_size: int = 0
     texture_size: str = "auto"
     max_texture_size: int = 4096
@@ -186,6 +187,9 @@ def define_flags(fv: flags.FlagValues = flags.FLAGS, *, main_module: bool = Fals
                        "between neighbouring pixels of the re-rendered photos, weighted by how little the photo's "
                        "colour (chromaticity) changes there: shadow and sun-patch edges are pushed out of the "
                        "albedo (colour Retinex); part of the re-rendering term", **where)
+    flags.DEFINE_float("photo_noise_ref", d.photo_noise_ref, "noise (in log units) above which a view's photo "
+                       "weighs less in the re-rendering term: weight min(1, (ref / sigma)^2), sigma the photo's own "
+                       "noise estimated from neighbouring pixels; 0: every photo weighs 1", **where)
     flags.DEFINE_integer("reuse_steps", d.reuse_steps, "rgbx prior: take K AdamW steps on the same views towards "
                          "one x_pred before the prior runs again (1 = a new x_pred every step, the thesis; K > 1 costs "
                          "1/K of the prior per step, like Instruct-NeRF2NeRF's iterative dataset update)", **where)
@@ -305,7 +309,9 @@ def validate(config: DistillConfig) -> DistillConfig:
         bad("photo_size", f"must be 0 (the photos' size) or >= 8, got {c.photo_size}")
     if not c.irradiance_smoothness >= 0:
         bad("irradiance_smoothness", f"must be >= 0, got {c.irradiance_smoothness}")
-    for name in ("irradiance_smoothness", "albedo_smoothness"):
+    if not c.photo_noise_ref >= 0:
+        bad("photo_noise_ref", f"must be >= 0, got {c.photo_noise_ref}")
+    for name in ("irradiance_smoothness", "albedo_smoothness", "photo_noise_ref"):
         if getattr(c, name) > 0 and c.photo_weight == 0:
             bad(name, "is part of the re-rendering term, which --photo_weight=0 turns off; give --photo_weight > 0 "
                 f"or --{name}=0")

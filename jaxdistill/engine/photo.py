@@ -29,6 +29,12 @@ texture detail into albedo. `--albedo_smoothness` adds λ_a Σ W g ρ(Δ log a) 
 `chroma_guide` (colour Retinex: a brightness step at constant chromaticity is light, a shadow
 or sun-patch edge, so it is pushed out of the albedo into the irradiance; a colour change is not
 penalised), which also averages the photos' noise out of uniformly coloured albedo.
+
+`--photo_noise_ref=σ0` weighs each view's term (its pixel weights, so its smoothness pairs too)
+by min(1, (σ0/σ_v)²), σ_v the photo's own noise in log units (`log_noise`): inverse-variance
+weighting of the log residual above σ0, nothing below it. A path-traced photo with few samples
+(or a dark, high-ISO shot) then cannot pull its noise into the albedo through the term, while
+clean photos are used as before.
 """
 
 from __future__ import annotations
@@ -144,6 +150,33 @@ def smoothness(irradiance, weights, hit, loss: str) -> jax.Array:
 
 CHROMA_SIGMA = 0.02     # chromaticity step (r, g, b)/(r + g + b) at which a pair's albedo weight falls to e^-1/2
 CHROMA_FLOOR = 1e-4     # added to r + g + b, times the photo's mean: keeps black pixels' chromaticity finite
+
+
+NOISE_MIN_PAIRS = 64    # fewer usable neighbour pairs than this: the noise is not estimated (σ = 0, weight 1)
+
+
+def log_noise(photo: np.ndarray, usable: np.ndarray | None = None) -> float:
+    """σ, the per-pixel noise of a linear photo (H, W, 3) in the term's log units: the median
+    absolute difference of log(mean over channels + PHOTO_EPS) between horizontally and vertically
+    neighbouring usable pixels, times 1.4826 / √2 (a Gaussian's σ from the MAD of the difference of
+    two independent samples). Edges and texture touch few pairs, so the median reads the noise
+    (Donoho's robust noise estimate, on neighbour differences); 0 with fewer than
+    NOISE_MIN_PAIRS pairs."""
+    grey = np.log(np.maximum(np.asarray(photo, np.float64), 0.0).mean(axis=-1) + PHOTO_EPS)
+    u = np.ones(grey.shape, bool) if usable is None else np.asarray(usable) > 0.5
+    diffs = np.concatenate([(grey[:, 1:] - grey[:, :-1])[u[:, 1:] & u[:, :-1]],
+                            (grey[1:] - grey[:-1])[u[1:] & u[:-1]]])
+    if diffs.size < NOISE_MIN_PAIRS:
+        return 0.0
+    return float(1.4826 * np.median(np.abs(diffs)) / np.sqrt(2.0))
+
+
+def noise_weight(sigma: float, ref: float) -> float:
+    """min(1, (ref / sigma)²): the view's weight in the term for a photo of noise σ (`log_noise`);
+    1 when ref is 0 (off) or σ is 0 (not estimated)."""
+    if ref <= 0 or sigma <= 0:
+        return 1.0
+    return float(min(1.0, (ref / sigma) ** 2))
 
 
 def chroma_guide(photo: np.ndarray, usable: np.ndarray | None = None) -> np.ndarray:

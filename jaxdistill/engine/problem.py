@@ -121,7 +121,9 @@ class PhotoData:
     linear and exposed; pixel_weight (V, H, W) float32: the visibility weights times the view's
     mask times the photo's usable pixels; guide (V, H, W, 2) float32 the photos' `chroma_guide`
     (--albedo_smoothness > 0) or None; scale the photo scale --photo_scale resolved to
-    (`photo.resolve_scale`: "auto" by whether the photos are LDR)."""
+    (`photo.resolve_scale`: "auto" by whether the photos are LDR); noise (V,) each photo's
+    `photo.log_noise` and noise_weight (V,) the weight --photo_noise_ref gives its view (already in
+    pixel_weight)."""
 
     height: int
     width: int
@@ -132,6 +134,8 @@ class PhotoData:
     pixel_weight: np.ndarray
     guide: np.ndarray | None = None
     scale: str = "batch"
+    noise: np.ndarray | None = None
+    noise_weight: np.ndarray | None = None
 
     def batch(self, ids: np.ndarray) -> dict:
         out = {"photo_index": self.index[ids], "photo_tap_weight": self.weight[ids], "photo_hit": self.hit[ids],
@@ -395,18 +399,30 @@ def _photo_data(config: DistillConfig, scene: Scene, photo_frags, space: TexelSp
     weights = np.array(_masked(weights, scene, height, width))
     photos = np.zeros((len(scene.views), height, width, 3), np.float32)
     guide = np.zeros((len(scene.views), height, width, 2), np.float32) if config.albedo_smoothness > 0 else None
+    noise = np.zeros(len(scene.views), np.float64)
+    noise_weight = np.ones(len(scene.views), np.float64)
     for v, view in enumerate(tqdm(scene.views, desc="photos", unit="view", dynamic_ncols=True)):
         photos[v], usable = read_photo_linear(view.photo, view.exposure, height, width)
         weights[v] *= usable
         if guide is not None:
             guide[v] = photo_lib.chroma_guide(photos[v], usable)
+        noise[v] = photo_lib.log_noise(photos[v], usable)
+        noise_weight[v] = photo_lib.noise_weight(noise[v], config.photo_noise_ref)
+        if noise_weight[v] != 1.0:
+            weights[v] *= np.float32(noise_weight[v])
+    if config.photo_noise_ref > 0:
+        logging.info("--photo_noise_ref=%g: the photos' noise %.3f (median, %.3f-%.3f) in log units; %d of %d views "
+                     "weigh less in the term (weights %.2f-%.2f)", config.photo_noise_ref, float(np.median(noise)),
+                     float(noise.min()), float(noise.max()), int(np.sum(noise_weight < 1)), len(noise),
+                     float(noise_weight.min()), float(noise_weight.max()))
     ldr = any(not imageio.is_linear_format(view.photo) for view in scene.views)
     scale = photo_lib.resolve_scale(config.photo_scale, ldr)
     if scale != config.photo_scale:
         logging.info("--photo_scale=auto: %s (%s)", scale, "LDR photos: a gain per view and colour channel, their "
                      "exposure and white balance" if ldr else "HDR photos: one scale per batch, their exposure known")
     return PhotoData(height=height, width=width, index=np.asarray(plan.index), weight=np.asarray(plan.weight),
-                     hit=np.asarray(plan.hit), photos=photos, pixel_weight=weights, guide=guide, scale=scale)
+                     hit=np.asarray(plan.hit), photos=photos, pixel_weight=weights, guide=guide, scale=scale,
+                     noise=noise, noise_weight=noise_weight)
 
 
 def initial_file_values(maps: Sequence[str]) -> dict[str, float]:
