@@ -116,6 +116,7 @@ ADDED_FLAG_DEFAULTS = {"reuse_steps": 1, "align": "none", "align_strength": Dist
                        "photo_weight": 0.0, "photo_size": 0, "photo_space": DistillConfig.photo_space,
                        "photo_loss": DistillConfig.photo_loss, "photo_scale": DistillConfig.photo_scale,
                        "irradiance_smoothness": 0.0, "irradiance_sds_weight": 1.0, "albedo_smoothness": 0.0,
+                       "photo_noise_ref": 0.0,
                        # --scene=FORMAT:PATH's loader options: like --scene they decide the mesh, its UVs, the
                        # views and their exposure, so a resume must keep them (None/defaults: the loader's own)
                        "mesh": None, "exposure": DistillConfig.exposure, "uv": DistillConfig.uv,
