@@ -39,12 +39,14 @@ def main(argv) -> None:
         raise app.UsageError(f"--config={FLAGS.config} inside a flagfile: give --config on the command line, or "
                              f"--flagfile={config_path(FLAGS.config)} in the flagfile")
     from jaxdistill import pipeline
+    from jaxdistill.engine import distributed
     from jaxdistill.engine.loop import NonFiniteLoss
 
     follower = None
     try:
         config = config_lib.config_from_flags(FLAGS)
-        if "view" in FLAGS and FLAGS.view:
+        distributed.initialize(config.coordinator_address, config.num_processes, config.process_id)
+        if "view" in FLAGS and FLAGS.view and distributed.is_primary():
             follower = start_viewer(config)
         summary = pipeline.run(config)
     except InputError as err:

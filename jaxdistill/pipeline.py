@@ -17,7 +17,7 @@ import jax
 import numpy as np
 from absl import logging
 
-from jaxdistill.engine import gains as align_lib
+from jaxdistill.engine import distributed, gains as align_lib
 from jaxdistill.engine.config import DistillConfig, check_views_per_step
 from jaxdistill.engine import loop as loop_lib
 from jaxdistill.engine.problem import build_problem, choose_prior
@@ -43,6 +43,10 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
     logging.warning("%s\n%s\n%s", "=" * len(banner), banner, "=" * len(banner))
 
     out.mkdir(parents=True, exist_ok=True)
+    if not distributed.is_primary():               # another process of a multi-process run: the loop only
+        loop = loop_lib.run_loop(config, problem, recorded, latest, progress=False)
+        return {"process_id": jax.process_index(), "step": int(jax.device_get(loop.state.step)),
+                "stopped_by": loop.stopped_by, "exit_status": loop.exit_status}
     trust = texel_trust(problem)                   # once: the texel space file and the exported pages
     run_files.write_texel_space(out, problem.space, trust, problem.channels.maps, json_safe(recorded))
     ctx = scoring.evaluation_context(config, problem)
@@ -86,9 +90,9 @@ def run_record(config: DistillConfig, problem, loop, wall_start: float) -> dict:
         "prior": {"kind": problem.choice.kind, "reason": problem.choice.reason, "folder": problem.choice.folder,
                   "model": model_info(problem.choice.folder) if problem.choice.folder else None},
         "device": {"backend": jax.default_backend(), "devices": [str(d) for d in devices],
-                   "kind": devices[0].device_kind},
+                   "kind": devices[0].device_kind, "processes": jax.process_count()},
         "peak_host_memory_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
-        "peak_device_memory_mb": _peak_device_memory_mb(devices),
+        "peak_device_memory_mb": _peak_device_memory_mb(jax.local_devices()),     # this process's
         "parameters": {"texels": problem.space.num_texels, "channels": problem.channels.num_channels,
                        "page_sizes": list(problem.space.layout.page_sizes)},
         "traces": loop.traces, "config": loop_lib.recorded_config(config, problem.choice.kind),

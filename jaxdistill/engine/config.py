@@ -17,6 +17,7 @@ from absl import flags
 
 from jaxdistill import MAP_NAMES
 from jaxdistill.datasets.common import UV_POLICIES, ImportOptions
+from jaxdistill.engine.distributed import address_problem
 from jaxdistill.engine.photo import PHOTO_LOSSES, PHOTO_SCALES, PHOTO_SPACES
 from jaxdistill.errors import InputError, ProblemList
 from jaxdistill.render.gather_plan import SAMPLERS
@@ -36,7 +37,7 @@ RGBX_DIR_ENV = "JAXDISTILL_RGBX_DIR"
 # (--max_unwrap_faces and --unwrap_time_limit only decide whether an unwrap is attempted, never its result.)
 RESUMABLE_FLAGS = ("steps", "resume", "ckpt_every", "keep_checkpoints", "out_dir", "log_every", "eval_every", "renders",
                    "contact_views", "rgbx_dir", "convert_cache", "allow_outside_paths", "anchor", "estimate_steps",
-                   "max_unwrap_faces", "unwrap_time_limit")
+                   "max_unwrap_faces", "unwrap_time_limit", "coordinator_address", "num_processes", "process_id")
 # Flags handed to the dataset loaders for --scene=FORMAT:PATH (`ImportOptions` fields, the import
 # command's flags of the same names).
 IMPORT_FLAGS = ("mesh", "exposure", "uv", "max_views", "max_page_size", "max_unwrap_faces", "unwrap_time_limit")
@@ -96,6 +97,9 @@ class DistillConfig:
     renders: bool = True
     contact_views: int = 4
     allow_outside_paths: bool = False
+    coordinator_address: str = ""           # engine/distributed.py: "" one process, HOST:PORT or auto several
+    num_processes: int = 1
+    process_id: int = -1
     mesh: str | None = _IMPORT.mesh
     exposure: str = _IMPORT.exposure
     uv: str = _IMPORT.uv
@@ -212,6 +216,13 @@ def define_flags(fv: flags.FlagValues = flags.FLAGS, *, main_module: bool = Fals
     flags.DEFINE_bool("allow_outside_paths", d.allow_outside_paths, "let scene files (scene.json, gt.json, "
                       "scene configs) name files outside their folder (../, absolute paths); off: refused, for "
                       "scenes from elsewhere", **where)
+    flags.DEFINE_string("coordinator_address", d.coordinator_address, "more than one process (hosts or GPUs): "
+                        "HOST:PORT of process 0, which every process of the run is given, or auto (SLURM, Open MPI, "
+                        "Kubernetes: JAX reads the rest from the environment); empty: one process", **where)
+    flags.DEFINE_integer("num_processes", d.num_processes, "processes of the run, with --coordinator_address=HOST:PORT",
+                         **where)
+    flags.DEFINE_integer("process_id", d.process_id, "this process's rank in [0, --num_processes), with "
+                         "--coordinator_address=HOST:PORT; process 0 writes the outputs", **where)
     define_dataset_flags(fv, main_module=main_module)
 
 
@@ -309,6 +320,8 @@ def validate(config: DistillConfig) -> DistillConfig:
         bad("photo_size", f"must be 0 (the photos' size) or >= 8, got {c.photo_size}")
     if not c.irradiance_smoothness >= 0:
         bad("irradiance_smoothness", f"must be >= 0, got {c.irradiance_smoothness}")
+    for flag, message in address_problem(c.coordinator_address, c.num_processes, c.process_id):
+        bad(flag, message)
     if not c.photo_noise_ref >= 0:
         bad("photo_noise_ref", f"must be >= 0, got {c.photo_noise_ref}")
     for name in ("irradiance_smoothness", "albedo_smoothness", "photo_noise_ref"):

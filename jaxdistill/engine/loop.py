@@ -23,6 +23,7 @@ import optax
 from absl import logging
 from tqdm.auto import tqdm
 
+from jaxdistill.engine import distributed
 from jaxdistill.engine.config import DistillConfig, resumable_flags
 from jaxdistill.engine.problem import Problem
 from jaxdistill.engine.step import (DistillState, StepSettings, TraceCounter, data_mesh, init_state, initial_align,
@@ -130,8 +131,9 @@ def recorded_config(config: DistillConfig, prior_kind: str) -> dict:
 
 def _save(store, state, recorded: dict, history: dict, out: Path) -> None:
     step = int(jax.device_get(state.step))
-    store.save(step, state, recorded)
-    _history_path(out).write_text(json.dumps(history))
+    store.save(step, state, recorded)          # every process (orbax's multi-process protocol)
+    if distributed.is_primary():
+        _history_path(out).write_text(json.dumps(history))
 
 
 def check_before_compute(config: DistillConfig, out: Path, choice) -> int | None:
@@ -260,17 +262,19 @@ def run_loop(config: DistillConfig, problem: Problem, recorded: dict, latest: in
     state = jax.device_put(state, stepper.replicated)
     frozen = jax.device_put(problem.frozen, stepper.replicated)
     if hooks.before_steps is not None:
-        step_fn = hooks.before_steps(step_fn, state, jax.device_put(first, by_view), frozen)
+        step_fn = hooks.before_steps(step_fn, state, distributed.place_batch(
+            problem.batch, batch_views(problem, config, 0), by_view), frozen)
 
     start_step = int(jax.device_get(state.step))
     pending = []           # (step, metrics on device) not yet fetched
     stopped_by = None
     loop_start = time.perf_counter()
     with checkpoint.StopSignals() as stop, tqdm(total=config.steps, initial=start_step, unit="step", desc="distil",
-                                                dynamic_ncols=True, disable=not progress,
+                                                dynamic_ncols=True,
+                                                disable=not (progress and distributed.is_primary()),
                                                 smoothing=0) as bar:   # steps run asynchronously: average rate
         for step in range(start_step, config.steps):
-            batch = jax.device_put(problem.batch(batch_views(problem, config, step)), by_view)
+            batch = distributed.place_batch(problem.batch, batch_views(problem, config, step), by_view)
             state, step_metrics = step_fn(state, batch, frozen)
             pending.append((step, step_metrics))
             done = step + 1

@@ -261,9 +261,13 @@ class CheckpointStore:
 
     def read_texels(self, step: int | None = None) -> np.ndarray:
         """The texels of `step` (None: the latest complete one) as a NumPy array, without knowing
-        the state's structure (a viewer following a run)."""
+        the state's structure (a viewer following a run), on this machine's first device whatever
+        devices or processes wrote it."""
         step = self._complete_step(step)
-        restored = self._mngr.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore()))
+        sharding = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
+        tree = self._mngr.metadata(step).item_metadata["state"].tree
+        target = jax.tree.map(lambda m: jax.ShapeDtypeStruct(tuple(m.shape), m.dtype, sharding=sharding), tree)
+        restored = self._mngr.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(target)))
         return np.asarray(restored.state["texels"])
 
     def _complete_step(self, step: int | None) -> int:

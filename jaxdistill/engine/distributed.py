@@ -1,0 +1,100 @@
+"""More than one process: `jax.distributed` behind three flags, and batches each process fills
+with its own views.
+
+One process per host (or per GPU) runs the same command with `--coordinator_address=HOST:PORT
+--num_processes=N --process_id=I` (or `--coordinator_address=auto`, which lets JAX read them from
+SLURM, Open MPI or Kubernetes). `initialize` joins them before JAX touches a device; then
+`jax.devices()` is every process's devices and the loop's 1-D "data" mesh spans them all. The
+step is unchanged: texels and optimizer state replicated, each step's views split over the
+devices by view, XLA all-reducing the gradients (gloo on CPU, NCCL on GPU).
+
+Each process assembles only its own rows of a step's batch (`place_batch`: the gather plans,
+photos and targets of the views its devices hold); the precompute still builds every view's
+plans in every process (the fragment cache is shared on disk). Checkpoints are written by
+orbax's multi-process protocol (every process calls save; the primary writes the replicated
+arrays), and the outputs after the loop (scores, pages, glTF) by the primary process only
+(`is_primary`).
+"""
+
+from __future__ import annotations
+
+import re
+
+import jax
+import numpy as np
+from absl import logging
+
+from jaxdistill.errors import InputError
+
+AUTO = "auto"
+_ADDRESS = re.compile(r"^\[?[A-Za-z0-9_.:-]+\]?:(\d{1,5})$")
+
+
+def address_problem(address: str, num_processes: int, process_id: int) -> list[tuple[str, str]]:
+    """[(flag, what is wrong)] of the multi-process flags; empty when they are usable (no address:
+    one process, the others must stay at their defaults)."""
+    problems = []
+    if not address:
+        if num_processes != 1:
+            problems.append(("num_processes", f"is {num_processes}, but --coordinator_address is empty; give "
+                             "--coordinator_address=HOST:PORT of process 0 (or auto under SLURM/Open MPI/Kubernetes)"))
+        if process_id not in (-1, 0):
+            problems.append(("process_id", f"is {process_id} without --coordinator_address"))
+        return problems
+    if address == AUTO:
+        return problems
+    match = _ADDRESS.match(address)
+    if not match or not 0 < int(match.group(1)) < 65536:
+        problems.append(("coordinator_address", f"{address!r} is not HOST:PORT (e.g. 10.0.0.1:1234 or "
+                         "node001:1234), or auto"))
+    if num_processes < 2:
+        problems.append(("num_processes", f"must be >= 2 with --coordinator_address={address}, got {num_processes}"))
+    elif not 0 <= process_id < num_processes:
+        problems.append(("process_id", f"must be in [0, {num_processes}) with --num_processes={num_processes}, got "
+                         f"{process_id}"))
+    return problems
+
+
+def initialize(address: str, num_processes: int, process_id: int) -> None:
+    """Joins the run's processes (nothing for one process). Call before any JAX computation; on CPU
+    the collectives go through gloo."""
+    if not address:
+        return
+    jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    if address == AUTO:
+        try:
+            jax.distributed.initialize()
+        except (ValueError, RuntimeError) as err:
+            raise InputError.single("flags", "--coordinator_address", (
+                f"auto found no cluster to join ({err}); under SLURM, Open MPI or Kubernetes start one process per "
+                "host with srun/mpirun, or give HOST:PORT of process 0 with --num_processes and --process_id")) from None
+    else:
+        jax.distributed.initialize(coordinator_address=address, num_processes=num_processes, process_id=process_id)
+    logging.info("process %d of %d: %d local of %d devices", jax.process_index(), jax.process_count(),
+                 jax.local_device_count(), jax.device_count())
+
+
+def is_primary() -> bool:
+    """Whether this process writes the run's outputs (process 0; the only one without --coordinator_address)."""
+    return jax.process_index() == 0
+
+
+def local_rows(sharding: jax.sharding.Sharding, rows: int) -> tuple[int, int]:
+    """(start, stop) of the leading-axis rows of a (rows, ...) array that `sharding` puts on this
+    process's devices (contiguous: the mesh orders devices by process)."""
+    spans = [(idx[0].start or 0, rows if idx[0].stop is None else idx[0].stop)
+             for idx in sharding.addressable_devices_indices_map((rows,)).values()]
+    return min(s for s, _ in spans), max(e for _, e in spans)
+
+
+def place_batch(make_batch, view_ids: np.ndarray, sharding: jax.sharding.Sharding) -> dict:
+    """`make_batch(view_ids)` ({name: (B, ...)} host arrays) on the devices, split by view over
+    `sharding`'s mesh. With several processes each assembles and sends only the rows of the views
+    its own devices hold."""
+    view_ids = np.asarray(view_ids)
+    if jax.process_count() == 1:
+        return jax.device_put(make_batch(view_ids), sharding)
+    start, stop = local_rows(sharding, len(view_ids))
+    local = make_batch(view_ids[start:stop])
+    return jax.tree.map(lambda x: jax.make_array_from_process_local_data(
+        sharding, np.asarray(x), (len(view_ids),) + np.shape(x)[1:]), local)

@@ -1,0 +1,133 @@
+"""More than one process (`engine/distributed.py`): two CPU processes on localhost, joined by
+`jax.distributed` (gloo collectives), each sending its half of every step's views, give the
+texels of one process running the same batches; the checkpoint they write once resumes in one
+process; bad multi-process flags are named before any compute."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from jaxdistill import pipeline
+from jaxdistill.engine import config as config_lib, distributed
+from jaxdistill.engine.config import DistillConfig
+from jaxdistill.errors import InputError
+from jaxdistill.io.checkpoint import CheckpointStore
+from tiny_scene import write_tiny_scene
+from tolerance import assert_close
+
+REPO = Path(__file__).resolve().parents[1]
+STEPS = 4
+FLAGS = dict(prior="views", steps=STEPS, views_per_step=2, log_every=2, renders=False, contact_views=0, seed=3)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("localhost", 0))
+        return s.getsockname()[1]
+
+
+def texels(out: Path) -> np.ndarray:
+    with CheckpointStore(out / "checkpoints") as store:
+        return store.read_texels()
+
+
+@pytest.fixture(scope="module")
+def two_process_run(tmp_path_factory):
+    work = tmp_path_factory.mktemp("distributed")
+    scene = write_tiny_scene(work / "scene")
+    out = work / "two"
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "JAXDISTILL_CACHE": str(work / "cache")}
+    env.pop("XLA_FLAGS", None)                     # one CPU device per process
+    env.pop("JAXDISTILL_RGBX_DIR", None)
+    address = f"localhost:{free_port()}"
+    flags = [f"--{k}={str(v).lower() if isinstance(v, bool) else v}" for k, v in FLAGS.items()]
+    procs = [subprocess.Popen([sys.executable, "-m", "jaxdistill.main", f"--scene={scene}", f"--out_dir={out}", *flags,
+                               f"--coordinator_address={address}", "--num_processes=2", f"--process_id={i}"],
+                              cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+             for i in range(2)]
+    logs = []
+    for proc in procs:
+        try:
+            logs.append(proc.communicate(timeout=300)[0])
+        except subprocess.TimeoutExpired:
+            for p in procs:
+                p.kill()
+            pytest.fail("the two processes did not finish in 300 s")
+    for i, (proc, log) in enumerate(zip(procs, logs)):
+        assert proc.returncode == 0, f"process {i} failed:\n{log[-4000:]}"
+    return scene, out, logs
+
+
+def one_process(scene: Path, out: Path, **kw) -> dict:
+    config = config_lib.validate(DistillConfig(scene=str(scene), out_dir=str(out), **{**FLAGS, **kw}))
+    return pipeline.run(config, progress=False)
+
+
+def test_two_processes_give_the_texels_of_one_and_process_0_writes_the_outputs(two_process_run, tmp_path,
+                                                                                 monkeypatch):
+    scene, out, logs = two_process_run
+    assert "process 0 of 2: 1 local of 2 devices" in logs[0] and "process 1 of 2: 1 local of 2 devices" in logs[1]
+    device = json.loads((out / "metrics.json").read_text())["device"]
+    assert device["processes"] == 2 and len(device["devices"]) == 2
+    assert (out / "scene.glb").is_file() and "outputs in" not in logs[1]        # only process 0 writes them
+    monkeypatch.setenv("JAXDISTILL_CACHE", str(tmp_path / "cache"))
+    one_process(scene, tmp_path / "one")
+    two, one = texels(out), texels(tmp_path / "one")
+    assert np.abs(one).max() > 0.1 and not np.array_equal(one, np.zeros_like(one))
+    assert_close(two, one, rtol=1e-5)
+
+
+def test_the_checkpoint_two_processes_wrote_resumes_in_one(two_process_run, tmp_path, monkeypatch):
+    scene, out, _ = two_process_run
+    monkeypatch.setenv("JAXDISTILL_CACHE", str(tmp_path / "cache"))
+    resumed = tmp_path / "resumed"
+    shutil.copytree(out, resumed)
+    one_process(scene, resumed, steps=STEPS + 2, resume=True)
+    one_process(scene, tmp_path / "fresh", steps=STEPS + 2)
+    assert_close(texels(resumed), texels(tmp_path / "fresh"), rtol=1e-5)
+
+
+@pytest.mark.parametrize("address,count,rank,flag,words", [
+    ("", 2, -1, "num_processes", "--coordinator_address is empty"),
+    ("", 1, 1, "process_id", "without --coordinator_address"),
+    ("node001", 2, 0, "coordinator_address", "is not HOST:PORT"),
+    ("node001:99999", 2, 0, "coordinator_address", "is not HOST:PORT"),
+    ("node001:1234", 1, 0, "num_processes", "must be >= 2"),
+    ("10.0.0.1:1234", 2, 2, "process_id", r"must be in \[0, 2\)"),
+    ("10.0.0.1:1234", 2, -1, "process_id", r"must be in \[0, 2\)"),
+])
+def test_bad_multi_process_flags_are_named(tmp_path, address, count, rank, flag, words):
+    with pytest.raises(InputError, match=rf"--{flag}.*{words}"):
+        config_lib.validate(DistillConfig(scene=str(tmp_path / "s.json"), out_dir=str(tmp_path / "o"),
+                                          coordinator_address=address, num_processes=count, process_id=rank))
+
+
+def test_good_multi_process_flags_pass_and_rows_split_by_process():
+    for address, count, rank in (("", 1, -1), ("auto", 1, -1), ("node001:1234", 4, 3), ("[::1]:8476", 2, 0)):
+        assert distributed.address_problem(address, count, rank) == []
+    import jax
+    mesh = jax.sharding.Mesh(np.array(jax.devices()), ("data",))
+    by_view = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("data"))
+    assert distributed.local_rows(by_view, 8) == (0, 8)             # one process holds every row
+    placed = distributed.place_batch(lambda ids: {"view": ids * 10}, np.arange(4), by_view)
+    assert np.array_equal(np.asarray(placed["view"]), [0, 10, 20, 30])
+
+
+def test_auto_outside_a_cluster_is_refused_naming_the_flag(tmp_path):
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("SLURM_", "OMPI_", "KUBERNETES_", "TPU_"))}
+    env["JAX_PLATFORMS"] = "cpu"
+    scene = write_tiny_scene(tmp_path / "scene")
+    proc = subprocess.run([sys.executable, "-m", "jaxdistill.main", f"--scene={scene}", f"--out_dir={tmp_path / 'o'}",
+                           "--prior=views", "--coordinator_address=auto"], cwd=REPO, env=env, capture_output=True,
+                          text=True, timeout=120)
+    assert proc.returncode != 0 and "--coordinator_address: auto found no cluster" in proc.stderr
+    assert not (tmp_path / "o").exists()
