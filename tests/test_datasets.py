@@ -271,3 +271,14 @@ def test_main_job_runs_on_a_fipt_dataset_directly_and_scores_its_image_ground_tr
     doc = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert doc["ours"]["num_views"] == 3
     assert np.isfinite(doc["ours"]["albedo_psnr"]) and np.isfinite(doc["ours"]["roughness_mse"])
+
+
+def test_max_views_keeps_that_many_views_of_a_jaxdistill_scene_evenly_spread(tmp_path):
+    from tiny_scene import write_tiny_scene
+    path = write_tiny_scene(tmp_path / "scene", views=7)
+    full = datasets.open_scene(str(path))
+    assert [v.name for v in full.views] == [f"v{i}" for i in range(7)]
+    for n, names in ((3, ["v0", "v3", "v6"]), (2, ["v0", "v6"]), (7, None), (9, None), (0, None)):
+        kept = datasets.open_scene(str(path), ImportOptions(max_views=n))
+        assert [v.name for v in kept.views] == (names or [v.name for v in full.views])
+        assert kept.mesh is full.mesh or np.array_equal(kept.mesh.faces, full.mesh.faces)

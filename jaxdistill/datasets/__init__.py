@@ -9,6 +9,9 @@
 | colmap     | folder with cameras.txt, images.txt (or sparse/0/) | `colmap.load_colmap` |
 | scene      | our scene.json or its folder   | `scene.read_scene`              |
 
+`--max_views` (`ImportOptions.max_views`) keeps that many views evenly spread, for every format,
+our own scenes included (a quick trial run on a subset).
+
 `open_scene("FORMAT:PATH")` loads any of them (a plain path is a jaxdistill scene), which is
 what `--scene` of the main job and `scripts/import_scene.py` use. Shared steps (undistortion,
 exposure, UV unwrap): `common.py`.
@@ -16,9 +19,10 @@ exposure, UV unwrap): `common.py`.
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
-from jaxdistill.datasets.common import ImportOptions
+from jaxdistill.datasets.common import ImportOptions, select_views
 from jaxdistill.errors import InputError
 
 FORMATS = ("fipt", "iris", "scannetpp", "nerfstudio", "colmap", "scene")
@@ -31,7 +35,9 @@ def load(fmt: str, path, options: ImportOptions = ImportOptions(), *, split: str
         from jaxdistill.scene.model import read_scene
         from jaxdistill.scene.paths import resolve_scene_path
 
-        return read_scene(resolve_scene_path(str(path)), allow_outside_paths=options.allow_outside_paths)
+        scene = read_scene(resolve_scene_path(str(path)), allow_outside_paths=options.allow_outside_paths)
+        kept = tuple(select_views(scene.views, options.max_views))      # --max_views: a quick run on fewer
+        return scene if len(kept) == len(scene.views) else dataclasses.replace(scene, views=kept)
     if not Path(path).exists():
         raise InputError.single(str(path), "(path)", f"not found (a {fmt} dataset was expected there)")
     if fmt in ("fipt", "iris"):

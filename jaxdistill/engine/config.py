@@ -239,7 +239,8 @@ def define_dataset_flags(fv: flags.FlagValues = flags.FLAGS, *, main_module: boo
     flags.DEFINE_string("exposure", d.exposure, dataset + "'auto' (HDR: Hypersim rule, LDR: 0) or stops", **where)
     flags.DEFINE_enum("uv", d.uv, UV_POLICIES, dataset + "auto: unwrap objects whose UVs are unusable; keep: refuse "
                       "them; unwrap: all", **where)
-    flags.DEFINE_integer("max_views", d.max_views, dataset + "0 = all views, else that many evenly spread", **where)
+    flags.DEFINE_integer("max_views", d.max_views, "0 = all views, else that many evenly spread (any --scene, "
+                         "a jaxdistill scene too: a quick run on a subset)", **where)
     flags.DEFINE_integer("max_page_size", d.max_page_size, dataset + "largest texture page an unwrap is packed for",
                          **where)
     flags.DEFINE_integer("max_unwrap_faces", d.max_unwrap_faces, dataset + "objects with more faces are refused, not "
