@@ -25,7 +25,7 @@ from jaxdistill.evaluate import ground_truth as evaluation, scoring
 from jaxdistill.evaluate.rerender import rerender_scores
 from jaxdistill.evaluate.summary import summary_table
 from jaxdistill.export import anchor as anchor_lib, run_dir as run_files
-from jaxdistill.export.outputs import texel_trust, write_outputs
+from jaxdistill.export.outputs import OutputPhases, texel_trust, write_outputs
 from jaxdistill.export.run_dir import json_safe
 from jaxdistill.models.shipped import model_info
 
@@ -57,10 +57,14 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
                 "exit_status": loop.exit_status}
 
     texels = np.asarray(jax.device_get(loop.state.texels))
-    baseline = scoring.per_view_baseline(config, problem, [f.shape for f in ctx.fragments])
-    texels, anchor = anchor_lib.anchor_to_baseline(config, problem, texels, ctx, baseline)
-    summary = write_outputs(config, problem, texels, loop.history, ctx, trust, baseline)
-    summary["rerender"] = rerender_scores(texels, problem, ctx.plan, ctx.cameras)
+    phases = OutputPhases()
+    with phases("per-view estimates"):
+        baseline = scoring.per_view_baseline(config, problem, [f.shape for f in ctx.fragments])
+    with phases("anchor"):
+        texels, anchor = anchor_lib.anchor_to_baseline(config, problem, texels, ctx, baseline)
+    summary = write_outputs(config, problem, texels, loop.history, ctx, trust, baseline, phases)
+    with phases("photos re-rendered"):
+        summary["rerender"] = rerender_scores(texels, problem, ctx.plan, ctx.cameras)
     if problem.photos is not None and problem.photos.noise is not None:     # each photo's noise and term weight
         names = [v.name for v in problem.scene.views]
         summary["photo_noise"] = {"ref": config.photo_noise_ref,
@@ -68,6 +72,7 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
                                   "weight": dict(zip(names, np.round(problem.photos.noise_weight, 4).tolist()))}
     summary.update(run_record(config, problem, loop, wall_start))
     summary["anchor"] = anchor
+    summary["output_timings"] = phases.record
     if loop.state.align is not None:          # the learned per-view gains (geometric mean 1 per channel)
         gains = np.exp(np.asarray(jax.device_get(align_lib.centred(loop.state.align["log_gains"]))))
         summary["align"] = {"maps": list(align_lib.aligned_maps(problem.channels)),

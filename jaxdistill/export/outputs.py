@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
+import os
+import resource
+import time
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +24,36 @@ from jaxdistill.render import charts
 from jaxdistill.render.sampler import expand
 from jaxdistill.render.visibility import texel_view_statistics
 from jaxdistill.scene.cameras import rgbx_camera_rotation
+
+
+class OutputPhases:
+    """Seconds and memory of each phase after the loop (estimates, anchor, maps, scores, ...):
+    `with phases("name"):` logs the phase's wall time, the process's resident memory after it and
+    its peak so far, and records them for metrics.json `output_timings` (a large capture's outputs
+    take minutes, so the log says where)."""
+
+    def __init__(self):
+        self.record: dict[str, dict] = {}
+
+    @contextlib.contextmanager
+    def __call__(self, name: str):
+        start = time.perf_counter()
+        logging.info("outputs: %s ...", name)
+        yield
+        seconds = time.perf_counter() - start
+        rss, peak = resident_gb(), resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20
+        self.record[name] = {"seconds": round(seconds, 2), "rss_gb": rss, "peak_rss_gb": round(peak, 3)}
+        logging.info("outputs: %s took %.1f s (resident %s GB, peak so far %.2f GB)", name, seconds,
+                     "?" if rss is None else f"{rss:.2f}", peak)
+
+
+def resident_gb() -> float | None:
+    """This process's resident memory now in GB (Linux /proc/self/statm), None elsewhere."""
+    try:
+        pages = int(Path("/proc/self/statm").read_text().split()[1])
+    except (OSError, ValueError, IndexError):
+        return None
+    return round(pages * os.sysconf("SC_PAGE_SIZE") / 2 ** 30, 3)
 
 
 def texel_trust(problem: Problem) -> np.ndarray:
@@ -123,20 +157,26 @@ def write_loss_plot(out: Path, problem: Problem, history: dict) -> None:
 
 
 def write_outputs(config: DistillConfig, problem: Problem, texels: np.ndarray, history: dict,
-                  ctx: EvalContext, trust: np.ndarray, baseline: Baseline) -> dict:
+                  ctx: EvalContext, trust: np.ndarray, baseline: Baseline, phases: OutputPhases | None = None) -> dict:
     """maps/, scene.glb, scene.usdc, renders/, evidence/, loss.png, contact sheets; returns the metrics part
     of metrics.json. trust: (N,) each texel's weight in the exported pages (`texel_trust`);
-    baseline: what the run is scored against (`scoring.per_view_baseline`)."""
+    baseline: what the run is scored against (`scoring.per_view_baseline`); phases times each part."""
     out = Path(config.out_dir)
-    written = write_map_files(out, problem, texels, trust)
-    pred = evaluation.render_views(texels, ctx.plan, ctx.cameras, problem.channels)
-    if config.renders:
-        evaluation.write_renders(out / "renders", [v.name for v in problem.scene.views], pred)
+    phases = phases or OutputPhases()
+    with phases("maps, glTF, USD"):
+        written = write_map_files(out, problem, texels, trust)
+    with phases("renders of every view"):
+        pred = evaluation.render_views(texels, ctx.plan, ctx.cameras, problem.channels)
+        if config.renders:
+            evaluation.write_renders(out / "renders", [v.name for v in problem.scene.views], pred)
     result = {"estimates_folder": str(baseline.folder)} if baseline.folder is not None else {}
-    written += write_evidence(out, problem, ctx, baseline.views)
+    with phases("evidence"):
+        written += write_evidence(out, problem, ctx, baseline.views)
     result["maps_written"] = [str(p.relative_to(out)) for p in written]
-    result.update(scoring.score(pred, problem, ctx, baseline))
-    write_loss_plot(out, problem, history)
-    write_contact_sheets(out, config, problem, pred, ctx, baseline.views)
+    with phases("scores"):
+        result.update(scoring.score(pred, problem, ctx, baseline))
+    with phases("plots and contact sheets"):
+        write_loss_plot(out, problem, history)
+        write_contact_sheets(out, config, problem, pred, ctx, baseline.views)
     result["history"] = history
     return result
