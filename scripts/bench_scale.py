@@ -90,7 +90,8 @@ def one_case(args, work: Path, width: int, height: int, views: int) -> dict:
         return {**row, "status": f"main job failed (exit {run['exit']})"}
     metrics = json.loads((out / "metrics.json").read_text())
     row.update(status="ok", setup=metrics.get("setup_timings", {}), loop_s=metrics["loop_seconds"],
-               steps=metrics["steps"], texels=(metrics.get("parameters") or {}).get("texels"))
+               outputs=metrics.get("output_timings", {}), steps=metrics["steps"],
+               texels=(metrics.get("parameters") or {}).get("texels"))
     return row
 
 
@@ -100,7 +101,8 @@ def print_row(r: dict, file=sys.stdout) -> None:
     gen = (r.get("generate") or {}).get("wall_s")
     print(f"{r['width']}x{r['height']:<5d} {r['views']:5d} {r['status']:>24s} "
           f"{'-' if gen is None else f'{gen:.0f}':>6s} {setup.get('fragments_s', 0):8.0f} {setup.get('plans_s', 0):7.0f} "
-          f"{r.get('loop_s', 0):7.0f} {run.get('wall_s', 0):7.0f} {run.get('peak_rss_gb', 0):7.1f} {r.get('cache_gb', 0):7.2f}",
+          f"{r.get('loop_s', 0):7.0f} {sum(p['seconds'] for p in (r.get('outputs') or {}).values()):6.0f} "
+          f"{run.get('wall_s', 0):7.0f} {run.get('peak_rss_gb', 0):7.1f} {r.get('cache_gb', 0):7.2f}",
           file=file, flush=True)
 
 
@@ -109,7 +111,7 @@ def main(argv=None) -> int:
     work = (REPO / args.work) if not Path(args.work).is_absolute() else Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
     print(f"{'render':11s} {'views':>5s} {'status':>24s} {'gen s':>6s} {'frags s':>8s} {'plans s':>7s} "
-          f"{'loop s':>7s} {'wall s':>7s} {'RSS GB':>7s} {'cache GB':>7s}   (loop: compile + {args.steps} steps)",
+          f"{'loop s':>7s} {'out s':>6s} {'wall s':>7s} {'RSS GB':>7s} {'cache GB':>7s}   (loop: compile + {args.steps} steps)",
           flush=True)
     rows = []
     for width, height in args.sizes:
