@@ -187,8 +187,9 @@ def test_dataset_flags_reach_the_loader_and_are_refused_for_a_scene_folder(tmp_p
     assert (options.mesh, options.max_views, options.exposure) == (str(mesh), 2, 1.5)
     with pytest.raises(InputError, match=r"has no albedo target"):       # read with the mesh: the views prior
         build_problem(config)                                           # then asks for its targets
-    with pytest.raises(InputError, match=r"--mesh: --mesh, --exposure, --max_views apply to --scene=FORMAT:PATH"):
+    with pytest.raises(InputError, match=r"--mesh: --mesh, --exposure apply to --scene=FORMAT:PATH"):
         config_lib.validate(dataclasses.replace(config, scene="bedroom"))
+    assert config_lib.validate(dataclasses.replace(config, scene="bedroom", mesh=None, exposure="auto")).max_views == 2
     with pytest.raises(InputError, match=r"flags: --uv: unknown policy 'bad'"):
         config_lib.validate(dataclasses.replace(config, uv="bad"))
 

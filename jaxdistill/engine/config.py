@@ -357,7 +357,7 @@ def import_option_problems(c: DistillConfig, p: ProblemList) -> None:
 def dataset_option_problems(scene: str | None, values: Mapping[str, Any], p: ProblemList) -> None:
     """Adds a problem for each bad dataset flag (IMPORT_FLAGS) in `values` ({flag: value}), and for
     any of them set while `scene` (--scene) is a scene folder, which names its own mesh and images
-    (the flag would do nothing)."""
+    (the flag would do nothing); --max_views applies to every scene (`datasets.open_scene`)."""
     from jaxdistill.datasets import split_spec
 
     try:
@@ -365,7 +365,7 @@ def dataset_option_problems(scene: str | None, values: Mapping[str, Any], p: Pro
     except InputError as err:
         p.problems.extend(err.problems)
     given = [f"--{name}" for name in IMPORT_FLAGS
-             if values.get(name, getattr(_IMPORT, name)) != getattr(_IMPORT, name)]
+             if name != "max_views" and values.get(name, getattr(_IMPORT, name)) != getattr(_IMPORT, name)]
     if given and scene and split_spec(scene)[0] == "scene":
         p.add("flags", given[0], f"{', '.join(given)} {'applies' if len(given) == 1 else 'apply'} to --scene=FORMAT:PATH (a dataset read directly), and "
               f"--scene={scene} is a scene folder, which names its own mesh and images; leave them out here, or "
