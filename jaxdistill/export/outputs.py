@@ -112,17 +112,19 @@ def write_evidence(out: Path, problem: Problem, ctx: EvalContext, baseline: list
     space, channels = problem.space, problem.channels
     pages = {"visibility": expand(problem.counts.astype(np.float32)[:, None], space, 0.0, dilation=0)}
     if baseline:
-        maps = list(channels.maps)
-        images = []
-        for camera, per_view in zip(ctx.cameras, baseline):
-            parts = {m: resize(per_view[m], problem.height, problem.width) for m in maps}
-            if "normal" in parts:           # estimates are in RGB<->X camera space; texels are world space
-                parts["normal"] = parts["normal"] @ rgbx_camera_rotation(camera.c2w).T.astype(np.float32)
-            images.append(np.concatenate([parts[m] for m in maps], axis=-1))
-        count, _, variance = texel_view_statistics(training_plan(problem), images, space.num_texels)
-        for m in maps:
-            spread = np.sqrt(variance[:, channels.slice(m)].sum(axis=1))
-            spread = np.where(count >= 2, spread, np.nan).astype(np.float32)
+        plan = training_plan(problem)
+
+        def view_images(m):                 # one view at a time, at the render size
+            for camera, per_view in zip(ctx.cameras, baseline):
+                image = resize(per_view[m], problem.height, problem.width)
+                if m == "normal":           # estimates are in RGB<->X camera space; texels are world space
+                    image = image @ rgbx_camera_rotation(camera.c2w).T.astype(np.float32)
+                yield image
+
+        for m in channels.maps:             # per map: dense work arrays of 1-3 channels, not all 11
+            count, _, variance = texel_view_statistics(plan, view_images(m), space.num_texels)
+            spread = np.where(count >= 2, np.sqrt(variance.sum(axis=1)), np.nan).astype(np.float32)
+            del variance
             pages[f"disagreement_{m}"] = expand(spread[:, None], space, np.nan, dilation=0)
     return page_files.write_evidence(out, pages, problem.scene.mesh.object_names, space.layout.object_page)
 

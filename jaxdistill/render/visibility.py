@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Sequence
+from typing import Iterable, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -79,19 +79,24 @@ def _splat(plan: GatherPlan, images: jnp.ndarray, num_texels_like: jnp.ndarray) 
     return value
 
 
-def texel_view_statistics(plan: GatherPlan, images: Sequence[np.ndarray],
+def texel_view_statistics(plan: GatherPlan, images: Iterable[np.ndarray],
                           num_texels: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """What the views say about each texel: (count (N,) int32 of views that read it, mean (N, C)
     and variance (N, C) float32 of their values across those views; 0 where none reads it).
     A view's value at a texel is the gather-weighted mean of the pixels of its image (H, W, C)
-    that read the texel (through the transpose of `render`), so every view counts once."""
-    channels = np.asarray(images[0]).shape[-1]
-    zeros = jnp.zeros((num_texels, channels), jnp.float32)
-    zeros_1 = jnp.zeros((num_texels, 1), jnp.float32)
+    that read the texel (through the transpose of `render`), so every view counts once.
+    `images` (one per view of `plan`, in order) may be a generator: one view's image is in
+    memory at a time, and the dense work arrays are (N, C), so a caller with many channels can
+    ask per map and hold a few channels at once."""
     count = np.zeros(num_texels, np.int32)
-    first = np.zeros((num_texels, channels), np.float64)
-    second = np.zeros((num_texels, channels), np.float64)
+    first = second = zeros = None
+    zeros_1 = jnp.zeros((num_texels, 1), jnp.float32)
     for v, image in enumerate(images):
+        if first is None:
+            channels = np.asarray(image).shape[-1]
+            zeros = jnp.zeros((num_texels, channels), jnp.float32)
+            first = np.zeros((num_texels, channels), np.float64)
+            second = np.zeros((num_texels, channels), np.float64)
         view = plan.select(v)
         weight = np.asarray(_evidence(view, zeros_1))
         seen = np.flatnonzero(weight > 0)              # a view reads a small share of the texels
@@ -100,6 +105,8 @@ def texel_view_statistics(plan: GatherPlan, images: Sequence[np.ndarray],
         count[seen] += 1
         first[seen] += mean
         second[seen] += mean ** 2
+    if first is None:
+        raise ValueError("texel_view_statistics: no images")
     views = np.maximum(count, 1)[:, None]
     mean = first / views
     return count, mean.astype(np.float32), np.maximum(second / views - mean ** 2, 0.0).astype(np.float32)
