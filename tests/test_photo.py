@@ -431,9 +431,10 @@ def test_the_photo_flags_are_checked_naming_the_flag(tiny_scene, tmp_path):
         tiny_config(tiny_scene, tmp_path / "o", photo_weight=-1.0)
     with pytest.raises(InputError, match=r"--photo_size"):
         tiny_config(tiny_scene, tmp_path / "o", photo_size=4)
-    for name in ("irradiance_smoothness", "albedo_smoothness", "photo_noise_ref"):     # no silent no-op
+    for name in ("irradiance_smoothness", "albedo_smoothness"):     # no silent no-op without the term
         with pytest.raises(InputError, match=rf"--{name}: is part of the re-rendering term"):
             tiny_config(tiny_scene, tmp_path / "o", **{name: 1.0})
+    assert tiny_config(tiny_scene, tmp_path / "o", photo_noise_ref=0.3).photo_weight == 0   # shapes the term only
     with pytest.raises(InputError, match=r"--photo_noise_ref: must be >= 0"):
         tiny_config(tiny_scene, tmp_path / "o", photo_weight=1.0, photo_noise_ref=-0.1)
     with pytest.raises(InputError, match=r"--albedo_smoothness: must be >= 0"):

@@ -325,7 +325,9 @@ def validate(config: DistillConfig) -> DistillConfig:
         bad(flag, message)
     if not c.photo_noise_ref >= 0:
         bad("photo_noise_ref", f"must be >= 0, got {c.photo_noise_ref}")
-    for name in ("irradiance_smoothness", "albedo_smoothness", "photo_noise_ref"):
+    # the smoothness terms are terms of their own, refused without the re-rendering term; --photo_noise_ref,
+    # like --photo_loss, only shapes that term (moot without it: --photo_weight=0 turns a config's term off)
+    for name in ("irradiance_smoothness", "albedo_smoothness"):
         if getattr(c, name) > 0 and c.photo_weight == 0:
             bad(name, "is part of the re-rendering term, which --photo_weight=0 turns off; give --photo_weight > 0 "
                 f"or --{name}=0")
