@@ -158,3 +158,38 @@ def test_cache_is_reused_and_keyed_on_mesh_and_camera(cache_dir, monkeypatch):
     with pytest.raises(AssertionError, match="ray cast"):
         fr.compute_fragments(mesh, [turned], cache_dir=cache_dir, progress=False)
     assert fr.mesh_key(moved) != fr.mesh_key(mesh)
+
+
+def test_a_cache_that_would_not_fit_on_its_disk_is_refused_before_any_ray_cast(cache_dir, monkeypatch):
+    """The ray casts not cached yet need H·W·20 bytes (+ 1 KiB) each: with less free space than that
+    plus the 1 GiB headroom, InputError names the cache folder, both amounts and $JAXDISTILL_CACHE,
+    and nothing is cast; views already cached need nothing."""
+    import collections
+    from jaxdistill.errors import InputError
+
+    mesh = synthetic.plane(2.0, 2)
+    cached = look_at_camera((0.0, 1.0, 1.0), (0.0, 0.0, 0.0))
+    fr.compute_fragments(mesh, [cached], cache_dir=cache_dir, progress=False)
+    new = [look_at_camera((0.0, 1.0, 1.0), (0.1 * i, 0.0, 0.0), width=640, height=480) for i in range(1, 4)]
+    needed = 3 * (640 * 480 * (4 + 2 * 4 + 8) + 1024)
+    usage = collections.namedtuple("usage", "total used free")
+    free = needed + (1 << 30) - 1                      # one byte short
+    monkeypatch.setattr(fr.shutil, "disk_usage", lambda path: usage(10 * free, 9 * free, free))
+    monkeypatch.setattr(fr, "RayCaster", lambda *_: pytest.fail("ray cast before the space check"))
+    with pytest.raises(InputError, match=rf"{cache_dir / 'fragments'}.*disk space.*3 views need "
+                                         rf"{needed / 2 ** 30:.2f} GB.*{free / 2 ** 30:.2f} GB free.*JAXDISTILL_CACHE"):
+        fr.compute_fragments(mesh, [cached, *new], cache_dir=cache_dir, progress=False)
+    (again,) = fr.compute_fragments(mesh, [cached], cache_dir=cache_dir, progress=False)   # cached: no space needed
+    assert again.triangle.shape == (24, 32)
+    monkeypatch.setattr(fr.shutil, "disk_usage", lambda path: usage(10 * free, 9 * free, free + 1))
+    with pytest.raises(pytest.fail.Exception, match="ray cast before the space check"):   # just enough: casts
+        fr.compute_fragments(mesh, new, cache_dir=cache_dir, progress=False)
+
+
+def test_the_cache_estimate_is_the_size_of_the_files_written(cache_dir):
+    mesh = synthetic.plane(2.0, 2)
+    camera = look_at_camera((0.0, 1.0, 1.0), (0.0, 0.0, 0.0), width=64, height=48)
+    fr.compute_fragments(mesh, [camera], cache_dir=cache_dir, progress=False)
+    (path,) = (cache_dir / "fragments").glob("*.npz")
+    size = path.stat().st_size
+    assert 64 * 48 * fr.CACHE_BYTES_PER_PIXEL <= size <= 64 * 48 * fr.CACHE_BYTES_PER_PIXEL + fr.CACHE_BYTES_PER_VIEW

@@ -14,12 +14,14 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import os
+import shutil
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 from tqdm.auto import tqdm
 
+from jaxdistill.errors import InputError
 from jaxdistill.scene.cameras import Camera
 from jaxdistill.scene.model import Mesh
 
@@ -188,14 +190,41 @@ def default_cache_dir() -> Path:
     return base / "jaxdistill"
 
 
+CACHE_BYTES_PER_PIXEL = 4 + 2 * 4 + 8    # a cached ray cast: triangle int32, barycentric 2 x float32, distance float64
+CACHE_BYTES_PER_VIEW = 1024              # the .npz's headers
+CACHE_HEADROOM = 1 << 30                 # left free on the cache's disk after the ray casts are written
+
+
+def check_cache_space(cache: Path, cameras: Sequence[Camera]) -> None:
+    """InputError naming `cache`, before any ray casting, when the ray casts of `cameras` (the views
+    not cached yet) would not fit on its disk with CACHE_HEADROOM to spare: how much they need, how
+    much is free, and where else to put them."""
+    if not cameras:
+        return
+    needed = sum(c.height * c.width * CACHE_BYTES_PER_PIXEL + CACHE_BYTES_PER_VIEW for c in cameras)
+    existing = next((p for p in (cache, *cache.parents) if p.exists()), None)
+    if existing is None:
+        return
+    free = shutil.disk_usage(existing).free
+    if needed + CACHE_HEADROOM > free:
+        gb = 2 ** 30
+        raise InputError.single(str(cache), "disk space", (
+            f"the ray casts of {len(cameras)} views need {needed / gb:.2f} GB here (plus {CACHE_HEADROOM / gb:.0f} GB "
+            f"kept free), and its disk has {free / gb:.2f} GB free; free space there, or point $JAXDISTILL_CACHE at a "
+            "folder on a larger disk"))
+
+
 def compute_fragments(mesh: Mesh, cameras: Sequence[Camera], *, cache_dir: Path | None | bool = None,
                       progress: bool = True) -> list[Fragments]:
-    """Fragments for every camera; ray casts are read from / written to the cache.
+    """Fragments for every camera; ray casts are read from / written to the cache (`check_cache_space`
+    first: InputError when the views not cached yet would not fit on its disk).
 
     cache_dir: a folder, None for `default_cache_dir()`, or False to disable caching.
     """
     cache = None if cache_dir is False else Path(cache_dir or default_cache_dir()) / "fragments"
     geometry_key = mesh_key(mesh)
+    if cache is not None:
+        check_cache_space(cache, [c for c in cameras if not (cache / f"{view_key(geometry_key, c)}.npz").is_file()])
     caster = None
     out = []
     bar = tqdm(cameras, desc="fragments", unit="view", disable=not progress, dynamic_ncols=True)
