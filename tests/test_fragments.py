@@ -162,7 +162,7 @@ def test_cache_is_reused_and_keyed_on_mesh_and_camera(cache_dir, monkeypatch):
 
 def test_a_cache_that_would_not_fit_on_its_disk_is_refused_before_any_ray_cast(cache_dir, monkeypatch):
     """The ray casts not cached yet need H·W·20 bytes (+ 1 KiB) each: with less free space than that
-    plus the 1 GiB headroom, InputError names the cache folder, both amounts and $JAXDISTILL_CACHE,
+    plus the 256 MiB headroom, InputError names the cache folder, both amounts and $JAXDISTILL_CACHE,
     and nothing is cast; views already cached need nothing."""
     import collections
     from jaxdistill.errors import InputError
@@ -173,7 +173,7 @@ def test_a_cache_that_would_not_fit_on_its_disk_is_refused_before_any_ray_cast(c
     new = [look_at_camera((0.0, 1.0, 1.0), (0.1 * i, 0.0, 0.0), width=640, height=480) for i in range(1, 4)]
     needed = 3 * (640 * 480 * (4 + 2 * 4 + 8) + 1024)
     usage = collections.namedtuple("usage", "total used free")
-    free = needed + (1 << 30) - 1                      # one byte short
+    free = needed + fr.CACHE_HEADROOM - 1              # one byte short
     monkeypatch.setattr(fr.shutil, "disk_usage", lambda path: usage(10 * free, 9 * free, free))
     monkeypatch.setattr(fr, "RayCaster", lambda *_: pytest.fail("ray cast before the space check"))
     with pytest.raises(InputError, match=rf"{cache_dir / 'fragments'}.*disk space.*3 views need "

@@ -192,7 +192,7 @@ def default_cache_dir() -> Path:
 
 CACHE_BYTES_PER_PIXEL = 4 + 2 * 4 + 8    # a cached ray cast: triangle int32, barycentric 2 x float32, distance float64
 CACHE_BYTES_PER_VIEW = 1024              # the .npz's headers
-CACHE_HEADROOM = 1 << 30                 # left free on the cache's disk after the ray casts are written
+CACHE_HEADROOM = 1 << 28                 # 256 MiB left free on the cache's disk after the ray casts are written
 
 
 def check_cache_space(cache: Path, cameras: Sequence[Camera]) -> None:
@@ -209,7 +209,7 @@ def check_cache_space(cache: Path, cameras: Sequence[Camera]) -> None:
     if needed + CACHE_HEADROOM > free:
         gb = 2 ** 30
         raise InputError.single(str(cache), "disk space", (
-            f"the ray casts of {len(cameras)} views need {needed / gb:.2f} GB here (plus {CACHE_HEADROOM / gb:.0f} GB "
+            f"the ray casts of {len(cameras)} views need {needed / gb:.2f} GB here (plus {CACHE_HEADROOM / gb:.2f} GB "
             f"kept free), and its disk has {free / gb:.2f} GB free; free space there, or point $JAXDISTILL_CACHE at a "
             "folder on a larger disk"))
 
