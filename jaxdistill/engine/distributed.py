@@ -60,7 +60,10 @@ def initialize(address: str, num_processes: int, process_id: int) -> None:
     the collectives go through gloo."""
     if not address:
         return
-    jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    try:
+        jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    except (AttributeError, KeyError, ValueError):      # a JAX whose CPU collectives are gloo without the option
+        logging.info("jax_cpu_collectives_implementation is not an option of this JAX; its CPU default is used")
     if address == AUTO:
         try:
             jax.distributed.initialize()
