@@ -408,8 +408,7 @@ def _photo_data(config: DistillConfig, scene: Scene, photo_frags, space: TexelSp
             guide[v] = photo_lib.chroma_guide(photos[v], usable)
         noise[v] = photo_lib.log_noise(photos[v], usable)
         noise_weight[v] = photo_lib.noise_weight(noise[v], config.photo_noise_ref)
-        if noise_weight[v] != 1.0:
-            weights[v] *= np.float32(noise_weight[v])
+        weights[v] *= np.float32(noise_weight[v])          # × 1 is exact: a weight-1 view is unchanged
     if config.photo_noise_ref > 0:
         logging.info("--photo_noise_ref=%g: the photos' noise %.3f (median, %.3f-%.3f) in log units; %d of %d views "
                      "weigh less in the term (weights %.2f-%.2f)", config.photo_noise_ref, float(np.median(noise)),

@@ -223,13 +223,13 @@ def compute_fragments(mesh: Mesh, cameras: Sequence[Camera], *, cache_dir: Path 
     """
     cache = None if cache_dir is False else Path(cache_dir or default_cache_dir()) / "fragments"
     geometry_key = mesh_key(mesh)
+    paths = [cache / f"{view_key(geometry_key, c)}.npz" if cache else None for c in cameras]
     if cache is not None:
-        check_cache_space(cache, [c for c in cameras if not (cache / f"{view_key(geometry_key, c)}.npz").is_file()])
+        check_cache_space(cache, [c for c, p in zip(cameras, paths) if not p.is_file()])
     caster = None
     out = []
     bar = tqdm(cameras, desc="fragments", unit="view", disable=not progress, dynamic_ncols=True)
-    for camera in bar:
-        path = cache / f"{view_key(geometry_key, camera)}.npz" if cache else None
+    for camera, path in zip(bar, paths):
         if path is not None and path.is_file():
             with np.load(path) as data:
                 cast = data["triangle"], data["barycentric"], data["distance"]
