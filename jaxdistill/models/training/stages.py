@@ -13,6 +13,7 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import Any, Callable
 
 import jax
 import numpy as np
@@ -34,15 +35,20 @@ class Budget:
         return bool(self.steps and self.done >= self.steps) or bool(self.deadline and time.monotonic() > self.deadline)
 
 
-def run_stage(name: str, work: Path, state, step_fn, batch_fn, steps: int, ckpt_every: int, config: dict,
-              budget: Budget):
+def run_stage(name: str, work: Path, init_state: Callable[[], Any], step_fn, batch_fn, steps: int, ckpt_every: int,
+              config: dict, budget: Budget):
     """Runs `state = step_fn(state, batch_fn(step))` from the newest checkpoint of stage `name`
     to `steps`, with a progress bar (loss, ETA) and orbax checkpoints; returns the final state.
+    `init_state()` gives the state of step 0 and is computed only when the stage has no
+    checkpoint: a resumed stage restores into its shapes (`jax.eval_shape`, no initialisation run,
+    which for a network's Flax init is most of a short run's time).
     SIGINT/SIGTERM save and exit with 130/143; a spent `budget` saves and exits with 75."""
     with CheckpointStore(work / f"ckpt_{name}", max_to_keep=2) as store:
         start = store.latest_step() or 0
-        if start:
-            state, _ = store.restore(start, state)
+        if not start:
+            state = init_state()
+        else:
+            state, _ = store.restore(start, jax.eval_shape(init_state))
             # restored arrays are committed to a device, a fresh state's are not: as host copies
             # the step sees the same arguments either way and compiles the same program (a
             # persistent compilation cache then serves a resumed run)

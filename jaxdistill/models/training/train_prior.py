@@ -56,9 +56,11 @@ DESCRIPTION = "Trains our small RGB<->X-family prior on `make_rgbx_data.py` shar
 def train_vae(args, photos, maps):
     vae = AutoencoderKL(VAEConfig.from_dict(recipe.VAE))
     pool = np.concatenate([photos] + [maps[m] for m in MAPS])        # (6N, H, W, 3)
-    params = vae.init(jax.random.key(args.seed), jnp.zeros((1,) + pool.shape[1:]))
     tx = adamw(args.vae_lr, args.vae_steps)
-    state = {"params": params, "opt": tx.init(params)}
+
+    def init_state():
+        params = vae.init(jax.random.key(args.seed), jnp.zeros((1,) + pool.shape[1:]))
+        return {"params": params, "opt": tx.init(params)}
 
     def loss_fn(params, images, key):
         mean, logvar = vae.apply(params, images, method="encode")
@@ -79,7 +81,7 @@ def train_vae(args, photos, maps):
         rng = np.random.default_rng([args.seed, 1, step])
         return jnp.asarray(pool[rng.integers(len(pool), size=args.vae_batch)]), jax.random.fold_in(jax.random.key(args.seed), step)
 
-    state = run_stage("vae", args.work, state, step, batch, args.vae_steps, args.ckpt_every, {"stage": "vae", **recipe.VAE},
+    state = run_stage("vae", args.work, init_state, step, batch, args.vae_steps, args.ckpt_every, {"stage": "vae", **recipe.VAE},
                       args.budget)
     return vae, state["params"]
 
@@ -154,15 +156,18 @@ def train_unet(args, latents, contexts, scaling, init_params=None):
     photo = latents["photo"] * scaling
     targets = np.stack([latents[m] * scaling for m in MAPS], 1)   # (N, 5, h, w, 4)
     n, h, w = photo.shape[:3]
-    params = unet.init(jax.random.key(args.seed + 1), jnp.zeros((1, h, w, 8)), jnp.zeros((1,)), jnp.asarray(contexts[:1]))
+    init_args = (jax.random.key(args.seed + 1), jnp.zeros((1, h, w, 8)), jnp.zeros((1,)), jnp.asarray(contexts[:1]))
     if init_params is not None:
-        if jax.tree.structure(init_params) != jax.tree.structure(params) or any(
-                a.shape != b.shape for a, b in zip(jax.tree.leaves(init_params), jax.tree.leaves(params))):
+        shapes = jax.eval_shape(unet.init, *init_args)
+        if jax.tree.structure(init_params) != jax.tree.structure(shapes) or any(
+                a.shape != b.shape for a, b in zip(jax.tree.leaves(init_params), jax.tree.leaves(shapes))):
             raise SystemExit(f"--init: its UNet is not this script's UNet ({recipe.UNET['block_out_channels']} blocks, "
                              f"{h}x{w} latents); give a folder this script exported")
-        params = jax.tree.map(jnp.asarray, init_params)
     tx = adamw(args.unet_lr, args.unet_steps)
-    state = {"params": params, "ema": params, "opt": tx.init(params)}
+
+    def init_state():
+        params = unet.init(*init_args) if init_params is None else jax.tree.map(jnp.asarray, init_params)
+        return {"params": params, "ema": params, "opt": tx.init(params)}
     ctx = jnp.asarray(contexts)
 
     def loss_fn(params, x0, cond, which, key):
@@ -193,7 +198,7 @@ def train_unet(args, latents, contexts, scaling, init_params=None):
         return (jnp.asarray(targets[i, m]), jnp.asarray(photo[i]), jnp.asarray(m),
                 jax.random.fold_in(jax.random.key(args.seed + 3), step))
 
-    state = run_stage("unet", args.work, state, step, batch, args.unet_steps, args.ckpt_every, {"stage": "unet", **recipe.UNET},
+    state = run_stage("unet", args.work, init_state, step, batch, args.unet_steps, args.ckpt_every, {"stage": "unet", **recipe.UNET},
                       args.budget)
     return unet, state["ema"]
 
