@@ -226,6 +226,52 @@ def test_push_pull_fills_a_hole_in_a_ramp_with_the_ramp_and_keeps_observed_texel
     assert grey > 20 * np.abs(filled - page)[weight == 0].max()    # far from the flat fill it replaces
 
 
+def reference_push_pull(page, weight, smoothing):
+    """push_pull's docstring written out in float64 NumPy, the plain way (padded copies)."""
+    def mean4(x):
+        p = np.pad(x, ((1, 1), (1, 1), (0, 0)), mode="edge")
+        return 0.25 * (p[:-2, 1:-1] + p[2:, 1:-1] + p[1:-1, :-2] + p[1:-1, 2:])
+
+    def upsample(x):          # bilinear x2, texel centres aligned: taps 3/4 and 1/4, edges clamped
+        p = np.pad(x, ((1, 1), (1, 1), (0, 0)), mode="edge")
+        out = np.zeros((2 * x.shape[0], 2 * x.shape[1], x.shape[2]))
+        for i in range(out.shape[0]):
+            for j in range(out.shape[1]):
+                r, c = i // 2 + 1, j // 2 + 1
+                rn, cn = r + (1 if i % 2 else -1), c + (1 if j % 2 else -1)
+                out[i, j] = (0.75 * (0.75 * p[r, c] + 0.25 * p[r, cn]) + 0.25 * (0.75 * p[rn, c] + 0.25 * p[rn, cn]))
+        return out
+
+    page, weight = np.asarray(page, np.float64), np.asarray(weight, np.float64)
+    levels = [(np.where(weight[..., None] > 0, page, 0.0), weight)]
+    while levels[-1][0].shape[0] > 1 and levels[-1][0].shape[0] % 2 == 0:
+        x, w = levels[-1]
+        s = x.shape[0] // 2
+        total = w.reshape(s, 2, s, 2).sum(axis=(1, 3))
+        mean = (x * w[..., None]).reshape(s, 2, s, 2, -1).sum(axis=(1, 3)) / np.maximum(total, 1e-30)[..., None]
+        levels.append((np.where(total[..., None] > 0, mean, 0.0), np.minimum(total, 1.0)))
+    x, w = levels[-1]
+    filled = np.where(w[..., None] > 0, x, np.sum(x * w[..., None], axis=(0, 1)) / w.sum())
+    for level, (x, w) in reversed(list(enumerate(levels[:-1]))):
+        w3 = w[..., None]
+        filled = w3 * x + (1 - w3) * upsample(filled)
+        for _ in range(smoothing * 2 ** min(level, 3) if (w < 1).any() else 0):
+            filled = w3 * x + (1 - w3) * mean4(filled)
+    return filled
+
+
+@pytest.mark.parametrize("size", [1, 2, 12, 32])
+def test_push_pull_is_its_formula_in_float64(size):
+    """The float32, in-place push_pull against its docstring in float64 (12: a coarsest level of
+    3x3 texels, not one; 1 and 2: the smallest pages), with soft and hard weights."""
+    rng = np.random.default_rng(size)
+    page = rng.random((size, size, 3)).astype(np.float32)
+    weight = np.where(rng.random((size, size)) < 0.4, 0.0, rng.random((size, size))).astype(np.float32)
+    weight.flat[0] = 1.0
+    np.testing.assert_allclose(push_pull(page, weight, smoothing=4), reference_push_pull(page, weight, 4),
+                               rtol=1e-5, atol=1e-6)
+
+
 def test_push_pull_weights_blend_and_extremes():
     rng = np.random.default_rng(0)
     const = np.full((16, 16, 3), [0.2, 0.4, 0.6], np.float32)
