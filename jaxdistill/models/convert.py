@@ -16,6 +16,7 @@ or a leaf without a key, is an error naming it. Optionally the converted pytrees
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import logging
@@ -328,7 +329,15 @@ def build_networks(folder: str | Path, dtype: Any = jnp.float32, precision: str 
 
 
 def abstract_params(networks: RgbxNetworks) -> dict[str, dict]:
-    """Shapes of every parameter (`jax.eval_shape` of each init, no memory allocated)."""
+    """Shapes of every parameter (`jax.eval_shape` of each init, no memory allocated). Tracing
+    the three inits takes seconds; a process that loads the same networks again (an experiment's
+    rows, a test's runs) gets them from a cache keyed by the modules' configuration."""
+    cached = _abstract_params(networks, bool(jax.config.jax_enable_x64))
+    return jax.tree.map(lambda x: x, cached)         # a fresh tree: callers own what they get
+
+
+@functools.lru_cache(maxsize=8)
+def _abstract_params(networks: RgbxNetworks, x64: bool) -> dict[str, dict]:
     key = jax.random.key(0)
     u, v, t = networks.unet, networks.vae, networks.text_encoder
     f = v.config.downsampling_factor
