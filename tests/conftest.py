@@ -71,6 +71,19 @@ def rgbx_dir(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
+def run_rgbx_dir(tmp_path_factory):
+    """A tiny random RGB↔X folder for end-to-end runs: `rgbx_dir`'s blocks and widths with one
+    layer per block and one text layer, so a run traces and compiles about half the graph. Runs
+    prove what the pipeline does with a prior (resume, reuse, scoring against its estimates, dataset
+    scenes), not the networks' structure, which `rgbx_dir` proves against diffusers and transformers."""
+    pytest.importorskip("torch")
+    from tiny_rgbx import TINY_TEXT, TINY_UNET, TINY_VAE, write_tiny_rgbx
+
+    return write_tiny_rgbx(tmp_path_factory.mktemp("rgbx_run") / "rgb-to-x", unet=dict(TINY_UNET, layers_per_block=1),
+                           vae=dict(TINY_VAE, layers_per_block=1), text=dict(TINY_TEXT, num_hidden_layers=1))
+
+
+@pytest.fixture(scope="session")
 def loaded(rgbx_dir):
     """The tiny folder loaded by our converter (float32)."""
     from jaxdistill.models import convert

@@ -213,7 +213,7 @@ def photo_pairs(out: Path, path: Path):
 
 
 @pytest.mark.parametrize("fmt", ["nerfstudio", "colmap"])
-def test_a_default_import_is_self_contained_runs_in_the_main_job_and_moves(fmt, tmp_path, cams, rgbx_dir, capsys):
+def test_a_default_import_is_self_contained_runs_in_the_main_job_and_moves(fmt, tmp_path, cams, run_rgbx_dir, capsys):
     import shutil
 
     from jaxdistill import pipeline
@@ -234,7 +234,7 @@ def test_a_default_import_is_self_contained_runs_in_the_main_job_and_moves(fmt, 
     shutil.move(out, moved)
     config = config_lib.validate(config_lib.DistillConfig(
         scene=str(moved), out_dir=str(tmp_path / "run"), steps=2, views_per_step=1, prior="rgbx",
-        rgbx_dir=str(rgbx_dir), maps=("albedo",), renders=False, contact_views=1, estimate_steps=4))
+        rgbx_dir=str(run_rgbx_dir), maps=("albedo",), renders=False, contact_views=1, estimate_steps=4))
     assert config.allow_outside_paths is False
     summary = pipeline.run(config, progress=False)
     assert summary["steps"] == 2 and (tmp_path / "run" / "metrics.json").is_file()

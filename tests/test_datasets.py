@@ -253,7 +253,7 @@ def test_import_script_exits_2_with_the_problem(tmp_path, cams):
     assert proc.returncode == 2 and "EQUIRECTANGULAR is not supported" in proc.stderr
 
 
-def test_main_job_runs_on_a_fipt_dataset_directly_and_scores_its_image_ground_truth(tmp_path, cams, rgbx_dir):
+def test_main_job_runs_on_a_fipt_dataset_directly_and_scores_its_image_ground_truth(tmp_path, cams, run_rgbx_dir):
     """--scene=fipt:PATH: exposure, emitter masks in the loss, metrics against DiffCol/Roughness."""
     from jaxdistill import pipeline
     from jaxdistill.engine import config as config_lib, loop
@@ -262,7 +262,7 @@ def test_main_job_runs_on_a_fipt_dataset_directly_and_scores_its_image_ground_tr
 
     root = fx.write_fipt(tmp_path / "fipt", cams)
     config = config_lib.validate(DistillConfig(scene=f"fipt:{root}", out_dir=str(tmp_path / "run"), steps=2,
-                                               views_per_step=1, prior="rgbx", rgbx_dir=str(rgbx_dir),
+                                               views_per_step=1, prior="rgbx", rgbx_dir=str(run_rgbx_dir),
                                                maps=("albedo", "roughness"), renders=False, eval_every=0,
                                                contact_views=1, estimate_steps=4))
     problem = build_problem(config)

@@ -214,12 +214,12 @@ def count_primitive(jaxpr, name: str) -> int:
 
 
 @pytest.fixture(scope="module")
-def rgbx_problems(tiny_scene, rgbx_dir, tmp_path_factory):
+def rgbx_problems(tiny_scene, run_rgbx_dir, tmp_path_factory):
     cache = tmp_path_factory.mktemp("cache_rgbx")
     out = {}
     for space in ("image", "latent"):
         config = DistillConfig(scene=str(tiny_scene), out_dir="unused", maps=("albedo", "roughness"), prior="rgbx",
-                               rgbx_dir=str(rgbx_dir), loss_space=space)
+                               rgbx_dir=str(run_rgbx_dir), loss_space=space)
         out[space] = build_problem(config, cache_dir=cache)
     return out
 

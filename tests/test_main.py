@@ -287,16 +287,16 @@ def test_views_prior_names_a_missing_target(tmp_path):
         pipeline.run(tiny_config(scene, tmp_path / "o", prior="views"), progress=False)
 
 
-def test_auto_prior_uses_rgbx_weights_end_to_end(tiny_scene, rgbx_dir, tmp_path, monkeypatch):
+def test_auto_prior_uses_rgbx_weights_end_to_end(tiny_scene, run_rgbx_dir, tmp_path, monkeypatch):
     from jaxdistill.models import shipped
 
     monkeypatch.setattr(shipped, "SHIPPED_DIR", tmp_path / "no_shipped_model")   # auto: views when no weights at all
-    monkeypatch.setenv("JAXDISTILL_RGBX_DIR", str(rgbx_dir))
+    monkeypatch.setenv("JAXDISTILL_RGBX_DIR", str(run_rgbx_dir))
     views_run = tmp_path / "views_run"
     monkeypatch.delenv("JAXDISTILL_RGBX_DIR")
     pipeline.run(tiny_config(tiny_scene, views_run, prior="auto", steps=1, maps=("albedo", "roughness"), renders=False,
                           eval_every=0), progress=False)
-    monkeypatch.setenv("JAXDISTILL_RGBX_DIR", str(rgbx_dir))
+    monkeypatch.setenv("JAXDISTILL_RGBX_DIR", str(run_rgbx_dir))
     with pytest.raises(InputError, match=r"--prior_kind.*views.*rgbx"):     # auto resolved differently now
         pipeline.run(tiny_config(tiny_scene, views_run, prior="auto", steps=2, maps=("albedo", "roughness"),
                               resume=True), progress=False)
@@ -305,7 +305,7 @@ def test_auto_prior_uses_rgbx_weights_end_to_end(tiny_scene, rgbx_dir, tmp_path,
                           eval_every=0), progress=False)
     doc = json.loads((out / "metrics.json").read_text())
     assert doc["prior"]["kind"] == "rgbx" and "JAXDISTILL_RGBX_DIR" in doc["prior"]["reason"]
-    assert doc["prior"]["model"] == {"name": "rgb-to-x", "source": "user", "folder": str(rgbx_dir)}
+    assert doc["prior"]["model"] == {"name": "rgb-to-x", "source": "user", "folder": str(run_rgbx_dir)}
     # scored against the model's own per-view estimates, not the scene's targets
     assert doc["baseline_source"].startswith("the model's own per-view estimates (50 DDIM steps")
     assert doc["anchor"]["to"] == doc["baseline_source"] and list(doc["anchor"]["gains"]) == ["albedo"]  # auto
@@ -315,11 +315,11 @@ def test_auto_prior_uses_rgbx_weights_end_to_end(tiny_scene, rgbx_dir, tmp_path,
     assert (out / "maps" / "albedo" / "room_wall_x0.exr").is_file()
 
 
-def test_a_run_that_reuses_x_pred_resumes_mid_cycle_to_the_same_losses(tiny_scene, rgbx_dir, tmp_path):
+def test_a_run_that_reuses_x_pred_resumes_mid_cycle_to_the_same_losses(tiny_scene, run_rgbx_dir, tmp_path):
     """--reuse_steps=3 with the rgbx prior: 7 steps in one run, and 4 + 3 resumed (step 4 reuses
     the x_pred of step 3, which only the checkpointed state holds) give the same loss history, bit
     for bit; and the reused steps cost no prior pass (one trace, finite losses)."""
-    kw = dict(prior="rgbx", rgbx_dir=str(rgbx_dir), maps=("albedo", "roughness"), reuse_steps=3, renders=False,
+    kw = dict(prior="rgbx", rgbx_dir=str(run_rgbx_dir), maps=("albedo", "roughness"), reuse_steps=3, renders=False,
               eval_every=0, log_every=1)
     full, part = tmp_path / "full", tmp_path / "part"
     pipeline.run(tiny_config(tiny_scene, full, steps=7, **kw), progress=False)

@@ -154,7 +154,7 @@ def check_run(run_dir: Path, scene: Path) -> None:
 
 
 @pytest.mark.parametrize("fmt", ["nerfstudio", "colmap"])
-def test_the_readme_walkthrough_runs_as_written_on_a_tiny_capture(fmt, tmp_path, cams, rgbx_dir, jax_cache):
+def test_the_readme_walkthrough_runs_as_written_on_a_tiny_capture(fmt, tmp_path, cams, run_rgbx_dir, jax_cache):
     assignments, commands = parse_block(walkthrough_block())
     assert [c.split()[:2] for c in commands] == [["jaxdistill", "import"], ["jaxdistill", "distill"],
                                                  ["jaxdistill", "view"]], commands
@@ -163,7 +163,7 @@ def test_the_readme_walkthrough_runs_as_written_on_a_tiny_capture(fmt, tmp_path,
     assert " ".join(TINY_FLAGS) in walkthrough_section()          # the README says what the test appends
     capture = write_capture(fmt, tmp_path / "capture", cams)
     values = dict(zip(READER_SETS, (str(capture), fmt)))
-    env = environment(rgbx_dir, jax_cache)
+    env = environment(run_rgbx_dir, jax_cache)
     home = tmp_path / "home"
     home.mkdir()
     scene = Path(dict(assignments)["SCENE"])
