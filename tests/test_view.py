@@ -39,12 +39,13 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 SMOKE_VIEWS = 17       # every 2.9th of the bedroom's 48 views, view_012 (the browser check's view) among them
+SMOKE_STEPS = 10       # half of smoke.cfg's 20: what the viewer shows of a run does not depend on its length
 
 
 @pytest.fixture(scope="module")
 def smoke_run(tmp_path_factory):
     """The out_dir of `python -m jaxdistill.main --flagfile=configs/smoke.cfg --estimate_steps=4
-    --max_views=17`: the model's per-view estimates (the baseline the viewer shows) in 4 DDIM steps
+    --max_views=17 --steps=10`: the model's per-view estimates (the baseline the viewer shows) in 4 DDIM steps
     instead of the demo's 50, and 17 of the bedroom's 48 views, evenly spread round the room (a
     third of the fragments, plans, estimates and evidence); what the viewer shows of them depends
     neither on how they were sampled (tests/test_model_estimates.py checks them against
@@ -53,7 +54,7 @@ def smoke_run(tmp_path_factory):
     fv = flags.FlagValues()
     config_lib.define_flags(fv)
     fv([sys.argv[0], f"--flagfile={REPO / 'configs' / 'smoke.cfg'}", f"--out_dir={out}", "--estimate_steps=4",
-        f"--max_views={SMOKE_VIEWS}"])
+        f"--max_views={SMOKE_VIEWS}", f"--steps={SMOKE_STEPS}"])
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("JAXDISTILL_CACHE", str(tmp_path_factory.mktemp("view_cache")))
         pipeline.run(config_lib.config_from_flags(fv), progress=False)
@@ -177,11 +178,11 @@ def test_a_running_out_dir_shows_its_newest_checkpoint_and_refreshes(smoke_run, 
     shutil.copytree(smoke_run, running, ignore=shutil.ignore_patterns("metrics.json", "evidence"))
     run = RunDir(running)
     snapshot = run.snapshot()
-    assert not snapshot.finished and snapshot.source == "checkpoint of step 20" and snapshot.step == 20
+    assert not snapshot.finished and snapshot.source == f"checkpoint of step {SMOKE_STEPS}" and snapshot.step == SMOKE_STEPS
     stems = run.stems
     np.testing.assert_array_equal(snapshot.pages["roughness"][3], imageio.read_image(
         page_files.page_file(smoke_run / "maps", "roughness", stems, 3, ".exr")))
-    assert run.evidence("visibility", "albedo") is None and run.history()["step"][-1] == 20
+    assert run.evidence("visibility", "albedo") is None and run.history()["step"][-1] == SMOKE_STEPS
     before = run.version()
     shutil.copy(smoke_run / "metrics.json", running / "metrics.json")
     assert run.version() != before and run.snapshot().finished
@@ -319,10 +320,10 @@ def test_the_follower_serves_once_the_run_has_written_its_texel_space(smoke_run,
         assert follower.viewer is None and follower.thread.is_alive()
         shutil.copytree(smoke_run, out, dirs_exist_ok=True, ignore=shutil.ignore_patterns("metrics.json"))
         end = time.monotonic() + 60
-        while (follower.viewer is None or follower.viewer.snapshot.source != "checkpoint of step 20") and \
+        while (follower.viewer is None or follower.viewer.snapshot.source != f"checkpoint of step {SMOKE_STEPS}") and \
                 time.monotonic() < end:
             time.sleep(0.2)
-        assert follower.viewer is not None and follower.viewer.snapshot.source == "checkpoint of step 20"
+        assert follower.viewer is not None and follower.viewer.snapshot.source == f"checkpoint of step {SMOKE_STEPS}"
         with urllib.request.urlopen(follower.url, timeout=30) as response:
             assert response.status == 200 and b"<html" in response.read().lower()
         shutil.copy(smoke_run / "metrics.json", out / "metrics.json")
