@@ -144,6 +144,8 @@ def _neighbour_sum(x: np.ndarray, out: np.ndarray) -> np.ndarray:
 
 def _relax(filled: np.ndarray, x: np.ndarray, w: np.ndarray, sweeps: int) -> np.ndarray:
     """`sweeps` of filled <- w x + (1 - w) mean4(filled) ((S, S, C) float32, w (S, S, 1)), in place."""
+    if not sweeps:
+        return filled
     own, rest = w * x, 1.0 - w
     if filled.shape[0] < 2:          # one texel: its own (clamped) neighbours are itself
         for _ in range(sweeps):
