@@ -257,8 +257,8 @@ def test_the_browser_shows_the_textured_mesh_the_views_and_a_view_comparison(smo
 
         def render(height=240, width=320):
             """The client's render once it has settled: after 2 s, renders a second apart until two
-            agree (the new glTF parsed and drawn, the camera moved; on a loaded machine a fixed
-            wait caught the page before it had), at most 60 s."""
+            agree (the new glTF parsed and drawn, the camera moved: a fixed wait is a guess on a
+            loaded machine), at most 60 s."""
             time.sleep(2.0)
             end, last = time.monotonic() + 60, None
             while True:
