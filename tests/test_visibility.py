@@ -9,7 +9,7 @@ from jaxdistill.io import images as imageio
 from jaxdistill.render.gather_plan import build_gather_plans, build_texel_space, view_taps
 from jaxdistill.render.layout import make_layout
 from jaxdistill.render.visibility import (pixel_weights, texel_evidence, texel_view_statistics, view_counts,
-                                          visibility_weights, write_visibility_pages)
+                                          view_reads, visibility_weights, write_visibility_pages)
 from test_sampler import scene_views
 
 
@@ -112,6 +112,13 @@ def test_texel_view_statistics_match_brute_force_per_view_values():
             np.testing.assert_allclose(variance[texel], values[readers[texel]].var(axis=0), atol=1e-5)
         else:
             assert not mean[texel].any() and not variance[texel].any()
+    # per channel with the views' reads computed once (as the evidence export asks, map by map): the same figures
+    reads = view_reads(plan, space.num_texels)
+    for c in range(2):
+        part = texel_view_statistics(plan, (image[..., c:c + 1] for image in images), space.num_texels, reads)
+        np.testing.assert_array_equal(part[0], count)
+        np.testing.assert_array_equal(part[1][:, 0], mean[:, c])
+        np.testing.assert_array_equal(part[2][:, 0], variance[:, c])
 
 
 def test_texel_trust_expands_to_the_page_trust_of_the_expanded_evidence():

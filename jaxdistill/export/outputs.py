@@ -22,7 +22,7 @@ from jaxdistill.io import images as imageio
 from jaxdistill.io.view_images import resize
 from jaxdistill.render import charts
 from jaxdistill.render.sampler import expand
-from jaxdistill.render.visibility import texel_view_statistics
+from jaxdistill.render.visibility import texel_view_statistics, view_reads
 from jaxdistill.scene.cameras import rgbx_camera_rotation
 
 
@@ -113,6 +113,7 @@ def write_evidence(out: Path, problem: Problem, ctx: EvalContext, baseline: list
     pages = {"visibility": expand(problem.counts.astype(np.float32)[:, None], space, 0.0, dilation=0)}
     if baseline:
         plan = training_plan(problem)
+        reads = view_reads(plan, space.num_texels)      # the views' read weights, the same for every map
 
         def view_images(m):                 # one view at a time, at the render size
             for camera, per_view in zip(ctx.cameras, baseline):
@@ -122,7 +123,7 @@ def write_evidence(out: Path, problem: Problem, ctx: EvalContext, baseline: list
                 yield image
 
         for m in channels.maps:             # per map: dense work arrays of 1-3 channels, not all 11
-            count, _, variance = texel_view_statistics(plan, view_images(m), space.num_texels)
+            count, _, variance = texel_view_statistics(plan, view_images(m), space.num_texels, reads)
             spread = np.where(count >= 2, np.sqrt(variance.sum(axis=1)), np.nan).astype(np.float32)
             del variance
             pages[f"disagreement_{m}"] = expand(spread[:, None], space, np.nan, dilation=0)

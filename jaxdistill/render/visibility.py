@@ -79,29 +79,42 @@ def _splat(plan: GatherPlan, images: jnp.ndarray, num_texels_like: jnp.ndarray) 
     return value
 
 
-def texel_view_statistics(plan: GatherPlan, images: Iterable[np.ndarray],
-                          num_texels: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def view_reads(plan: GatherPlan, num_texels: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per view of `plan`: (the texels it reads, (K,) int64; their summed read weight, (K,) float64),
+    what `texel_view_statistics` divides by. The same for every image of a view, so a caller that
+    asks per map computes it once (a view reads a small share of the texels: sparse)."""
+    zeros_1 = jnp.zeros((num_texels, 1), jnp.float32)
+    reads = []
+    for v in range(plan.num_views):
+        weight = np.asarray(_evidence(plan.select(v), zeros_1))
+        seen = np.flatnonzero(weight > 0)
+        reads.append((seen, weight[seen].astype(np.float64)))
+    return reads
+
+
+def texel_view_statistics(plan: GatherPlan, images: Iterable[np.ndarray], num_texels: int,
+                          reads: Sequence[tuple[np.ndarray, np.ndarray]] | None = None
+                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """What the views say about each texel: (count (N,) int32 of views that read it, mean (N, C)
     and variance (N, C) float32 of their values across those views; 0 where none reads it).
     A view's value at a texel is the gather-weighted mean of the pixels of its image (H, W, C)
     that read the texel (through the transpose of `render`), so every view counts once.
     `images` (one per view of `plan`, in order) may be a generator: one view's image is in
     memory at a time, and the dense work arrays are (N, C), so a caller with many channels can
-    ask per map and hold a few channels at once."""
+    ask per map and hold a few channels at once; `reads` (`view_reads(plan, num_texels)`) spares
+    each such call the views' read weights."""
     count = np.zeros(num_texels, np.int32)
     first = second = zeros = None
-    zeros_1 = jnp.zeros((num_texels, 1), jnp.float32)
+    reads = view_reads(plan, num_texels) if reads is None else reads
     for v, image in enumerate(images):
         if first is None:
             channels = np.asarray(image).shape[-1]
             zeros = jnp.zeros((num_texels, channels), jnp.float32)
             first = np.zeros((num_texels, channels), np.float64)
             second = np.zeros((num_texels, channels), np.float64)
-        view = plan.select(v)
-        weight = np.asarray(_evidence(view, zeros_1))
-        seen = np.flatnonzero(weight > 0)              # a view reads a small share of the texels
-        value = np.asarray(_splat(view, jnp.asarray(image, jnp.float32), zeros))[seen].astype(np.float64)
-        mean = value / weight[seen].astype(np.float64)[:, None]
+        seen, weight = reads[v]
+        value = np.asarray(_splat(plan.select(v), jnp.asarray(image, jnp.float32), zeros))[seen].astype(np.float64)
+        mean = value / weight[:, None]
         count[seen] += 1
         first[seen] += mean
         second[seen] += mean ** 2
