@@ -44,12 +44,14 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
 
     out.mkdir(parents=True, exist_ok=True)
     if not distributed.is_primary():               # another process of a multi-process run: the loop only
+        problem = problem.without_fragments()
         loop = loop_lib.run_loop(config, problem, recorded, latest, progress=False)
         return {"process_id": jax.process_index(), "step": int(jax.device_get(loop.state.step)),
                 "stopped_by": loop.stopped_by, "exit_status": loop.exit_status}
     trust = texel_trust(problem)                   # once: the texel space file and the exported pages
     run_files.write_texel_space(out, problem.space, trust, problem.channels.maps, json_safe(recorded))
     ctx = scoring.evaluation_context(config, problem)
+    problem = problem.without_fragments()         # read by nothing after the evaluation context
     evaluate = (lambda state: scoring.quick_psnr(state, problem, ctx)) if ctx.gt_maps is not None else None
     loop = loop_lib.run_loop(config, problem, recorded, latest, evaluate=evaluate, progress=progress)
     if loop.stopped_by:
@@ -59,7 +61,7 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
     texels = np.asarray(jax.device_get(loop.state.texels))
     phases = OutputPhases()
     with phases("per-view estimates"):
-        baseline = scoring.per_view_baseline(config, problem, [f.shape for f in ctx.fragments])
+        baseline = scoring.per_view_baseline(config, problem, ctx.shapes)
     with phases("anchor"):
         texels, anchor = anchor_lib.anchor_to_baseline(config, problem, texels, ctx, baseline)
     summary = write_outputs(config, problem, texels, loop.history, ctx, trust, baseline, phases)

@@ -214,7 +214,10 @@ def after(module, name: str, fn) -> None:
 
 
 def nbytes(*arrays) -> int:
-    return int(sum(getattr(a, "nbytes", 0) for a in arrays if a is not None))
+    """Bytes the arrays hold in memory (a --view_data=disk file, `ViewRows`, holds none)."""
+    from jaxdistill.io.view_rows import ViewRows
+
+    return int(sum(getattr(a, "nbytes", 0) for a in arrays if a is not None and not isinstance(a, ViewRows)))
 
 
 def child_run(args, flag_argv) -> int:

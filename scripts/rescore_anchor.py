@@ -65,7 +65,7 @@ def rescore(run: Path) -> dict:
         if ctx.gt_maps is None:
             raise SystemExit(f"{config.scene}: no ground truth to score against")
         texels = CheckpointStore(run / "checkpoints").read_texels()
-        baseline = scoring.per_view_baseline(config, problem, [f.shape for f in ctx.fragments])
+        baseline = scoring.per_view_baseline(config, problem, ctx.shapes)
         renders = evaluation.render_views(np.clip(texels, -1.0, 1.0), ctx.plan, ctx.cameras, problem.channels)
         hits = list(np.asarray(ctx.plan.hit).reshape(-1, ctx.plan.height, ctx.plan.width))
         gains = anchor_lib.anchor_gains(renders, baseline.views, hits, problem.channels.maps)

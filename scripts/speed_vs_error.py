@@ -415,7 +415,7 @@ def run_point(spec: dict) -> dict:
         "load_avg_1min": [load_before, os.getloadavg()[0]],
     }
     if spec.get("baseline") and ctx.gt is not None:
-        base = evaluation.read_baseline(problem.scene, ["albedo"], [f.shape for f in ctx.fragments])
+        base = evaluation.read_baseline(problem.scene, ["albedo"], ctx.shapes)
         row["per_view_estimates_psnr"] = (evaluation.albedo_psnr(base, ctx.gt_maps, ctx.masks)
                                           if base is not None else math.nan)
     row["peak_rss_gb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20

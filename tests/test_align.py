@@ -162,7 +162,7 @@ def test_anchored_texels_scale_the_colour_maps_in_linear_light_and_leave_the_res
     prob = dataclasses.replace(problem, channels=channels)
     config = DistillConfig(scene="unused", out_dir="unused", maps=channels.maps, prior="views", anchor="estimates")
     ctx = evaluation_context(config, prob)
-    baseline = per_view_baseline(config, prob, [f.shape for f in ctx.fragments])
+    baseline = per_view_baseline(config, prob, ctx.shapes)
     anchored, record = anchor_to_baseline(config, prob, texels, ctx, baseline)
     assert list(record["gains"]) == ["albedo"] and "target" in record["to"]
     assert (np.abs(np.asarray(record["gains"]["albedo"]) - 1) > 0.2).all()         # the texture was too dark
@@ -189,7 +189,7 @@ def test_an_anchor_gain_at_the_end_of_its_range_is_reported(problem, caplog):
     config = DistillConfig(scene="unused", out_dir="unused", maps=problem.channels.maps, prior="views",
                            anchor="estimates")
     ctx = evaluation_context(config, problem)
-    baseline = per_view_baseline(config, problem, [f.shape for f in ctx.fragments])
+    baseline = per_view_baseline(config, problem, ctx.shapes)
     texels = np.full((problem.space.num_texels, 3), -0.9999, np.float32)      # file value 5e-5: far too dark
     with caplog.at_level("WARNING"):
         _, record = anchor_to_baseline(config, problem, texels, ctx, baseline)
@@ -204,7 +204,7 @@ def test_anchor_estimates_without_a_colour_map_says_so(problem, caplog):
     prob = dataclasses.replace(problem, channels=MapChannels(("roughness",)))
     config = DistillConfig(scene="unused", out_dir="unused", maps=("roughness",), prior="views", anchor="estimates")
     ctx = evaluation_context(config, prob)
-    baseline = per_view_baseline(config, prob, [f.shape for f in ctx.fragments])
+    baseline = per_view_baseline(config, prob, ctx.shapes)
     texels = np.zeros((prob.space.num_texels, 1), np.float32)
     with caplog.at_level("WARNING"):
         out, record = anchor_to_baseline(config, prob, texels, ctx, baseline)

@@ -113,3 +113,33 @@ def test_scene_without_ground_truth_has_none(tiny, tmp_path):
     (folder / "gt.json").unlink()
     scene = read_scene(folder)
     assert evaluation.view_ground_truth(scene, frags_of(scene)) == (None, None)
+
+
+def test_the_run_lets_the_fragments_go_once_the_evaluation_context_is_built(tiny, tmp_path, monkeypatch):
+    """The fragments (20 bytes a pixel per view) serve only to build the evaluation context: from
+    the loop on, nothing holds them (weak references to every one of them are dead)."""
+    import gc
+    import weakref
+
+    from jaxdistill.evaluate import scoring
+
+    refs, checked = [], []
+    build, run_loop = scoring.evaluation_context, loop.run_loop
+
+    def context(config, problem):
+        refs.extend(weakref.ref(f) for f in list(problem.fragments) + list(problem.native_fragments))
+        return build(config, problem)
+
+    def loop_after_the_context(config, problem, *args, **kwargs):
+        gc.collect()
+        checked.append([r() is None for r in refs])
+        assert problem.fragments is None and problem.native_fragments is None
+        return run_loop(config, problem, *args, **kwargs)
+
+    monkeypatch.setattr(scoring, "evaluation_context", context)
+    monkeypatch.setattr(loop, "run_loop", loop_after_the_context)
+    config = config_lib.validate(DistillConfig(scene=str(tiny), out_dir=str(tmp_path / "run"), steps=2,
+                                               views_per_step=2, prior="views", render_size=16))
+    metrics = pipeline.run(config, progress=False)
+    assert len(refs) == 4 and checked == [[True] * 4], checked       # 2 views at render size, 2 at native size
+    assert metrics["steps"] == 2 and "rerender" in metrics      # scored and re-rendered without them

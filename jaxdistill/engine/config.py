@@ -21,6 +21,7 @@ from jaxdistill.engine.distributed import address_problem
 from jaxdistill.engine.photo import PHOTO_LOSSES, PHOTO_SCALES, PHOTO_SPACES
 from jaxdistill.errors import InputError, ProblemList
 from jaxdistill.render.gather_plan import SAMPLERS
+from jaxdistill.io.view_rows import VIEW_DATA
 
 PRIORS = ("auto", "rgbx", "views")
 LOSS_SPACES = ("image", "latent")
@@ -37,7 +38,8 @@ RGBX_DIR_ENV = "JAXDISTILL_RGBX_DIR"
 # (--max_unwrap_faces and --unwrap_time_limit only decide whether an unwrap is attempted, never its result.)
 RESUMABLE_FLAGS = ("steps", "resume", "ckpt_every", "keep_checkpoints", "out_dir", "log_every", "eval_every", "renders",
                    "contact_views", "rgbx_dir", "convert_cache", "allow_outside_paths", "anchor", "estimate_steps",
-                   "max_unwrap_faces", "unwrap_time_limit", "coordinator_address", "num_processes", "process_id")
+                   "max_unwrap_faces", "unwrap_time_limit", "coordinator_address", "num_processes", "process_id",
+                   "view_data")
 # Flags handed to the dataset loaders for --scene=FORMAT:PATH (`ImportOptions` fields, the import
 # command's flags of the same names).
 IMPORT_FLAGS = ("mesh", "exposure", "uv", "max_views", "max_page_size", "max_unwrap_faces", "unwrap_time_limit")
@@ -87,6 +89,7 @@ class DistillConfig:
     texture_size: str = "auto"
     max_texture_size: int = 4096
     sampler: str = "bilinear"
+    view_data: str = "auto"
     views_per_step: int = 8
     seed: int = 0
     ckpt_every: int = 0
@@ -202,6 +205,10 @@ def define_flags(fv: flags.FlagValues = flags.FLAGS, *, main_module: bool = Fals
     flags.DEFINE_string("texture_size", d.texture_size, "page side (power of two) or 'auto'", **where)
     flags.DEFINE_integer("max_texture_size", d.max_texture_size, "cap for --texture_size=auto", **where)
     flags.DEFINE_enum("sampler", d.sampler, SAMPLERS, "texture sampler", **where)
+    flags.DEFINE_enum("view_data", d.view_data, VIEW_DATA, "where the per-view images a step reads (the views "
+                      "prior's targets, the re-rendering term's photos) are held: memory, or disk (a file under "
+                      "the cache read a batch at a time, so memory does not grow with the view count); auto: disk "
+                      "when they would take more than 1 GiB. Never changes a result", **where)
     flags.DEFINE_integer("views_per_step", d.views_per_step, "views per step (split over devices)", **where)
     flags.DEFINE_integer("seed", d.seed, "seed of everything random in the run", **where)
     flags.DEFINE_integer("ckpt_every", d.ckpt_every, "checkpoint every N steps (0: only at the end)", **where)
@@ -303,6 +310,8 @@ def validate(config: DistillConfig) -> DistillConfig:
         bad("estimate_steps", f"must be >= 1, got {c.estimate_steps}")
     if c.anchor not in ANCHOR_MODES:
         bad("anchor", f"must be one of {', '.join(ANCHOR_MODES)}, got {c.anchor!r}")
+    if c.view_data not in VIEW_DATA:
+        bad("view_data", f"must be one of {', '.join(VIEW_DATA)}, got {c.view_data!r}")
     if c.align_strength < 0:
         bad("align_strength", f"must be >= 0, got {c.align_strength}")
     if c.align != "none" and c.loss_space == "latent":

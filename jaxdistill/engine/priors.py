@@ -52,7 +52,8 @@ class Prior(Protocol):
 
 @dataclasses.dataclass(frozen=True)
 class ViewsPrior:
-    """Per-view targets: (V, H, W, C) float32 model-space images, channels as `channels`."""
+    """Per-view targets: (V, H, W, C) float32 model-space images, channels as `channels`, in
+    memory or in a file read a batch at a time (`io/view_rows.py`, --view_data)."""
 
     channels: MapChannels
     target_images: np.ndarray = dataclasses.field(hash=False, compare=False)

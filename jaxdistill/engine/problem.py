@@ -9,6 +9,7 @@ visibility counts and pixel weights, and sets up the prior (`choose_prior` says 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 import time
 from pathlib import Path
@@ -27,13 +28,14 @@ from jaxdistill.errors import InputError, ProblemList
 from jaxdistill.scene.cameras import rgbx_camera_rotation
 from jaxdistill.scene.maps import INITIAL_VALUE, MapChannels, file_to_model
 from jaxdistill.render import fragments as fr
-from jaxdistill.render.gather_plan import TexelSpace, build_gather_plans, build_texel_space
+from jaxdistill.render.gather_plan import TAPS, TexelSpace, build_gather_plans, build_texel_space
 from jaxdistill.render.layout import make_layout
 from jaxdistill.render.visibility import (check_coverage, hit_fractions, pixel_weights, texel_evidence,
                                          view_counts)
 from jaxdistill.scene.model import Scene
 from jaxdistill.scene.paths import resolve_scene_path  # noqa: F401  (--scene as a path; scripts use it from here)
 from jaxdistill.io.view_images import read_mask, read_photo_linear, read_target, resize
+from jaxdistill.io.view_rows import ViewFolder, placement, view_array
 
 def rgbx_hint() -> str:
     """How to obtain the RGB<->X weights, and their licence."""
@@ -118,12 +120,12 @@ def scaled_camera(camera: Camera, height: int, width: int) -> Camera:
 class PhotoData:
     """What the re-rendering term needs (`photo.py`), per view at (height, width): gather plans
     index (V, P, T) int32, weight (V, P, T) float32, hit (V, P) bool; photos (V, H, W, 3) float32
-    linear and exposed; pixel_weight (V, H, W) float32: the visibility weights times the view's
-    mask times the photo's usable pixels; guide (V, H, W, 2) float32 the photos' `chroma_guide`
-    (--albedo_smoothness > 0) or None; scale the photo scale --photo_scale resolved to
-    (`photo.resolve_scale`: "auto" by whether the photos are LDR); noise (V,) each photo's
-    `photo.log_noise` and noise_weight (V,) the weight --photo_noise_ref gives its view (already in
-    pixel_weight)."""
+    linear and exposed, in memory or a `ViewRows` file (--view_data); pixel_weight (V, H, W)
+    float32: the visibility weights times the view's mask times the photo's usable pixels; guide
+    (V, H, W, 2) float32 the photos' `chroma_guide` (--albedo_smoothness > 0; held as the photos
+    are) or None; scale the photo scale --photo_scale resolved to (`photo.resolve_scale`: "auto"
+    by whether the photos are LDR); noise (V,) each photo's `photo.log_noise` and noise_weight
+    (V,) the weight --photo_noise_ref gives its view (already in pixel_weight)."""
 
     height: int
     width: int
@@ -150,7 +152,9 @@ class Problem:
     """The precomputed, fixed part of a run (host NumPy arrays unless noted).
 
     plan_index (V, P, T) int32 / plan_weight (V, P, T) float32 / plan_hit (V, P) bool: gather
-    plans of all views at (height, width); pixel_weight (V, H, W) float32 loss weights;
+    plans of all views at (height, width); pixel_weight (V, H, W) float32 loss weights. Per-view
+    arrays (these, the photos, the views prior's targets) are NumPy or, with --view_data on disk,
+    `ViewRows` files: read them by views (`a[ids]`), as `batch` does;
     counts (N,) int32 view counts per texel; evidence (N,) float32 summed tap weights per texel
     (`visibility.texel_evidence`); normal_rotation (V, 3, 3) float32.
     """
@@ -161,8 +165,8 @@ class Problem:
     prior: Any
     frozen: dict                      # device constants: {"chain", "prior", "alphas_cumprod"}
     space: TexelSpace
-    fragments: list
-    native_fragments: list
+    fragments: list | None            # ray hits at render / native size: only the evaluation context
+    native_fragments: list | None     # needs them, then `without_fragments` lets them go
     height: int
     width: int
     plan_index: np.ndarray
@@ -175,10 +179,21 @@ class Problem:
     timings: dict
     rgbx_model: Any = None            # the loaded RgbxPrior (rgbx prior only): per-view estimates use it
     photos: PhotoData | None = None   # --photo_weight > 0: the re-rendering term's plans and photos
+    view_folder: ViewFolder | None = None   # --view_data: where per-view arrays live on disk (None: memory)
 
     @property
     def num_views(self) -> int:
         return len(self.scene.views)
+
+    def empty_views(self, name: str, shape: tuple[int, ...], dtype):
+        """A new (V, ...) per-view array where this problem keeps its own (`view_rows.view_array`)."""
+        return view_array(name, shape, dtype, self.view_folder)
+
+    def without_fragments(self) -> "Problem":
+        """This problem without its fragments (and native fragments): nothing after the evaluation
+        context (`scoring.evaluation_context`) reads them, and they grow with views x pixels
+        (20 bytes a pixel: 1.05 GB at 50 views of 876x584)."""
+        return dataclasses.replace(self, fragments=None, native_fragments=None)
 
     def initial_texels(self) -> np.ndarray:
         return self.channels.initial_texels(self.space.num_texels)
@@ -204,8 +219,9 @@ class Problem:
         return rng.choice(self.num_views, batch_size, replace=batch_size > self.num_views)
 
 
-def read_view_targets(scene: Scene, maps: Sequence[str], height: int, width: int) -> np.ndarray:
-    """(V, H, W, C) float32 model-space targets of every view; InputError listing missing ones."""
+def read_view_targets(scene: Scene, maps: Sequence[str], height: int, width: int, folder: ViewFolder | None = None):
+    """(V, H, W, C) float32 model-space targets of every view, in memory, or in a `ViewRows` file
+    of `folder` when one is given; InputError listing missing ones."""
     problems = ProblemList()
     for i, view in enumerate(scene.views):
         for m in maps:
@@ -215,17 +231,18 @@ def read_view_targets(scene: Scene, maps: Sequence[str], height: int, width: int
                              "(drop the map with --maps, or use --prior=rgbx)")
     problems.raise_if_any()
     channels = MapChannels(tuple(maps))
-    out = np.zeros((len(scene.views), height, width, channels.num_channels), np.float32)
+    out = view_array("targets", (len(scene.views), height, width, channels.num_channels), np.float32, folder)
     for i, view in enumerate(tqdm(scene.views, desc="targets", unit="view", dynamic_ncols=True)):
         parts = [file_to_model(m, resize(read_target(m, view.targets[m]), height, width)) for m in maps]
         out[i] = np.concatenate(parts, axis=-1)
     return out
 
 
-def _views_prior(scene, channels, height, width):
+def _views_prior(scene, channels, height, width, folder: ViewFolder | None):
     from jaxdistill.engine.priors import ViewsPrior
 
-    return ViewsPrior(channels=channels, target_images=read_view_targets(scene, channels.maps, height, width)), {}
+    return ViewsPrior(channels=channels, target_images=read_view_targets(scene, channels.maps, height, width,
+                                                                         folder)), {}
 
 
 def _rgbx_prior(config: DistillConfig, choice: PriorChoice, scene, channels, height, width):
@@ -305,6 +322,8 @@ def _build_problem(config: DistillConfig, *, cache_dir=None, check_scene=None) -
     logging.info("scene %s: %d faces, %d objects, %d views rendered at %dx%d", scene.name, scene.mesh.num_faces,
                  scene.num_objects, len(scene.views), width, height)
 
+    view_folder = _view_data_folder(config, scene, choice, channels, (height, width), cache_dir)
+
     t0 = time.perf_counter()
     cameras = [scaled_camera(v.camera, height, width) for v in scene.views]
     frags = fr.compute_fragments(scene.mesh, cameras, cache_dir=cache_dir)
@@ -329,17 +348,15 @@ def _build_problem(config: DistillConfig, *, cache_dir=None, check_scene=None) -
         seen += list(photo_frags)
     space = build_texel_space(frags if len(seen) == len(frags) else seen, layout, config.sampler)
     check_state_fits(space.num_texels, channels.num_channels, config, layout.full_size())
-    plan = build_gather_plans(frags, space, config.sampler)
+    empty = functools.partial(view_array, folder=view_folder)
+    plan = build_gather_plans(frags, space, config.sampler, empty=empty)
     counts = view_counts(plan, space.num_texels)
     evidence = texel_evidence(plan, space.num_texels)
-    if config.visibility_weighting:
-        weights = np.asarray(pixel_weights(plan, counts), np.float32)
-    else:
-        weights = np.asarray(plan.hit, np.float32).reshape(len(frags), height, width)
-    weights = _masked(weights, scene, height, width)
+    weights = _loss_weights(config, scene, plan, counts, empty)
     photos = None
     if photo_frags is not None:
-        photos = _photo_data(config, scene, photo_frags, space, counts)
+        photos = _photo_data(config, scene, photo_frags, space, counts, empty,
+                             plan=plan if photo_frags is frags else None)
     timings["plans_s"] = time.perf_counter() - t0
     logging.info("texels: %d parameters x %d channels (%s pages, %.1fx fewer than full pages), %d observed",
                  space.num_texels, channels.num_channels, list(layout.page_sizes),
@@ -347,7 +364,7 @@ def _build_problem(config: DistillConfig, *, cache_dir=None, check_scene=None) -
 
     t0 = time.perf_counter()
     if choice.kind == "views":
-        prior, prior_frozen = _views_prior(scene, channels, height, width)
+        prior, prior_frozen = _views_prior(scene, channels, height, width, view_folder)
         alphas, model = None, None
     else:
         prior, prior_frozen, model = _rgbx_prior(config, choice, scene, channels, height, width)
@@ -356,20 +373,54 @@ def _build_problem(config: DistillConfig, *, cache_dir=None, check_scene=None) -
     frozen = {"chain": plan.chain, "prior": prior_frozen, "alphas_cumprod": alphas}
     rotations = np.stack([rgbx_camera_rotation(c.c2w) for c in cameras]).astype(np.float32)
     return Problem(scene=scene, channels=channels, choice=choice, prior=prior, frozen=frozen, space=space,
-                   fragments=frags, native_fragments=native_frags, height=height, width=width, plan_index=np.asarray(plan.index),
-                   plan_weight=np.asarray(plan.weight), plan_hit=np.asarray(plan.hit), pixel_weight=weights,
+                   fragments=frags, native_fragments=native_frags, height=height, width=width,
+                   plan_index=plan.index, plan_weight=plan.weight, plan_hit=plan.hit, pixel_weight=weights,
                    counts=counts, evidence=evidence, normal_rotation=rotations, timings=timings,
-                   rgbx_model=model, photos=photos)
+                   rgbx_model=model, photos=photos, view_folder=view_folder)
 
 
-def _masked(weights, scene: Scene, height: int, width: int) -> np.ndarray:
-    """(V, H, W) pixel weights times each view's mask (emitters, anonymised faces, unfilled pixels)."""
-    if all(view.mask is None for view in scene.views):
-        return weights
-    weights = np.array(weights)                            # writable (a device array's view is not)
+def _view_data_folder(config: DistillConfig, scene: Scene, choice: PriorChoice, channels: MapChannels,
+                      render: tuple[int, int], cache_dir) -> ViewFolder | None:
+    """Where the per-view arrays a step reads are held (--view_data): None for memory, else the
+    cache's `ViewFolder`, its disk space checked before any compute. They are, float32 or int32
+    per value: the gather plans (T taps of index and weight a pixel) and pixel weights at the
+    render size, the views prior's targets (C channels) there, and with the re-rendering term its
+    plans, pixel weights, photos (3) and chroma guides (2, --albedo_smoothness) at the photo size;
+    the evaluation's plans at the photos' own size when neither size is theirs."""
+    views, taps = len(scene.views), TAPS[config.sampler]
+    sizes = {(v.camera.height, v.camera.width) for v in scene.views}
+    per_pixel = {render: 2 * taps + 1 + (channels.num_channels if choice.kind == "views" else 0)}
+    if config.photo_weight > 0:
+        photo = render_shape(scene, config.photo_size, flag="--photo_size")
+        images = 3 + (2 if config.albedo_smoothness > 0 else 0)
+        per_pixel[photo] = per_pixel.get(photo, 0) + (images if photo in per_pixel else 2 * taps + 1 + images)
+    native = next(iter(sizes)) if len(sizes) == 1 else None
+    if native is not None and native not in per_pixel:
+        per_pixel[native] = 2 * taps                                # the evaluation's plans
+    nbytes = sum(views * h * w * values * 4 for (h, w), values in per_pixel.items())
+    if not placement(config.view_data, nbytes):
+        return None
+    folder = ViewFolder(Path(cache_dir) if cache_dir else fr.default_cache_dir())
+    what = f"the per-view arrays of {views} views (plans, weights, targets, photos; --view_data={config.view_data})"
+    folder.check_space(nbytes, what)
+    logging.info("%s: %.2f GB on disk in %s, read a batch at a time", what, nbytes / 2 ** 30, folder.root)
+    return folder
+
+
+def _loss_weights(config: DistillConfig, scene: Scene, plan, counts: np.ndarray, empty):
+    """(V, H, W) float32 pixel weights of `plan`'s views (visibility weights, or the hit mask with
+    --visibility_weighting=false) times each view's mask (emitters, anonymised faces, unfilled
+    pixels), in an array from `empty`, a view at a time."""
+    height, width = plan.height, plan.width
+    weights = empty("pixel_weight", (plan.num_views, height, width), np.float32)
+    if config.visibility_weighting:
+        pixel_weights(plan, counts, out=weights)
+    else:
+        for v in range(plan.num_views):
+            weights[v] = plan.hit[v].reshape(height, width).astype(np.float32)
     for v, view in enumerate(scene.views):
         if view.mask is not None:
-            weights[v] *= read_mask(view.mask, height, width)
+            weights[v] = weights[v] * read_mask(view.mask, height, width)
     return weights
 
 
@@ -388,27 +439,31 @@ def _photo_fragments(config: DistillConfig, scene: Scene, render: tuple[int, int
                                 cache_dir=cache_dir)
 
 
-def _photo_data(config: DistillConfig, scene: Scene, photo_frags, space: TexelSpace, counts) -> PhotoData:
-    """The re-rendering term's plans, photos and pixel weights (`PhotoData`), at the photo fragments' size."""
-    plan = build_gather_plans(photo_frags, space, config.sampler)
+def _photo_data(config: DistillConfig, scene: Scene, photo_frags, space: TexelSpace, counts, empty=None, *,
+                plan=None) -> PhotoData:
+    """The re-rendering term's plans, photos and pixel weights (`PhotoData`), at the photo fragments'
+    size, in arrays from `empty(name, shape, dtype)` (`view_rows.view_array`: memory or files);
+    `plan`: the photo fragments' plan when the caller has it already (the render size's)."""
+    empty = empty or functools.partial(view_array, folder=None)
+    plan = plan if plan is not None else build_gather_plans(photo_frags, space, config.sampler, empty=empty)
     height, width = plan.height, plan.width
-    if config.visibility_weighting:
-        weights = np.asarray(pixel_weights(plan, counts), np.float32)
-    else:
-        weights = np.asarray(plan.hit, np.float32).reshape(len(photo_frags), height, width)
-    weights = np.array(_masked(weights, scene, height, width))
-    photos = np.zeros((len(scene.views), height, width, 3), np.float32)
-    guide = np.zeros((len(scene.views), height, width, 2), np.float32) if config.albedo_smoothness > 0 else None
-    noise = np.zeros(len(scene.views), np.float64)
-    noise_weight = np.ones(len(scene.views), np.float64)
+    weights = _loss_weights(config, scene, plan, counts, empty)
+    views = len(scene.views)
+    photos = empty("photos", (views, height, width, 3), np.float32)
+    guide = empty("guides", (views, height, width, 2), np.float32) if config.albedo_smoothness > 0 else None
+    noise = np.zeros(views, np.float64)
+    noise_weight = np.ones(views, np.float64)
     for v, view in enumerate(tqdm(scene.views, desc="photos", unit="view", dynamic_ncols=True)):
-        photos[v], usable = read_photo_linear(view.photo, view.exposure, height, width)
-        weights[v] *= usable
+        photo, usable = read_photo_linear(view.photo, view.exposure, height, width)
+        photos[v] = photo
         if guide is not None:
-            guide[v] = photo_lib.chroma_guide(photos[v], usable)
-        noise[v] = photo_lib.log_noise(photos[v], usable)
+            guide[v] = photo_lib.chroma_guide(photo, usable)
+        noise[v] = photo_lib.log_noise(photo, usable)
         noise_weight[v] = photo_lib.noise_weight(noise[v], config.photo_noise_ref)
-        weights[v] *= np.float32(noise_weight[v])          # × 1 is exact: a weight-1 view is unchanged
+        weight = weights[v]
+        weight *= usable
+        weight *= np.float32(noise_weight[v])              # × 1 is exact: a weight-1 view is unchanged
+        weights[v] = weight
     if config.photo_noise_ref > 0:
         logging.info("--photo_noise_ref=%g: the photos' noise %.3f (median, %.3f-%.3f) in log units; %d of %d views "
                      "weigh less in the term (weights %.2f-%.2f)", config.photo_noise_ref, float(np.median(noise)),
@@ -419,8 +474,8 @@ def _photo_data(config: DistillConfig, scene: Scene, photo_frags, space: TexelSp
     if scale != config.photo_scale:
         logging.info("--photo_scale=auto: %s (%s)", scale, "LDR photos: a gain per view and colour channel, their "
                      "exposure and white balance" if ldr else "HDR photos: one scale per batch, their exposure known")
-    return PhotoData(height=height, width=width, index=np.asarray(plan.index), weight=np.asarray(plan.weight),
-                     hit=np.asarray(plan.hit), photos=photos, pixel_weight=weights, guide=guide, scale=scale,
+    return PhotoData(height=height, width=width, index=plan.index, weight=plan.weight, hit=plan.hit, photos=photos,
+                     pixel_weight=weights, guide=guide, scale=scale,
                      noise=noise, noise_weight=noise_weight)
 
 

@@ -216,12 +216,12 @@ def seam_regions(plan: GatherPlan, fragments: Sequence, owner: np.ndarray) -> li
     """Per view, (H, W) int64 region labels whose changes are seams: the triangle a pixel sees
     (triangle and chart boundaries) and the footprint it reads, i.e. the view that supplies
     most of the evidence (`dominant_views`) of the pyramid entry its heaviest tap reads. -1 on misses."""
-    index, weight = np.asarray(plan.index), np.asarray(plan.weight)
-    index, weight = index.reshape(-1, *index.shape[-2:]), weight.reshape(-1, *weight.shape[-2:])
     views = int(owner.max(initial=-1)) + 2
     out = []
     for v, frag in enumerate(fragments):
-        heaviest = index[v][np.arange(index.shape[1]), np.argmax(weight[v], axis=1)]
+        one = plan if plan.index.ndim == 2 else plan.select(v)      # a view at a time (plans may be files)
+        index, weight = np.asarray(one.index), np.asarray(one.weight)
+        heaviest = index[np.arange(index.shape[0]), np.argmax(weight, axis=1)]
         footprint = owner[heaviest].reshape(frag.shape).astype(np.int64) + 1
         out.append(np.where(frag.hit, frag.triangle.astype(np.int64) * views + footprint, -1))
     return out

@@ -20,10 +20,11 @@ from jaxdistill.render.gather_plan import GatherPlan, build_gather_plans
 
 @dataclasses.dataclass(frozen=True)
 class EvalContext:
-    """Native-resolution fragments, cameras, GT maps and masks, plans and seams, built once."""
+    """The views' native (height, width), cameras, GT maps and masks, plans and seams, built once
+    from the native-resolution fragments (which it does not keep: `Problem.without_fragments`)."""
 
     gt: object
-    fragments: list
+    shapes: list
     cameras: list
     gt_maps: list | None
     masks: list
@@ -45,6 +46,8 @@ def evaluation_context(config: DistillConfig, problem: Problem) -> EvalContext:
     cameras = [v.camera for v in scene.views]
     native = all((c.height, c.width) == (problem.height, problem.width) for c in cameras)
     frags = problem.native_fragments
+    if frags is None:
+        raise ValueError("evaluation_context needs the problem's fragments: build it before Problem.without_fragments")
     photos = problem.photos            # the re-rendering term's plans, when they are at the photos' own size
     if native:
         plan = training_plan(problem)
@@ -52,13 +55,13 @@ def evaluation_context(config: DistillConfig, problem: Problem) -> EvalContext:
         plan = GatherPlan(index=photos.index, weight=photos.weight, hit=photos.hit, chain=problem.frozen["chain"],
                           height=photos.height, width=photos.width)
     else:
-        plan = build_gather_plans(frags, problem.space, config.sampler)
+        plan = build_gather_plans(frags, problem.space, config.sampler, empty=problem.empty_views)
     gt, gt_maps = evaluation.view_ground_truth(scene, frags)
     masks = evaluation.evaluation_masks(gt, scene, frags)
     owner = evaluation.dominant_views(problem.plan_index, problem.plan_weight, problem.space.pyramid_size)
     seams = [metrics.seam_pairs(region, f.object_id, m)
              for region, f, m in zip(evaluation.seam_regions(plan, frags, owner), frags, masks)]
-    return EvalContext(gt, frags, cameras, gt_maps, masks, plan, seams)
+    return EvalContext(gt, [f.shape for f in frags], cameras, gt_maps, masks, plan, seams)
 
 
 def quick_psnr(state, problem: Problem, ctx: EvalContext) -> float:

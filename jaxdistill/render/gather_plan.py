@@ -21,7 +21,7 @@ so in-tile levels are dense reshape-means and only the few coarse entries use in
 from __future__ import annotations
 
 import dataclasses
-from typing import Sequence
+from typing import Callable, Sequence
 
 import flax.struct
 import jax.numpy as jnp
@@ -31,6 +31,7 @@ from jaxdistill.render.fragments import Fragments
 from jaxdistill.render.layout import TextureLayout, pixel_footprint
 
 SAMPLERS = ("bilinear", "trilinear")
+TAPS = {"bilinear": 4, "trilinear": 8}        # texel reads per pixel
 
 
 @flax.struct.dataclass
@@ -52,6 +53,8 @@ class GatherPlan:
 
     index (..., P, T) int32 into the compact pyramid; weight (..., P, T) float32, summing to 1
     on hit pixels and 0 on misses; hit (..., P) bool; chain: how coarser levels are built.
+    A plan of all views may hold index and weight in files read a few views at a time
+    (`io.view_rows.ViewRows`): outside jit, take views with `select` before computing on them.
     """
 
     index: jnp.ndarray
@@ -137,7 +140,7 @@ def view_taps(frag: Fragments, layout: TextureLayout, sampler: str):
     if sampler == "trilinear" and not layout.mipmaps:
         raise ValueError("the trilinear sampler needs a layout with mipmaps=True")
     hit = frag.object_id.ravel() >= 0
-    taps = 4 if sampler == "bilinear" else 8
+    taps = TAPS[sampler]
     shape = (hit.size, taps)
     page_out, level_out, row_out, col_out = (np.zeros(shape, np.int64) for _ in range(4))
     weight = np.zeros(shape, np.float32)
@@ -267,24 +270,32 @@ def tap_indices(space: TexelSpace, page, level, row, col, weight) -> np.ndarray:
     return out
 
 
-def build_gather_plans(fragments: Sequence[Fragments], space: TexelSpace, sampler: str) -> GatherPlan:
-    """Batched gather plan of all views (same resolution), indexing the compact pyramid of `space`."""
+def build_gather_plans(fragments: Sequence[Fragments], space: TexelSpace, sampler: str, *,
+                       empty: Callable | None = None) -> GatherPlan:
+    """Batched gather plan of all views (same resolution), indexing the compact pyramid of `space`,
+    built one view at a time into its arrays: `empty(name, shape, dtype)` allocates the (V, P, T)
+    "plan_index" and "plan_weight" arrays (default NumPy; anything that takes `a[v] = row` and
+    gives rows by `a[ids]`, such as the file-backed `io.view_rows.ViewRows`); hit (V, P) is NumPy."""
     if not fragments:
         raise ValueError("no views to plan")
     shapes = {f.shape for f in fragments}
     if len(shapes) != 1:
         raise ValueError(f"all views of one plan must share a resolution, got {sorted(shapes)}")
+    if sampler not in SAMPLERS:
+        raise ValueError(f"unknown sampler {sampler!r}; use one of {SAMPLERS}")
     height, width = fragments[0].shape
-    index, weight, hit = [], [], []
-    for frag in fragments:
+    shape = (len(fragments), height * width, TAPS[sampler])
+    empty = empty or (lambda name, shape, dtype: np.empty(shape, dtype))
+    index, weight = empty("plan_index", shape, np.int32), empty("plan_weight", shape, np.float32)
+    hit = np.empty(shape[:2], bool)
+    for v, frag in enumerate(fragments):
         page, level, row, col, w = view_taps(frag, space.layout, sampler)
-        index.append(tap_indices(space, page, level, row, col, w).astype(np.int32))
-        weight.append(w)
-        hit.append(frag.object_id.ravel() >= 0)
+        index[v] = tap_indices(space, page, level, row, col, w).astype(np.int32)
+        weight[v] = w
+        hit[v] = frag.object_id.ravel() >= 0
     chain = MipChain(children=tuple(jnp.asarray(c) for c in space.children), tile=space.tile,
                      in_tile_levels=space.in_tile_levels)
-    return GatherPlan(index=jnp.asarray(np.stack(index)), weight=jnp.asarray(np.stack(weight)),
-                      hit=jnp.asarray(np.stack(hit)), chain=chain, height=height, width=width)
+    return GatherPlan(index=index, weight=weight, hit=hit, chain=chain, height=height, width=width)
 
 
 def tile_set_arrays(space: TexelSpace) -> dict[str, np.ndarray]:

@@ -125,9 +125,21 @@ def texel_view_statistics(plan: GatherPlan, images: Iterable[np.ndarray], num_te
     return count, mean.astype(np.float32), np.maximum(second / views - mean ** 2, 0.0).astype(np.float32)
 
 
-def pixel_weights(plan: GatherPlan, counts: np.ndarray) -> jnp.ndarray:
-    """(V, H, W) float32 loss weights per view and pixel (0 on missed pixels)."""
-    sampled = render(jnp.asarray(counts, jnp.float32)[:, None], plan)[..., 0]
+def pixel_weights(plan: GatherPlan, counts: np.ndarray, out=None) -> np.ndarray:
+    """(V, H, W) float32 loss weights per view and pixel (0 on missed pixels), a view at a time,
+    into `out` when given (anything that takes `out[v] = image`, e.g. a file's rows)."""
+    counts = jnp.asarray(counts, jnp.float32)[:, None]
+    if plan.index.ndim == 2:                                       # a single view's plan
+        return np.asarray(_pixel_weights(plan, counts))[None]
+    out = np.empty((plan.num_views, plan.height, plan.width), np.float32) if out is None else out
+    for v in range(plan.num_views):
+        out[v] = np.asarray(_pixel_weights(plan.select(v), counts))
+    return out
+
+
+@jax.jit
+def _pixel_weights(plan: GatherPlan, counts: jnp.ndarray) -> jnp.ndarray:
+    sampled = render(counts, plan)[..., 0]
     hit = plan.hit.reshape(sampled.shape)
     return jnp.where(hit, visibility_weights(sampled), 0.0)
 

@@ -1,0 +1,142 @@
+"""Per-view arrays kept in a file and read a batch of rows at a time.
+
+A step reads the images of its few views only (the `views` prior's targets, the re-rendering
+term's photos), yet they were held for every view: (V, H, W, C) float32, 1 GB at 50 views of
+876x584 and growing with the view count. `ViewRows` keeps such a (V, ...) array in a file
+instead: rows are written once, as the precompute makes them (`rows[v] = image`), and
+`rows[ids]` reads the rows of `ids` alone with positioned reads (`os.preadv`) into a new array,
+so the process holds one batch, never every view. The file is not memory-mapped: pages of a
+mapping stay in the process's resident set once read. Reads overlap the step: the loop
+assembles the next batch while the device still runs the previous one (JAX dispatches
+asynchronously).
+
+`view_array(name, shape, dtype, folder)` gives either a NumPy array or a `ViewRows`, which
+both support the two operations above; `placement` says which --view_data asks for. A file is
+unlinked as soon as it is opened (it has no name in the cache folder): the disk space is the
+open file's, freed when the array is garbage-collected or the process ends, however it ends,
+so a killed run leaves nothing behind.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import shutil
+import weakref
+from pathlib import Path
+
+import numpy as np
+
+from jaxdistill.errors import InputError
+
+VIEW_DATA = ("auto", "memory", "disk")
+AUTO_DISK_BYTES = 1 << 30       # --view_data=auto: on disk when the per-view images would take more than 1 GiB
+DISK_HEADROOM = 1 << 28         # 256 MiB left free on the disk after the files are written
+
+
+def placement(view_data: str, nbytes: int) -> bool:
+    """Whether per-view arrays of `nbytes` in all go on disk under --view_data (auto: above
+    AUTO_DISK_BYTES). The choice never changes a result: a batch read from disk is the batch
+    held in memory, bit for bit."""
+    if view_data not in VIEW_DATA:
+        raise ValueError(f"view_data must be one of {VIEW_DATA}, got {view_data!r}")
+    return view_data == "disk" or (view_data == "auto" and nbytes > AUTO_DISK_BYTES)
+
+
+class ViewRows:
+    """A (V, ...) array of `dtype` in a file created at `path` and unlinked at once (its space is
+    freed when the object is collected or `close`d). `rows[v] = row` writes row v; `rows[ids]`
+    reads rows `ids` (an int or an int array) into a new array."""
+
+    def __init__(self, path: Path, shape: tuple[int, ...], dtype):
+        self.path = Path(path)
+        self.shape = tuple(int(s) for s in shape)
+        self.dtype = np.dtype(dtype)
+        self.row_shape = self.shape[1:]
+        self.row_bytes = math.prod(self.row_shape) * self.dtype.itemsize
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o600)
+        os.unlink(self.path)
+        try:
+            os.ftruncate(fd, self.nbytes)
+        except OSError:
+            os.close(fd)
+            raise
+        self._fd = fd
+        self._finalizer = weakref.finalize(self, os.close, fd)
+
+    @property
+    def ndim(self) -> int:
+        return len(self.shape)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes on disk (none in memory)."""
+        return self.shape[0] * self.row_bytes
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def _row(self, v) -> int:
+        v = int(v)
+        if not -self.shape[0] <= v < self.shape[0]:
+            raise IndexError(f"row {v} of {self.shape[0]}")
+        return v % self.shape[0]
+
+    def __setitem__(self, v, row) -> None:
+        row = np.ascontiguousarray(row, self.dtype)
+        if row.shape != self.row_shape:
+            raise ValueError(f"a row of {self.path.name} is {self.row_shape}, got {row.shape}")
+        written = os.pwrite(self._fd, row.data.cast("B"), self._row(v) * self.row_bytes)
+        if written != self.row_bytes:
+            raise OSError(f"wrote {written} of {self.row_bytes} bytes of row {v} to {self.path}")
+
+    def __getitem__(self, ids) -> np.ndarray:
+        ids = np.asarray(ids)
+        if ids.ndim == 0:
+            return self[ids[None]][0]
+        if ids.dtype.kind not in "iu" or ids.ndim != 1:
+            raise TypeError(f"{self.path.name} reads rows by an int or a 1-D int array, got {ids.dtype} {ids.shape}")
+        out = np.empty((len(ids),) + self.row_shape, self.dtype)
+        for k, v in enumerate(ids):
+            got = os.preadv(self._fd, [out[k].data.cast("B")], self._row(v) * self.row_bytes)
+            if got != self.row_bytes:
+                raise OSError(f"read {got} of {self.row_bytes} bytes of row {v} from {self.path}")
+        return out
+
+    def close(self) -> None:
+        """Closes the file now, which frees its disk space (collecting the object does too)."""
+        self._finalizer()
+
+
+class ViewFolder:
+    """Where `ViewRows` files are opened: `cache`/view_rows (created on first use)."""
+
+    def __init__(self, cache: Path):
+        self.root = Path(cache) / "view_rows"
+        self._count = 0
+
+    def check_space(self, nbytes: int, what: str) -> None:
+        """InputError naming the folder, before anything is written, when `nbytes` would not fit
+        on its disk with DISK_HEADROOM to spare."""
+        existing = next((p for p in (self.root, *self.root.parents) if p.exists()), None)
+        if existing is None:
+            return
+        free = shutil.disk_usage(existing).free
+        if nbytes + DISK_HEADROOM > free:
+            gb = 2 ** 30
+            raise InputError.single(str(self.root), "disk space", (
+                f"{what} need {nbytes / gb:.2f} GB here (plus {DISK_HEADROOM / gb:.2f} GB kept free), and its disk "
+                f"has {free / gb:.2f} GB free; free space there, point $JAXDISTILL_CACHE at a folder on a larger "
+                "disk, or hold them in memory with --view_data=memory"))
+
+    def rows(self, name: str, shape: tuple[int, ...], dtype) -> ViewRows:
+        self.root.mkdir(parents=True, exist_ok=True)
+        self._count += 1
+        return ViewRows(self.root / f"{name}-{os.getpid()}-{id(self)}-{self._count}.bin", shape, dtype)
+
+
+def view_array(name: str, shape: tuple[int, ...], dtype, folder: ViewFolder | None):
+    """A zeroed (V, ...) NumPy array when `folder` is None, else a `ViewRows` file in it."""
+    if folder is None:
+        return np.zeros(shape, dtype)
+    return folder.rows(name, shape, dtype)

@@ -1,0 +1,131 @@
+"""Per-view arrays on disk (--view_data): rows read back as written, the file nameless from the
+start and gone with the array, the disk checked before compute, and a problem whose batches are
+the same bit for bit wherever its images are held."""
+
+from __future__ import annotations
+
+import os
+import shutil
+from collections import namedtuple
+
+import numpy as np
+import pytest
+
+from jaxdistill.engine import config as config_lib
+from jaxdistill.engine.config import DistillConfig
+from jaxdistill.engine.problem import build_problem
+from jaxdistill.errors import InputError
+from jaxdistill.io import view_rows
+from jaxdistill.io.view_rows import ViewFolder, ViewRows, placement, view_array
+from tiny_scene import write_tiny_scene
+
+
+def test_rows_read_back_as_written_in_any_order(tmp_path):
+    rng = np.random.default_rng(0)
+    reference = rng.normal(size=(7, 5, 3, 2)).astype(np.float32)
+    rows = ViewFolder(tmp_path).rows("targets", reference.shape, np.float32)
+    for v in rng.permutation(7):
+        rows[v] = reference[v]
+    for ids in ([3], [0, 6, 6, 2], np.array([5, 1], np.int64), np.arange(7)):
+        np.testing.assert_array_equal(rows[np.asarray(ids)], reference[np.asarray(ids)])
+    np.testing.assert_array_equal(rows[4], reference[4])
+    np.testing.assert_array_equal(rows[-1], reference[-1])
+    assert rows[np.array([2, 3])].dtype == np.float32 and rows.shape == reference.shape and len(rows) == 7
+    assert rows.nbytes == reference.nbytes
+    rows[1] = reference[1].astype(np.float64) * 2          # cast to the array's dtype, as NumPy assigns
+    np.testing.assert_array_equal(rows[1], (reference[1].astype(np.float64) * 2).astype(np.float32))
+    with pytest.raises(IndexError):
+        rows[np.array([7])]
+    with pytest.raises(ValueError, match=r"a row of .* is \(5, 3, 2\)"):
+        rows[0] = np.zeros((5, 3), np.float32)
+    with pytest.raises(TypeError):
+        rows[np.array([0.5])]
+
+
+def test_the_file_has_no_name_and_its_space_goes_with_the_array(tmp_path):
+    folder = ViewFolder(tmp_path)
+    rows = folder.rows("photos", (3, 4, 4, 3), np.float32)
+    rows[2] = np.ones((4, 4, 3), np.float32)
+    assert list(folder.root.iterdir()) == []             # unlinked when opened: a killed run leaves nothing
+    fd = rows._fd
+    assert os.fstat(fd).st_size == rows.nbytes
+    rows.close()
+    with pytest.raises(OSError):
+        os.fstat(fd)
+
+
+def test_view_array_is_numpy_in_memory_and_rows_on_disk(tmp_path):
+    memory = view_array("t", (2, 3), np.float32, None)
+    assert isinstance(memory, np.ndarray) and not memory.any()
+    disk = view_array("t", (2, 3), np.float32, ViewFolder(tmp_path))
+    assert isinstance(disk, ViewRows)
+    np.testing.assert_array_equal(disk[np.arange(2)], memory)    # a new file reads as zeros, like np.zeros
+
+
+def test_placement_follows_the_flag_and_auto_the_size():
+    assert not placement("memory", 1 << 40) and placement("disk", 1)
+    assert not placement("auto", view_rows.AUTO_DISK_BYTES) and placement("auto", view_rows.AUTO_DISK_BYTES + 1)
+    with pytest.raises(ValueError):
+        placement("ssd", 1)
+    with pytest.raises(InputError, match=r"--view_data: must be one of auto, memory, disk, got 'ssd'"):
+        config_lib.validate(DistillConfig(scene="s", out_dir="o", view_data="ssd"))
+
+
+def test_files_that_would_not_fit_are_refused_naming_the_folder(tmp_path, monkeypatch):
+    usage = namedtuple("usage", "total used free")
+    need = 10 << 20
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(1 << 40, 0, need + view_rows.DISK_HEADROOM - 1))
+    folder = ViewFolder(tmp_path / "cache")
+    with pytest.raises(InputError) as err:
+        folder.check_space(need, "the per-view images of 3 views")
+    message = str(err.value)
+    assert str(tmp_path / "cache" / "view_rows") in message and "the per-view images of 3 views need 0.01 GB" in message
+    assert "--view_data=memory" in message and "$JAXDISTILL_CACHE" in message
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(1 << 40, 0, need + view_rows.DISK_HEADROOM))
+    folder.check_space(need, "the per-view images of 3 views")
+
+
+@pytest.fixture(scope="module")
+def tiny_scene(tmp_path_factory):
+    return write_tiny_scene(tmp_path_factory.mktemp("view_rows"), views=4)
+
+
+@pytest.mark.parametrize("terms", [dict(), dict(photo_weight=1.0, albedo_smoothness=0.1, photo_size=24)],
+                         ids=["targets", "photos"])
+def test_a_problem_on_disk_reads_the_batches_and_scores_of_one_in_memory(tiny_scene, tmp_path, terms):
+    """Every per-view array a step reads (plans, pixel weights, targets, photos, guides), and the
+    evaluation's plans at the photos' size, are files with --view_data=disk; the batches and the
+    evaluation (its renders, seams and masks) are those of --view_data=memory bit for bit."""
+    from jaxdistill.evaluate import ground_truth as evaluation, scoring
+
+    def problem(view_data):
+        config = config_lib.validate(DistillConfig(scene=str(tiny_scene), out_dir=str(tmp_path / view_data), steps=2,
+                                                   views_per_step=2, prior="views", view_data=view_data,
+                                                   render_size=16, **terms))
+        built = build_problem(config, cache_dir=tmp_path / "cache")
+        return built, scoring.evaluation_context(config, built)
+
+    (memory, memory_ctx), (disk, disk_ctx) = problem("memory"), problem("disk")
+    on_disk = [disk.plan_index, disk.plan_weight, disk.pixel_weight, disk.prior.target_images,
+               disk_ctx.plan.index, disk_ctx.plan.weight]
+    assert all(isinstance(a, ViewRows) for a in on_disk)
+    assert isinstance(memory.plan_index, np.ndarray) and isinstance(memory.prior.target_images, np.ndarray)
+    if terms:
+        assert all(isinstance(a, ViewRows) for a in (disk.photos.photos, disk.photos.guide, disk.photos.index,
+                                                     disk.photos.pixel_weight))
+    for ids in ([0, 1], [3, 3], [2, 0]):
+        a, b = memory.batch(np.array(ids)), disk.batch(np.array(ids))
+        assert a.keys() == b.keys() and ("photo" in a) == bool(terms)
+        for name in a:
+            np.testing.assert_array_equal(np.asarray(a[name]) if name != "prior" else a[name]["target"],
+                                          np.asarray(b[name]) if name != "prior" else b[name]["target"], err_msg=name)
+    np.testing.assert_array_equal(memory.counts, disk.counts)
+    np.testing.assert_array_equal(memory.evidence, disk.evidence)
+    texels = np.random.default_rng(1).uniform(-1, 1, (memory.space.num_texels, memory.channels.num_channels))
+    renders = [evaluation.render_views(texels, c.plan, c.cameras, memory.channels) for c in (memory_ctx, disk_ctx)]
+    for one, other in zip(*renders):
+        for m in one:
+            np.testing.assert_array_equal(one[m], other[m])
+    for one, other in zip(memory_ctx.seams, disk_ctx.seams):
+        for x, y in zip(one, other):
+            np.testing.assert_array_equal(x, y)
