@@ -8,6 +8,7 @@ the same pieces instead of copying the loop.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import resource
 import time
@@ -59,6 +60,11 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
                 "exit_status": loop.exit_status}
 
     texels = np.asarray(jax.device_get(loop.state.texels))
+    gains = None
+    if loop.state.align is not None:          # the learned per-view gains (geometric mean 1 per channel)
+        gains = np.exp(np.asarray(jax.device_get(align_lib.centred(loop.state.align["log_gains"]))))
+    # the state holds AdamW's two moments, each as large as the texels: nothing after the loop reads them
+    loop = dataclasses.replace(loop, state=None)
     phases = OutputPhases()
     with phases("per-view estimates"):
         baseline = scoring.per_view_baseline(config, problem, ctx.shapes)
@@ -75,8 +81,7 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
     summary.update(run_record(config, problem, loop, wall_start))
     summary["anchor"] = anchor
     summary["output_timings"] = phases.record
-    if loop.state.align is not None:          # the learned per-view gains (geometric mean 1 per channel)
-        gains = np.exp(np.asarray(jax.device_get(align_lib.centred(loop.state.align["log_gains"]))))
+    if gains is not None:
         summary["align"] = {"maps": list(align_lib.aligned_maps(problem.channels)),
                             "gains": {v.name: g.round(4).tolist() for v, g in zip(problem.scene.views, gains)}}
     (out / "metrics.json").write_text(json.dumps(json_safe(summary), indent=1))

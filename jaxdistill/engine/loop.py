@@ -198,9 +198,10 @@ def _readable_checkpoint(store: checkpoint.CheckpointStore) -> int | None:
 @dataclasses.dataclass
 class LoopResult:
     """Where the loop ended: the state, the loss history, the step it started from, its time, how
-    often the step was traced, and the signal that stopped it early (None when it finished)."""
+    often the step was traced, and the signal that stopped it early (None when it finished). The
+    main job drops the state (None) once it has taken the texels out."""
 
-    state: DistillState
+    state: DistillState | None
     history: dict
     start_step: int
     seconds: float

@@ -18,7 +18,7 @@ import dataclasses
 import math
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Sequence
+from typing import Iterator, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -212,19 +212,18 @@ def dominant_views(index: np.ndarray, weight: np.ndarray, size: int) -> np.ndarr
     return owner
 
 
-def seam_regions(plan: GatherPlan, fragments: Sequence, owner: np.ndarray) -> list[np.ndarray]:
+def seam_regions(plan: GatherPlan, fragments: Sequence, owner: np.ndarray) -> Iterator[np.ndarray]:
     """Per view, (H, W) int64 region labels whose changes are seams: the triangle a pixel sees
     (triangle and chart boundaries) and the footprint it reads, i.e. the view that supplies
-    most of the evidence (`dominant_views`) of the pyramid entry its heaviest tap reads. -1 on misses."""
+    most of the evidence (`dominant_views`) of the pyramid entry its heaviest tap reads. -1 on
+    misses. A generator: one view's labels at a time."""
     views = int(owner.max(initial=-1)) + 2
-    out = []
     for v, frag in enumerate(fragments):
         one = plan if plan.index.ndim == 2 else plan.select(v)      # a view at a time (plans may be files)
         index, weight = np.asarray(one.index), np.asarray(one.weight)
         heaviest = index[np.arange(index.shape[0]), np.argmax(weight, axis=1)]
         footprint = owner[heaviest].reshape(frag.shape).astype(np.int64) + 1
-        out.append(np.where(frag.hit, frag.triangle.astype(np.int64) * views + footprint, -1))
-    return out
+        yield np.where(frag.hit, frag.triangle.astype(np.int64) * views + footprint, -1)
 
 
 def albedo_psnr(pred: Sequence[dict], gt: Sequence[dict], masks: Sequence[np.ndarray]) -> float:

@@ -347,14 +347,15 @@ def seam_pairs(region, object_id, mask=None) -> tuple[np.ndarray, np.ndarray]:
     supplies a texel's evidence: see `evaluation.seam_regions`); object_id: (H, W) int, the
     object a pixel sees. A pair is a pixel and its right or lower neighbour, both in `mask`,
     on the same object (object outlines are edges in any map, not seams), with different
-    regions. Row-major flat indices into H * W.
+    regions. Row-major flat indices into H * W, int32 (half of int64's memory: a run keeps every
+    view's pairs for its scores).
     """
     region, object_id = np.asarray(region), np.asarray(object_id)
     if region.ndim != 2 or object_id.shape != region.shape:
         raise ValueError(f"region and object_id must be (H, W) arrays of one shape, got {region.shape} and "
                          f"{object_id.shape}")
     mask = _mask(mask, region.shape)
-    index = np.arange(region.size).reshape(region.shape)
+    index = np.arange(region.size, dtype=np.int32 if region.size < 2 ** 31 else np.int64).reshape(region.shape)
     firsts, seconds = [], []
     for a, b in ((np.s_[:, :-1], np.s_[:, 1:]), (np.s_[:-1, :], np.s_[1:, :])):
         keep = (mask[a] & mask[b] & (object_id[a] == object_id[b]) & (region[a] != region[b]))
