@@ -116,7 +116,7 @@ def test_scene_without_ground_truth_has_none(tiny, tmp_path):
 
 
 def test_the_run_lets_the_fragments_go_once_the_evaluation_context_is_built(tiny, tmp_path, monkeypatch):
-    """The fragments (20 bytes a pixel per view) serve only to build the evaluation context: from
+    """The fragments (44 bytes a pixel per view) serve only to build the evaluation context: from
     the loop on, nothing holds them (weak references to every one of them are dead)."""
     import gc
     import weakref

@@ -17,6 +17,7 @@ from jaxdistill.engine.problem import build_problem
 from jaxdistill.errors import InputError
 from jaxdistill.io import view_rows
 from jaxdistill.io.view_rows import ViewFolder, ViewRows, placement, view_array
+from jaxdistill.render.fragments import FRAGMENT_FIELDS, FragmentRows
 from tiny_scene import write_tiny_scene
 
 
@@ -93,8 +94,8 @@ def tiny_scene(tmp_path_factory):
 @pytest.mark.parametrize("terms", [dict(), dict(photo_weight=1.0, albedo_smoothness=0.1, photo_size=24)],
                          ids=["targets", "photos"])
 def test_a_problem_on_disk_reads_the_batches_and_scores_of_one_in_memory(tiny_scene, tmp_path, terms):
-    """Every per-view array a step reads (plans, pixel weights, targets, photos, guides), and the
-    evaluation's plans at the photos' size, are files with --view_data=disk; the batches and the
+    """Every per-view array (fragments, plans, pixel weights, targets, photos, guides), and the
+    evaluation's fragments and plans at the photos' size, are files with --view_data=disk; the batches and the
     evaluation (its renders, seams and masks) are those of --view_data=memory bit for bit."""
     from jaxdistill.evaluate import ground_truth as evaluation, scoring
 
@@ -110,6 +111,12 @@ def test_a_problem_on_disk_reads_the_batches_and_scores_of_one_in_memory(tiny_sc
                disk_ctx.plan.index, disk_ctx.plan.weight]
     assert all(isinstance(a, ViewRows) for a in on_disk)
     assert isinstance(memory.plan_index, np.ndarray) and isinstance(memory.prior.target_images, np.ndarray)
+    assert isinstance(memory.fragments, list) and isinstance(disk.fragments, FragmentRows)
+    assert all(isinstance(a, ViewRows) for a in disk.fragments.arrays.values())
+    for frags in ("fragments", "native_fragments"):
+        for one, other in zip(getattr(memory, frags), getattr(disk, frags), strict=True):
+            for name in FRAGMENT_FIELDS:
+                np.testing.assert_array_equal(getattr(one, name), getattr(other, name), err_msg=name)
     if terms:
         assert all(isinstance(a, ViewRows) for a in (disk.photos.photos, disk.photos.guide, disk.photos.index,
                                                      disk.photos.pixel_weight))

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import itertools
 import os
 import time
 from pathlib import Path
@@ -153,8 +154,8 @@ class Problem:
 
     plan_index (V, P, T) int32 / plan_weight (V, P, T) float32 / plan_hit (V, P) bool: gather
     plans of all views at (height, width); pixel_weight (V, H, W) float32 loss weights. Per-view
-    arrays (these, the photos, the views prior's targets) are NumPy or, with --view_data on disk,
-    `ViewRows` files: read them by views (`a[ids]`), as `batch` does;
+    arrays (these, the photos, the views prior's targets; fragments as `FragmentRows`) are NumPy
+    or, with --view_data on disk, `ViewRows` files: read them by views (`a[ids]`), as `batch` does;
     counts (N,) int32 view counts per texel; evidence (N,) float32 summed tap weights per texel
     (`visibility.texel_evidence`); normal_rotation (V, 3, 3) float32.
     """
@@ -192,7 +193,7 @@ class Problem:
     def without_fragments(self) -> "Problem":
         """This problem without its fragments (and native fragments): nothing after the evaluation
         context (`scoring.evaluation_context`) reads them, and they grow with views x pixels
-        (20 bytes a pixel: 1.05 GB at 50 views of 876x584)."""
+        (44 bytes a pixel: 1.05 GiB at 50 views of 876x584)."""
         return dataclasses.replace(self, fragments=None, native_fragments=None)
 
     def initial_texels(self) -> np.ndarray:
@@ -326,11 +327,11 @@ def _build_problem(config: DistillConfig, *, cache_dir=None, check_scene=None) -
 
     t0 = time.perf_counter()
     cameras = [scaled_camera(v.camera, height, width) for v in scene.views]
-    frags = fr.compute_fragments(scene.mesh, cameras, cache_dir=cache_dir)
+    fragments = functools.partial(_fragments, scene.mesh, cache_dir=cache_dir, folder=view_folder)
+    frags = fragments(cameras)
     native = all((v.camera.height, v.camera.width) == (height, width) for v in scene.views)
-    native_frags = frags if native else fr.compute_fragments(scene.mesh, [v.camera for v in scene.views],
-                                                             cache_dir=cache_dir)
-    photo_frags = _photo_fragments(config, scene, (height, width), frags, native_frags, cache_dir)
+    native_frags = frags if native else fragments([v.camera for v in scene.views])
+    photo_frags = _photo_fragments(config, scene, (height, width), frags, native_frags, fragments)
     timings["fragments_s"] = time.perf_counter() - t0
     scene_file = os.fspath(scene.root / "scene.json") if scene.root and (scene.root / "scene.json").is_file() \
         else config.scene
@@ -343,10 +344,10 @@ def _build_problem(config: DistillConfig, *, cache_dir=None, check_scene=None) -
     layout = make_layout(scene.num_objects, scene.texture_layout, size, photo_frags or frags,
                          max_size=config.max_texture_size, mipmaps=trilinear)
     # evaluation renders at the photos' size: its texels must exist too (they get no gradient)
-    seen = list(frags) + ([] if native else list(native_frags))
+    seen = [frags] + ([] if native else [native_frags])
     if photo_frags is not None and photo_frags is not frags and photo_frags is not native_frags:
-        seen += list(photo_frags)
-    space = build_texel_space(frags if len(seen) == len(frags) else seen, layout, config.sampler)
+        seen.append(photo_frags)
+    space = build_texel_space(itertools.chain(*seen), layout, config.sampler)      # a view at a time
     check_state_fits(space.num_texels, channels.num_channels, config, layout.full_size())
     empty = functools.partial(view_array, folder=view_folder)
     plan = build_gather_plans(frags, space, config.sampler, empty=empty)
@@ -381,27 +382,28 @@ def _build_problem(config: DistillConfig, *, cache_dir=None, check_scene=None) -
 
 def _view_data_folder(config: DistillConfig, scene: Scene, choice: PriorChoice, channels: MapChannels,
                       render: tuple[int, int], cache_dir) -> ViewFolder | None:
-    """Where the per-view arrays a step reads are held (--view_data): None for memory, else the
-    cache's `ViewFolder`, its disk space checked before any compute. They are, float32 or int32
-    per value: the gather plans (T taps of index and weight a pixel) and pixel weights at the
-    render size, the views prior's targets (C channels) there, and with the re-rendering term its
-    plans, pixel weights, photos (3) and chroma guides (2, --albedo_smoothness) at the photo size;
-    the evaluation's plans at the photos' own size when neither size is theirs."""
+    """Where the per-view arrays are held (--view_data): None for memory, else the cache's
+    `ViewFolder`, its disk space checked before any compute. They are, 4 bytes a value: the
+    fragments (11 values a pixel) and gather plans (T taps of index and weight, and the pixel
+    weight) at the render size, the views prior's targets (C channels) there, and with the
+    re-rendering term fragments, plans, photos (3) and chroma guides (2, --albedo_smoothness) at
+    the photo size; fragments and plans at the photos' own size when neither size is theirs."""
     views, taps = len(scene.views), TAPS[config.sampler]
-    sizes = {(v.camera.height, v.camera.width) for v in scene.views}
-    per_pixel = {render: 2 * taps + 1 + (channels.num_channels if choice.kind == "views" else 0)}
+    frag, plan = fr.BYTES_PER_PIXEL // 4, 2 * taps + 1
+    per_pixel = {render: frag + plan + (channels.num_channels if choice.kind == "views" else 0)}
     if config.photo_weight > 0:
         photo = render_shape(scene, config.photo_size, flag="--photo_size")
         images = 3 + (2 if config.albedo_smoothness > 0 else 0)
-        per_pixel[photo] = per_pixel.get(photo, 0) + (images if photo in per_pixel else 2 * taps + 1 + images)
+        per_pixel[photo] = per_pixel.get(photo, 0) + images + (0 if photo in per_pixel else frag + plan)
+    sizes = {(v.camera.height, v.camera.width) for v in scene.views}
     native = next(iter(sizes)) if len(sizes) == 1 else None
     if native is not None and native not in per_pixel:
-        per_pixel[native] = 2 * taps                                # the evaluation's plans
+        per_pixel[native] = frag + 2 * taps                         # the evaluation's fragments and plans
     nbytes = sum(views * h * w * values * 4 for (h, w), values in per_pixel.items())
     if not placement(config.view_data, nbytes):
         return None
     folder = ViewFolder(Path(cache_dir) if cache_dir else fr.default_cache_dir())
-    what = f"the per-view arrays of {views} views (plans, weights, targets, photos; --view_data={config.view_data})"
+    what = f"the per-view arrays of {views} views (fragments, plans, targets, photos; --view_data={config.view_data})"
     folder.check_space(nbytes, what)
     logging.info("%s: %.2f GB on disk in %s, read a batch at a time", what, nbytes / 2 ** 30, folder.root)
     return folder
@@ -424,10 +426,19 @@ def _loss_weights(config: DistillConfig, scene: Scene, plan, counts: np.ndarray,
     return weights
 
 
+def _fragments(mesh, cameras: Sequence[Camera], *, cache_dir, folder: ViewFolder | None):
+    """The cameras' fragments: a list, or with --view_data on disk (`folder`) and one resolution,
+    `FragmentRows` in files of `folder` (a view at a time in memory, 44 bytes a pixel on disk)."""
+    one_size = len({(c.height, c.width) for c in cameras}) == 1
+    empty = functools.partial(view_array, folder=folder) if folder is not None and one_size else None
+    return fr.compute_fragments(mesh, cameras, cache_dir=cache_dir, empty=empty)
+
+
 def _photo_fragments(config: DistillConfig, scene: Scene, render: tuple[int, int], frags, native_frags,
-                     cache_dir) -> list | None:
+                     fragments) -> Sequence | None:
     """The fragments the re-rendering term renders the photos at (--photo_size), or None when
-    --photo_weight is 0. Reuses the render-size or native fragments when the size is theirs."""
+    --photo_weight is 0. Reuses the render-size or native fragments when the size is theirs;
+    `fragments(cameras)` computes others."""
     if config.photo_weight <= 0:
         return None
     shape = render_shape(scene, config.photo_size, flag="--photo_size")
@@ -435,8 +446,7 @@ def _photo_fragments(config: DistillConfig, scene: Scene, render: tuple[int, int
         return frags
     if all((v.camera.height, v.camera.width) == shape for v in scene.views):
         return native_frags
-    return fr.compute_fragments(scene.mesh, [scaled_camera(v.camera, *shape) for v in scene.views],
-                                cache_dir=cache_dir)
+    return fragments([scaled_camera(v.camera, *shape) for v in scene.views])
 
 
 def _photo_data(config: DistillConfig, scene: Scene, photo_frags, space: TexelSpace, counts, empty=None, *,

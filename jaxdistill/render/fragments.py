@@ -16,7 +16,7 @@ import hashlib
 import os
 import shutil
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 from tqdm.auto import tqdm
@@ -56,6 +56,30 @@ class Fragments:
     @property
     def shape(self) -> tuple[int, int]:
         return self.triangle.shape
+
+
+FRAGMENT_FIELDS = {"triangle": ((), np.int32), "barycentric": ((2,), np.float32), "depth": ((), np.float32),
+                   "uv": ((2,), np.float32), "uv_grad": ((2, 2), np.float32), "object_id": ((), np.int32)}
+BYTES_PER_PIXEL = sum(4 * int(np.prod(shape)) for shape, _ in FRAGMENT_FIELDS.values())     # 44
+
+
+class FragmentRows(Sequence):
+    """Every view's fragments (one resolution) in per-view arrays, one per field (NumPy, or files
+    read a view at a time: `io.view_rows`): `rows[v]` is view v's `Fragments`, read when asked
+    for, so a caller that goes through the views holds one view's fragments at a time."""
+
+    def __init__(self, arrays: dict, shape: tuple[int, int]):
+        self.arrays, self.shape = arrays, shape
+
+    def __len__(self) -> int:
+        return len(self.arrays["triangle"])
+
+    def __getitem__(self, v):
+        if isinstance(v, slice):
+            return [self[i] for i in range(*v.indices(len(self)))]
+        if not -len(self) <= v < len(self):
+            raise IndexError(f"view {v} of {len(self)}")
+        return Fragments(**{name: a[v] for name, a in self.arrays.items()})
 
 
 class RayCaster:
@@ -215,11 +239,14 @@ def check_cache_space(cache: Path, cameras: Sequence[Camera]) -> None:
 
 
 def compute_fragments(mesh: Mesh, cameras: Sequence[Camera], *, cache_dir: Path | None | bool = None,
-                      progress: bool = True) -> list[Fragments]:
+                      progress: bool = True, empty: Callable | None = None) -> Sequence[Fragments]:
     """Fragments for every camera; ray casts are read from / written to the cache (`check_cache_space`
     first: InputError when the views not cached yet would not fit on its disk).
 
     cache_dir: a folder, None for `default_cache_dir()`, or False to disable caching.
+    empty: None returns a list; else `empty(name, shape, dtype)` allocates a (V, H, W, ...) array
+    per field (all cameras of one resolution), filled a view at a time, and a `FragmentRows` over
+    them is returned (with file-backed arrays, no more than one view is ever in memory).
     """
     cache = None if cache_dir is False else Path(cache_dir or default_cache_dir()) / "fragments"
     geometry_key = mesh_key(mesh)
@@ -228,8 +255,15 @@ def compute_fragments(mesh: Mesh, cameras: Sequence[Camera], *, cache_dir: Path 
         check_cache_space(cache, [c for c, p in zip(cameras, paths) if not p.is_file()])
     caster = None
     out = []
+    if empty is not None:
+        sizes = {(c.height, c.width) for c in cameras}
+        if len(sizes) != 1:
+            raise ValueError(f"fragments in per-view arrays need one resolution, got {sorted(sizes)}")
+        shape = sizes.pop()
+        out = FragmentRows({name: empty(f"fragments_{name}", (len(cameras),) + shape + extra, dtype)
+                            for name, (extra, dtype) in FRAGMENT_FIELDS.items()}, shape)
     bar = tqdm(cameras, desc="fragments", unit="view", disable=not progress, dynamic_ncols=True)
-    for camera, path in zip(bar, paths):
+    for v, (camera, path) in enumerate(zip(bar, paths)):
         if path is not None and path.is_file():
             with np.load(path) as data:
                 cast = data["triangle"], data["barycentric"], data["distance"]
@@ -242,5 +276,10 @@ def compute_fragments(mesh: Mesh, cameras: Sequence[Camera], *, cache_dir: Path 
                 tmp = path.with_name(path.name + f".{os.getpid()}.tmp.npz")
                 np.savez(tmp, triangle=cast[0], barycentric=cast[1], distance=cast[2])
                 os.replace(tmp, path)
-        out.append(derive_fragments(mesh, camera, *cast))
+        frag = derive_fragments(mesh, camera, *cast)
+        if empty is None:
+            out.append(frag)
+        else:
+            for name, array in out.arrays.items():
+                array[v] = getattr(frag, name)
     return out
