@@ -53,6 +53,7 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
     run_files.write_texel_space(out, problem.space, trust, problem.channels.maps, json_safe(recorded))
     ctx = scoring.evaluation_context(config, problem)
     problem = problem.without_fragments()         # read by nothing after the evaluation context
+    peaks = {"set-up": peak_host_memory_gb()}
     evaluate = (lambda state: scoring.quick_psnr(state, problem, ctx)) if ctx.gt_maps is not None else None
     loop = loop_lib.run_loop(config, problem, recorded, latest, evaluate=evaluate, progress=progress)
     if loop.stopped_by:
@@ -60,6 +61,7 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
                 "exit_status": loop.exit_status}
 
     texels = np.asarray(jax.device_get(loop.state.texels))
+    peaks["loop"] = peak_host_memory_gb()
     gains = None
     if loop.state.align is not None:          # the learned per-view gains (geometric mean 1 per channel)
         gains = np.exp(np.asarray(jax.device_get(align_lib.centred(loop.state.align["log_gains"]))))
@@ -80,6 +82,7 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
                                   "weight": dict(zip(names, np.round(problem.photos.noise_weight, 4).tolist()))}
     summary.update(run_record(config, problem, loop, wall_start))
     summary["anchor"] = anchor
+    summary["peak_host_memory_gb"] = {**peaks, "outputs": peak_host_memory_gb()}     # the peak so far at each stage's end
     summary["output_timings"] = phases.record
     if gains is not None:
         summary["align"] = {"maps": list(align_lib.aligned_maps(problem.channels)),
@@ -104,11 +107,18 @@ def run_record(config: DistillConfig, problem, loop, wall_start: float) -> dict:
         "device": {"backend": jax.default_backend(), "devices": [str(d) for d in devices],
                    "kind": devices[0].device_kind, "processes": jax.process_count()},
         "peak_host_memory_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+        "view_data": {"flag": config.view_data, "where": "memory" if problem.view_folder is None else "disk",
+                      "disk_gb": round(problem.view_folder.nbytes / 2 ** 30, 3) if problem.view_folder else 0.0},
         "peak_device_memory_mb": _peak_device_memory_mb(jax.local_devices()),     # this process's
         "parameters": {"texels": problem.space.num_texels, "channels": problem.channels.num_channels,
                        "page_sizes": list(problem.space.layout.page_sizes)},
         "traces": loop.traces, "config": loop_lib.recorded_config(config, problem.choice.kind),
     }
+
+
+def peak_host_memory_gb() -> float:
+    """This process's peak resident memory so far, GB (the operating system's accounting)."""
+    return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20, 3)
 
 
 def _peak_device_memory_mb(devices) -> float | None:

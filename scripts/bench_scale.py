@@ -1,7 +1,8 @@
 """How the main job's cost grows with a capture's size: views, resolution, faces.
 
     python scripts/bench_scale.py [--views=50,150] [--sizes=876x584] [--faces_per_side=300] \\
-        [--steps=5] [--prior=views] [--max_texture_size=4096] [--work=out/bench_scale] [--json=FILE]
+        [--steps=5] [--prior=views] [--max_texture_size=4096] [--view_data=auto] [--work=out/bench_scale] \
+        [--json=FILE]
 
 For every resolution × view count, one after the other:
 1. the capture-sized synthetic room (`scripts/make_capture_scene.py`'s scene, reused when it is
@@ -9,7 +10,9 @@ For every resolution × view count, one after the other:
 2. the main job on it, cold (a new, empty `JAXDISTILL_CACHE` in the work folder), for `--steps`
    steps. The script records the child's wall seconds and peak RSS (the operating system's
    accounting), the set-up phases from `metrics.json` (scene read, fragments, gather plans,
-   prior), the loop (compilation + steps), and the size of the cache on disk.
+   prior), the loop (compilation + steps), the peak RSS by the end of set-up and of the loop
+   (`metrics.json` `peak_host_memory_gb`), the size of the cache on disk, and that of the
+   per-view arrays' files (`--view_data`, `metrics.json` `view_data`; unlinked, so not in the cache's size).
 A run that fails (out of memory, say) is recorded with its exit status and the log's last line,
 and the next size still runs. The table prints as the runs finish; `--json` writes it.
 """
@@ -37,6 +40,8 @@ def parse_args(argv=None):
     p.add_argument("--steps", type=int, default=5, help="distillation steps per run (the first compiles)")
     p.add_argument("--prior", default="views", choices=("views", "auto"), help="views: the targets; auto: SDS")
     p.add_argument("--views_per_step", type=int, default=8)
+    p.add_argument("--view_data", default="auto", choices=("auto", "memory", "disk"),
+                   help="the main job's --view_data: per-view arrays in memory or in files")
     p.add_argument("--max_texture_size", type=int, default=4096)
     p.add_argument("--work", default="out/bench_scale", help="scenes, caches, runs and logs")
     p.add_argument("--json", default=None)
@@ -83,7 +88,8 @@ def one_case(args, work: Path, width: int, height: int, views: int) -> dict:
         shutil.rmtree(folder, ignore_errors=True)
     cmd = [sys.executable, "-m", "jaxdistill.main", f"--scene={scene}", f"--prior={args.prior}",
            f"--steps={args.steps}", f"--views_per_step={min(args.views_per_step, views)}",
-           f"--max_texture_size={args.max_texture_size}", f"--out_dir={out}", "--renders=false"]
+           f"--max_texture_size={args.max_texture_size}", f"--out_dir={out}", "--renders=false",
+           f"--view_data={args.view_data}"]
     run = run_child(cmd, work / f"run_{tag}.log", env={**os.environ, "JAXDISTILL_CACHE": str(cache)})
     row.update(run=run, cache_gb=folder_bytes(cache) / 2 ** 30 if cache.exists() else 0.0)
     if run["exit"]:
@@ -91,18 +97,21 @@ def one_case(args, work: Path, width: int, height: int, views: int) -> dict:
     metrics = json.loads((out / "metrics.json").read_text())
     row.update(status="ok", setup=metrics.get("setup_timings", {}), loop_s=metrics["loop_seconds"],
                outputs=metrics.get("output_timings", {}), steps=metrics["steps"],
-               texels=(metrics.get("parameters") or {}).get("texels"))
+               texels=(metrics.get("parameters") or {}).get("texels"),
+               peaks=metrics.get("peak_host_memory_gb", {}), view_data=metrics.get("view_data", {}))
     return row
 
 
 def print_row(r: dict, file=sys.stdout) -> None:
     run = r.get("run") or {}
     setup = r.get("setup") or {}
+    peaks = r.get("peaks") or {}
     gen = (r.get("generate") or {}).get("wall_s")
     print(f"{r['width']}x{r['height']:<5d} {r['views']:5d} {r['status']:>24s} "
           f"{'-' if gen is None else f'{gen:.0f}':>6s} {setup.get('fragments_s', 0):8.0f} {setup.get('plans_s', 0):7.0f} "
           f"{r.get('loop_s', 0):7.0f} {sum(p['seconds'] for p in (r.get('outputs') or {}).values()):6.0f} "
-          f"{run.get('wall_s', 0):7.0f} {run.get('peak_rss_gb', 0):7.1f} {r.get('cache_gb', 0):7.2f}",
+          f"{run.get('wall_s', 0):7.0f} {run.get('peak_rss_gb', 0):7.1f} {peaks.get('set-up', 0):7.1f} "
+          f"{peaks.get('loop', 0):7.1f} {r.get('cache_gb', 0):8.2f} {(r.get('view_data') or {}).get('disk_gb', 0):7.2f}",
           file=file, flush=True)
 
 
@@ -111,7 +120,9 @@ def main(argv=None) -> int:
     work = (REPO / args.work) if not Path(args.work).is_absolute() else Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
     print(f"{'render':11s} {'views':>5s} {'status':>24s} {'gen s':>6s} {'frags s':>8s} {'plans s':>7s} "
-          f"{'loop s':>7s} {'out s':>6s} {'wall s':>7s} {'RSS GB':>7s} {'cache GB':>7s}   (loop: compile + {args.steps} steps)",
+          f"{'loop s':>7s} {'out s':>6s} {'wall s':>7s} {'RSS GB':>7s} {'set-up':>7s} {'loop':>7s} {'cache GB':>8s} "
+          f"{'rows GB':>7s}   (loop: compile + {args.steps} steps; RSS: peak, and the peak by the end of set-up and "
+          "loop; rows: --view_data files)",
           flush=True)
     rows = []
     for width, height in args.sizes:

@@ -63,6 +63,8 @@ def test_main_job_writes_every_output(tiny_scene, tmp_path, capsys):
     doc = json.loads((out / "metrics.json").read_text())
     assert doc["prior"]["kind"] == "views" and "per-view target" in doc["prior"]["reason"]
     assert doc["traces"] == 1 and doc["steps"] == 6 and doc["wall_seconds"] > 0 and doc["peak_host_memory_mb"] > 0
+    peaks = doc["peak_host_memory_gb"]                # the peak so far after set-up, loop and outputs: never falls
+    assert list(peaks) == ["set-up", "loop", "outputs"] and 0 < peaks["set-up"] <= peaks["loop"] <= peaks["outputs"]
     for key in ("albedo_psnr", "albedo_ssim", "normal_angular_deg", "roughness_mse", "metallic_mse"):
         assert np.isfinite(doc["ours"][key]) and np.isfinite(doc["baseline_per_view_estimates"][key])
     assert doc["history"]["step"] == [1, 2, 3, 4, 5, 6] and doc["history"]["eval_step"] == [3, 6]

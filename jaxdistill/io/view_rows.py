@@ -114,6 +114,7 @@ class ViewFolder:
     def __init__(self, cache: Path):
         self.root = Path(cache) / "view_rows"
         self._count = 0
+        self.nbytes = 0          # of every file opened here (on disk while their arrays live)
 
     def check_space(self, nbytes: int, what: str) -> None:
         """InputError naming the folder, before anything is written, when `nbytes` would not fit
@@ -132,7 +133,9 @@ class ViewFolder:
     def rows(self, name: str, shape: tuple[int, ...], dtype) -> ViewRows:
         self.root.mkdir(parents=True, exist_ok=True)
         self._count += 1
-        return ViewRows(self.root / f"{name}-{os.getpid()}-{id(self)}-{self._count}.bin", shape, dtype)
+        rows = ViewRows(self.root / f"{name}-{os.getpid()}-{id(self)}-{self._count}.bin", shape, dtype)
+        self.nbytes += rows.nbytes
+        return rows
 
 
 def view_array(name: str, shape: tuple[int, ...], dtype, folder: ViewFolder | None):
