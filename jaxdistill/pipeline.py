@@ -108,7 +108,7 @@ def run_record(config: DistillConfig, problem, loop, wall_start: float) -> dict:
                    "kind": devices[0].device_kind, "processes": jax.process_count()},
         "peak_host_memory_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         "view_data": {"flag": config.view_data, "where": "memory" if problem.view_folder is None else "disk",
-                      "disk_gb": round(problem.view_folder.nbytes / 2 ** 30, 3) if problem.view_folder else 0.0},
+                      "disk_bytes": problem.view_folder.nbytes if problem.view_folder else 0},
         "peak_device_memory_mb": _peak_device_memory_mb(jax.local_devices()),     # this process's
         "parameters": {"texels": problem.space.num_texels, "channels": problem.channels.num_channels,
                        "page_sizes": list(problem.space.layout.page_sizes)},

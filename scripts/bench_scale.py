@@ -111,7 +111,7 @@ def print_row(r: dict, file=sys.stdout) -> None:
           f"{'-' if gen is None else f'{gen:.0f}':>6s} {setup.get('fragments_s', 0):8.0f} {setup.get('plans_s', 0):7.0f} "
           f"{r.get('loop_s', 0):7.0f} {sum(p['seconds'] for p in (r.get('outputs') or {}).values()):6.0f} "
           f"{run.get('wall_s', 0):7.0f} {run.get('peak_rss_gb', 0):7.1f} {peaks.get('set-up', 0):7.1f} "
-          f"{peaks.get('loop', 0):7.1f} {r.get('cache_gb', 0):8.2f} {(r.get('view_data') or {}).get('disk_gb', 0):7.2f}",
+          f"{peaks.get('loop', 0):7.1f} {r.get('cache_gb', 0):8.2f} {(r.get('view_data') or {}).get('disk_bytes', 0) / 2 ** 30:7.2f}",
           file=file, flush=True)
 
 

@@ -30,6 +30,7 @@ from jaxdistill.errors import InputError, read_json
 from jaxdistill.scene.cameras import camera_normals, rgbx_camera_rotation
 from jaxdistill.scene.maps import CHANNELS, MapChannels, model_to_file, png_pixels
 from jaxdistill.render.gather_plan import GatherPlan
+from jaxdistill.io.view_rows import LazyViews
 from jaxdistill.render.sampler import render, sample_pages
 from jaxdistill.scene.mesh import face_normals
 from jaxdistill.scene.model import Scene
@@ -165,22 +166,29 @@ def _render_batch(texels, plan):
 
 
 def render_views(texels, plan: GatherPlan, cameras: Sequence, channels: MapChannels,
-                 chunk: int = 8) -> list[dict[str, np.ndarray]]:
+                 chunk: int = 8, lazy: bool = False) -> Sequence[dict[str, np.ndarray]]:
     """Per view, {map: (H, W, C) file-space render} of model-space texels through the batched
-    `plan` (V views), `chunk` views at a time; normals in RGB<->X camera space, 0 on misses."""
+    `plan` (V views), `chunk` views at a time; normals in RGB<->X camera space, 0 on misses. A
+    list, or with `lazy` a `LazyViews` that renders a view's chunk when asked for (the same
+    batches, so the same values, one chunk in memory: for captures whose renders would not fit)."""
     texels = jnp.asarray(texels)
-    hits = np.asarray(plan.hit).reshape(-1, plan.height, plan.width)
-    out = []
-    for start in range(0, plan.num_views, chunk):
+
+    def load(start: int) -> list[dict[str, np.ndarray]]:
         ids = np.arange(start, min(start + chunk, plan.num_views))
-        ids = np.pad(ids, (0, chunk - len(ids)), mode="edge")          # one shape: one compilation
-        images = np.asarray(_render_batch(texels, plan.select(ids)))
-        for j, v in enumerate(ids[:min(chunk, plan.num_views - start)]):
+        padded = np.pad(ids, (0, chunk - len(ids)), mode="edge")          # one shape: one compilation
+        images = np.asarray(_render_batch(texels, plan.select(padded)))
+        out = []
+        for j, v in enumerate(ids):
             maps = channels.split(images[j])
             if "normal" in maps:
                 maps["normal"] = maps["normal"] @ rgbx_camera_rotation(cameras[v].c2w).astype(np.float32)
-            out.append({m: np.where(hits[v][..., None], model_to_file(m, x), 0.0) for m, x in maps.items()})
-    return out
+            hit = np.asarray(plan.hit[v]).reshape(plan.height, plan.width)
+            out.append({m: np.where(hit[..., None], model_to_file(m, x), 0.0) for m, x in maps.items()})
+        return out
+
+    if lazy:
+        return LazyViews(plan.num_views, load, chunk)
+    return [view for start in range(0, plan.num_views, chunk) for view in load(start)]
 
 
 def evaluate(pred: Sequence[dict], gt: Sequence[dict], masks: Sequence[np.ndarray],
@@ -237,17 +245,22 @@ def albedo_psnr(pred: Sequence[dict], gt: Sequence[dict], masks: Sequence[np.nda
     return float(np.nanmean(values)) if values else math.nan
 
 
-def read_baseline(scene: Scene, maps: Sequence[str], shapes: Sequence[tuple[int, int]]) -> list[dict] | None:
-    """Per view, the scene's target images in file space (the per-view estimates), or None if any is missing."""
+def read_baseline(scene: Scene, maps: Sequence[str], shapes: Sequence[tuple[int, int]],
+                  lazy: bool = False) -> Sequence[dict] | None:
+    """Per view, the scene's target images in file space (the per-view estimates), or None if any
+    is missing; a list, or with `lazy` a `LazyViews` reading a view's files when asked for."""
     from jaxdistill.io.view_images import read_target, resize
 
-    out = []
-    for view, (h, w) in zip(scene.views, shapes):
-        if not all(m in view.targets for m in maps):
-            return None
-        out.append({m: resize(read_target(m, view.targets[m]), h, w)[..., :3 if m not in ("roughness", "metallic")
-                                                                        else 1] for m in maps})
-    return out
+    if not all(m in view.targets for view in scene.views for m in maps):
+        return None
+
+    def load(v: int) -> list[dict]:
+        (h, w), view = shapes[v], scene.views[v]
+        return [{m: resize(read_target(m, view.targets[m]), h, w)[..., :3 if m not in ("roughness", "metallic")
+                                                                  else 1] for m in maps}]
+
+    views = LazyViews(len(scene.views), load)
+    return views if lazy else list(views)
 
 
 def targets_are_ground_truth(scene: Scene, maps: Sequence[str]) -> list[str]:
@@ -259,15 +272,16 @@ def targets_are_ground_truth(scene: Scene, maps: Sequence[str]) -> list[str]:
 
 
 def write_renders(folder: Path, names: Sequence[str], views: Sequence[dict], threads: int = 2) -> None:
-    """renders/<map>/<view>.png in the maps' PNG encoding (`maps.png_pixels`)."""
+    """renders/<map>/<view>.png in the maps' PNG encoding (`maps.png_pixels`), a view at a time
+    (`views` may be lazy: one view's images in memory)."""
     def write(job):
         path, name, image = job
         pixels, encode = png_pixels(name, image)
         imageio.write_image(path, pixels, encode_srgb=encode)
 
-    jobs = [(folder / m / f"{name}.png", m, image) for name, maps in zip(names, views) for m, image in maps.items()]
     with ThreadPoolExecutor(threads) as pool:       # encoding and NumPy release the GIL
-        list(pool.map(write, jobs))
+        for name, maps in zip(names, views):
+            list(pool.map(write, [(folder / m / f"{name}.png", m, image) for m, image in maps.items()]))
 
 
 def display_image(name: str, image: np.ndarray) -> np.ndarray:

@@ -7,6 +7,7 @@ import dataclasses
 import math
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import Sequence
 
 import jax
 import numpy as np
@@ -80,7 +81,7 @@ class Baseline:
     file-space image} at the evaluation size, where they come from, and the cache folder of the
     model's estimates (None for the views prior's targets)."""
 
-    views: list[dict] | None
+    views: Sequence[dict] | None      # a list, or `LazyViews` with --view_data on disk
     source: str
     folder: Path | None = None
 
@@ -89,12 +90,14 @@ def per_view_baseline(config: DistillConfig, problem: Problem, shapes: list[tupl
     """The rgbx prior's baseline is the model's own per-view estimates (computed once, cached);
     the views prior's is the scene's per-view targets (None when the scene has none)."""
     scene, channels = problem.scene, problem.channels
+    lazy = problem.view_folder is not None          # --view_data on disk: a view's images read when asked for
     if problem.rgbx_model is None:
-        return Baseline(evaluation.read_baseline(scene, channels.maps, shapes), "the scene's per-view target images")
+        return Baseline(evaluation.read_baseline(scene, channels.maps, shapes, lazy),
+                        "the scene's per-view target images")
     folder = model_estimates.cached_estimates(
         problem.rgbx_model, [(v.name, v.photo, v.exposure) for v in scene.views], channels.maps, problem.height,
         problem.width, dtype=config.prior_dtype, steps=config.estimate_steps, seed=config.seed)
-    views = model_estimates.read_estimates(folder, [v.name for v in scene.views], channels.maps, shapes)
+    views = model_estimates.read_estimates(folder, [v.name for v in scene.views], channels.maps, shapes, lazy)
     return Baseline(views, f"the model's own per-view estimates ({config.estimate_steps} DDIM steps, "
                     f"{folder})", folder)
 

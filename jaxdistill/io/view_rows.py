@@ -14,7 +14,8 @@ asynchronously).
 both support the two operations above; `placement` says which --view_data asks for. A file is
 unlinked as soon as it is opened (it has no name in the cache folder): the disk space is the
 open file's, freed when the array is garbage-collected or the process ends, however it ends,
-so a killed run leaves nothing behind.
+so a killed run leaves nothing behind. `LazyViews` is the same idea for values that are cheaper
+to make again than to keep (a view's renders, its estimates read from their files).
 """
 
 from __future__ import annotations
@@ -22,8 +23,11 @@ from __future__ import annotations
 import math
 import os
 import shutil
+import threading
 import weakref
+from collections.abc import Sequence
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -143,3 +147,31 @@ def view_array(name: str, shape: tuple[int, ...], dtype, folder: ViewFolder | No
     if folder is None:
         return np.zeros(shape, dtype)
     return folder.rows(name, shape, dtype)
+
+
+class LazyViews(Sequence):
+    """Per-view values made when asked for, `chunk` views at a time: `load(first)` returns the
+    values of views first, ..., first + chunk - 1 (fewer at the end), e.g. their images read from
+    files or rendered in one batch. Going through the views holds one chunk; the last chunk is
+    kept (callers often ask for the same view again at once). Safe to share between threads."""
+
+    def __init__(self, count: int, load: Callable[[int], list], chunk: int = 1):
+        self.count, self.load, self.chunk = count, load, chunk
+        self._lock = threading.Lock()
+        self._kept: tuple[int, list] | None = None
+
+    def __len__(self) -> int:
+        return self.count
+
+    def __getitem__(self, v):
+        if isinstance(v, slice):
+            return [self[i] for i in range(*v.indices(self.count))]
+        v = int(v)
+        if not -self.count <= v < self.count:
+            raise IndexError(f"view {v} of {self.count}")
+        v %= self.count
+        first = v - v % self.chunk
+        with self._lock:
+            if self._kept is None or self._kept[0] != first:
+                self._kept = (first, list(self.load(first)))
+            return self._kept[1][v - first]

@@ -27,6 +27,7 @@ from jaxdistill.io import images as imageio
 from jaxdistill.models import prior as rgbx
 from jaxdistill.render.fragments import default_cache_dir
 from jaxdistill.io.view_images import read_target, resize
+from jaxdistill.io.view_rows import LazyViews
 
 ESTIMATE_STEPS = 50          # the authors' demo
 BATCH = 16                   # views per sampling call
@@ -114,7 +115,12 @@ def cached_estimates(model: rgbx.RgbxPrior, photos: Sequence[tuple[str, Path, fl
 
 
 def read_estimates(folder: Path, names: Sequence[str], maps: Sequence[str],
-                   shapes: Sequence[tuple[int, int]]) -> list[dict]:
+                   shapes: Sequence[tuple[int, int]], lazy: bool = False) -> Sequence[dict]:
     """Per view, the cached estimates in file space (as `evaluation.read_baseline` gives targets),
-    resized to `shapes`."""
-    return [{m: resize(read_target(m, folder / m / f"{n}.png"), h, w) for m in maps} for n, (h, w) in zip(names, shapes)]
+    resized to `shapes`; a list, or with `lazy` a `LazyViews` reading a view's files when asked for."""
+    def load(v: int) -> list[dict]:
+        (h, w), name = shapes[v], names[v]
+        return [{m: resize(read_target(m, folder / m / f"{name}.png"), h, w) for m in maps}]
+
+    views = LazyViews(len(names), load)
+    return views if lazy else list(views)
