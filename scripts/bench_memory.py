@@ -286,8 +286,12 @@ def child_run(args, flag_argv) -> int:
     after(problem_mod, "_rgbx_prior", lambda r, a, k: rec.mark("prior (rgbx)"))
 
     def on_problem(p, a, k):
-        frags = list(p.fragments) + ([] if p.native_fragments is p.fragments else list(p.native_fragments))
-        frag_bytes = sum(nbytes(f.triangle, f.barycentric, f.depth, f.uv, f.uv_grad, f.object_id) for f in frags)
+        def held(fragments):              # FragmentRows (--view_data): its arrays; a list: every view's
+            if hasattr(fragments, "arrays"):
+                return nbytes(*fragments.arrays.values())
+            return sum(nbytes(f.triangle, f.barycentric, f.depth, f.uv, f.uv_grad, f.object_id) for f in fragments)
+
+        frag_bytes = held(p.fragments) + (0 if p.native_fragments is p.fragments else held(p.native_fragments))
         prior_bytes = nbytes(getattr(p.prior, "target_images", None), getattr(p.prior, "photo_latents", None))
         rec.info["problem_arrays_mb"] = {
             "plans": nbytes(p.plan_index, p.plan_weight, p.plan_hit) / MB,

@@ -54,9 +54,9 @@ def one_case(args) -> dict:
     from jaxdistill.engine.config import DistillConfig
     from jaxdistill.engine.problem import build_problem
 
-    out = tempfile.mkdtemp(prefix="bench_view_data_")
+    out = tempfile.TemporaryDirectory(prefix="bench_view_data_")       # the loop writes nothing there
     config = config_lib.validate(DistillConfig(
-        scene=args.scene, out_dir=out, prior=args.prior, steps=args.steps, log_every=args.log_every,
+        scene=args.scene, out_dir=out.name, prior=args.prior, steps=args.steps, log_every=args.log_every,
         views_per_step=args.views_per_step, max_texture_size=args.max_texture_size, view_data=args.one))
     t0 = time.perf_counter()
     problem = build_problem(config)

@@ -4,6 +4,7 @@ the same bit for bit wherever its images are held."""
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import shutil
@@ -19,6 +20,7 @@ from jaxdistill.errors import InputError
 from jaxdistill.io import view_rows
 from jaxdistill.io.view_rows import ViewFolder, ViewRows, placement, view_array
 from jaxdistill.render.fragments import FRAGMENT_FIELDS, FragmentRows
+from jaxdistill.scene.model import read_scene
 from tiny_scene import write_tiny_scene
 
 
@@ -56,6 +58,25 @@ def test_the_file_has_no_name_and_its_space_goes_with_the_array(tmp_path):
         os.fstat(fd)
 
 
+def test_rows_refuse_what_they_cannot_hold_and_a_full_disk_is_named(tmp_path, monkeypatch):
+    folder = ViewFolder(tmp_path)
+    with pytest.raises(ValueError, match=r"rows of shape \(\) are not supported"):
+        folder.rows("counts", (5,), np.float32)
+    rows = folder.rows("targets", (2, 3), np.float32)
+    rows.close()
+    with pytest.raises(ValueError, match="is closed"):
+        rows[0]
+
+    def full(fd, offset, length):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(os, "posix_fallocate", full)
+    with pytest.raises(InputError) as err:
+        folder.rows("plan_index", (4, 1024, 4), np.int32)
+    assert str(folder.root) in str(err.value) and "plan_index do not fit" in str(err.value)
+    assert "--view_data=memory" in str(err.value)
+
+
 def test_view_array_is_numpy_in_memory_and_rows_on_disk(tmp_path):
     memory = view_array("t", (2, 3), np.float32, None)
     assert isinstance(memory, np.ndarray) and not memory.any()
@@ -85,6 +106,32 @@ def test_files_that_would_not_fit_are_refused_naming_the_folder(tmp_path, monkey
     assert "--view_data=memory" in message and "$JAXDISTILL_CACHE" in message
     monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(1 << 40, 0, need + view_rows.DISK_HEADROOM))
     folder.check_space(need, "the per-view images of 3 views")
+
+
+def test_the_set_up_checks_the_files_and_the_ray_casts_together_before_any_cast(tmp_path, monkeypatch):
+    from jaxdistill.render import fragments as fr
+
+    scene = write_tiny_scene(tmp_path / "scene", views=2)
+    config = config_lib.validate(DistillConfig(scene=str(scene), out_dir=str(tmp_path / "out"), steps=2,
+                                               views_per_step=2, prior="views", view_data="disk"))
+    usage = namedtuple("usage", "total used free")
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(1 << 40, 0, view_rows.DISK_HEADROOM + 1000))
+
+    def poisoned(*args, **kwargs):
+        raise AssertionError("rays were cast before the disk space was checked")
+
+    monkeypatch.setattr(fr, "cast_view", poisoned)
+    with pytest.raises(InputError) as err:
+        build_problem(config, cache_dir=tmp_path / "cache")
+    message = str(err.value)
+    assert "the per-view arrays of 2 views (--view_data=disk) and the ray casts not cached yet" in message
+    assert str(tmp_path / "cache" / "view_rows") in message
+    # what the check counted: each distinct view's ray cast once, none once they are cached
+    views = read_scene(scene.parent)
+    cameras = [v.camera for v in views.views]
+    need = sum(c.height * c.width * fr.CACHE_BYTES_PER_PIXEL + fr.CACHE_BYTES_PER_VIEW for c in cameras)
+    assert fr.uncached_bytes(views.mesh, cameras + cameras, tmp_path / "cache") == need
+    assert fr.uncached_bytes(views.mesh, cameras, False) == 0
 
 
 @pytest.fixture(scope="module")

@@ -205,10 +205,11 @@ def define_flags(fv: flags.FlagValues = flags.FLAGS, *, main_module: bool = Fals
     flags.DEFINE_string("texture_size", d.texture_size, "page side (power of two) or 'auto'", **where)
     flags.DEFINE_integer("max_texture_size", d.max_texture_size, "cap for --texture_size=auto", **where)
     flags.DEFINE_enum("sampler", d.sampler, SAMPLERS, "texture sampler", **where)
-    flags.DEFINE_enum("view_data", d.view_data, VIEW_DATA, "where the per-view images a step reads (the views "
-                      "prior's targets, the re-rendering term's photos) are held: memory, or disk (a file under "
-                      "the cache read a batch at a time, so memory does not grow with the view count); auto: disk "
-                      "when they would take more than 1 GiB. Never changes a result", **where)
+    flags.DEFINE_enum("view_data", d.view_data, VIEW_DATA, "where the per-view arrays are held (fragments, gather "
+                      "plans, pixel weights, the views prior's targets, the re-rendering term's photos; about 20-35 "
+                      "values a pixel): memory, or disk (files under the cache read a view or a batch at a time, so "
+                      "memory does not grow with the view count); auto: disk when they would take more than 1 GiB "
+                      "(about 10 views of 1752x1168). Never changes a result", **where)
     flags.DEFINE_integer("views_per_step", d.views_per_step, "views per step (split over devices)", **where)
     flags.DEFINE_integer("seed", d.seed, "seed of everything random in the run", **where)
     flags.DEFINE_integer("ckpt_every", d.ckpt_every, "checkpoint every N steps (0: only at the end)", **where)

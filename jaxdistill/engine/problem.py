@@ -394,7 +394,8 @@ def _view_data_folder(config: DistillConfig, scene: Scene, choice: PriorChoice, 
     if config.photo_weight > 0:
         photo = render_shape(scene, config.photo_size, flag="--photo_size")
         images = 3 + (2 if config.albedo_smoothness > 0 else 0)
-        per_pixel[photo] = per_pixel.get(photo, 0) + images + (0 if photo in per_pixel else frag + plan)
+        # the photos' own pixel weights even where they share the render size's fragments and plans
+        per_pixel[photo] = per_pixel.get(photo, 0) + images + (1 if photo in per_pixel else frag + plan)
     sizes = {(v.camera.height, v.camera.width) for v in scene.views}
     native = next(iter(sizes)) if len(sizes) == 1 else None
     if native is not None and native not in per_pixel:
@@ -403,10 +404,22 @@ def _view_data_folder(config: DistillConfig, scene: Scene, choice: PriorChoice, 
     if not placement(config.view_data, nbytes):
         return None
     folder = ViewFolder(Path(cache_dir) if cache_dir else fr.default_cache_dir())
-    what = f"the per-view arrays of {views} views (fragments, plans, targets, photos; --view_data={config.view_data})"
-    folder.check_space(nbytes, what)
+    what = f"the per-view arrays of {views} views (--view_data={config.view_data})"
+    # the ray casts still to be cached go to the same disk: both must fit
+    casts = fr.uncached_bytes(scene.mesh, _cameras_cast(config, scene, render), cache_dir)
+    folder.check_space(nbytes + casts, what + (f" and the ray casts not cached yet ({casts / 2 ** 30:.2f} GB)"
+                                               if casts else ""))
     logging.info("%s: %.2f GB on disk in %s, read a batch at a time", what, nbytes / 2 ** 30, folder.root)
     return folder
+
+
+def _cameras_cast(config: DistillConfig, scene: Scene, render: tuple[int, int]) -> list[Camera]:
+    """Every camera the set-up casts rays for: at the render size, the photos' own, and the photo size."""
+    cameras = [scaled_camera(v.camera, *render) for v in scene.views] + [v.camera for v in scene.views]
+    if config.photo_weight > 0:
+        photo = render_shape(scene, config.photo_size, flag="--photo_size")
+        cameras += [scaled_camera(v.camera, *photo) for v in scene.views]
+    return cameras
 
 
 def _loss_weights(config: DistillConfig, scene: Scene, plan, counts: np.ndarray, empty):

@@ -71,7 +71,7 @@ def quick_psnr(state, problem: Problem, ctx: EvalContext) -> float:
     if "albedo" not in problem.channels.maps:
         return math.nan
     texels = np.asarray(jax.device_get(state.texels))
-    pred = evaluation.render_views(texels, ctx.plan, ctx.cameras, problem.channels)
+    pred = evaluation.render_views(texels, ctx.plan, ctx.cameras, problem.channels, lazy=problem.view_folder is not None)
     return evaluation.albedo_psnr(pred, ctx.gt_maps, ctx.masks)
 
 

@@ -20,9 +20,11 @@ to make again than to keep (a view's renders, its estimates read from their file
 
 from __future__ import annotations
 
+import errno
 import math
 import os
 import shutil
+import socket
 import threading
 import weakref
 from collections.abc import Sequence
@@ -34,7 +36,7 @@ import numpy as np
 from jaxdistill.errors import InputError
 
 VIEW_DATA = ("auto", "memory", "disk")
-AUTO_DISK_BYTES = 1 << 30       # --view_data=auto: on disk when the per-view images would take more than 1 GiB
+AUTO_DISK_BYTES = 1 << 30       # --view_data=auto: on disk when the per-view arrays would take more than 1 GiB
 DISK_HEADROOM = 1 << 28         # 256 MiB left free on the disk after the files are written
 
 
@@ -47,6 +49,23 @@ def placement(view_data: str, nbytes: int) -> bool:
     return view_data == "disk" or (view_data == "auto" and nbytes > AUTO_DISK_BYTES)
 
 
+def _reserve(fd: int, nbytes: int, path: Path) -> None:
+    """Takes the file's disk space now (not a sparse file that fails half-way through a run),
+    with an InputError naming the folder when the disk is full."""
+    try:
+        if hasattr(os, "posix_fallocate"):
+            os.posix_fallocate(fd, 0, nbytes)
+        else:                                       # (macOS) sparse: the space check before compute stands
+            os.ftruncate(fd, nbytes)
+    except OSError as err:
+        if err.errno not in (errno.ENOSPC, errno.EDQUOT):
+            raise
+        raise InputError.single(str(path.parent), "disk space", (
+            f"{nbytes / 2 ** 30:.2f} GB for {path.name.split('-')[0]} do not fit on this disk; free space there, point "
+            "$JAXDISTILL_CACHE at a folder on a larger disk, or hold the per-view arrays in memory with "
+            "--view_data=memory")) from err
+
+
 class ViewRows:
     """A (V, ...) array of `dtype` in a file created at `path` and unlinked at once (its space is
     freed when the object is collected or `close`d). `rows[v] = row` writes row v; `rows[ids]`
@@ -57,12 +76,14 @@ class ViewRows:
         self.shape = tuple(int(s) for s in shape)
         self.dtype = np.dtype(dtype)
         self.row_shape = self.shape[1:]
+        if not self.row_shape:
+            raise ValueError(f"{self.path.name}: rows of shape () are not supported; hold a (V,) array in memory")
         self.row_bytes = math.prod(self.row_shape) * self.dtype.itemsize
         fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o600)
         os.unlink(self.path)
         try:
-            os.ftruncate(fd, self.nbytes)
-        except OSError:
+            _reserve(fd, self.nbytes, self.path)
+        except BaseException:
             os.close(fd)
             raise
         self._fd = fd
@@ -81,6 +102,8 @@ class ViewRows:
         return self.shape[0]
 
     def _row(self, v) -> int:
+        if not self._finalizer.alive:
+            raise ValueError(f"{self.path.name} is closed")
         v = int(v)
         if not -self.shape[0] <= v < self.shape[0]:
             raise IndexError(f"row {v} of {self.shape[0]}")
@@ -136,8 +159,9 @@ class ViewFolder:
 
     def rows(self, name: str, shape: tuple[int, ...], dtype) -> ViewRows:
         self.root.mkdir(parents=True, exist_ok=True)
-        self._count += 1
-        rows = ViewRows(self.root / f"{name}-{os.getpid()}-{id(self)}-{self._count}.bin", shape, dtype)
+        self._count += 1          # a unique name (host, process, folder, count) for the moment before the unlink
+        unique = f"{socket.gethostname()}-{os.getpid()}-{id(self)}-{self._count}"
+        rows = ViewRows(self.root / f"{name}-{unique}.bin", shape, dtype)
         self.nbytes += rows.nbytes
         return rows
 

@@ -219,6 +219,21 @@ CACHE_BYTES_PER_VIEW = 1024              # the .npz's headers
 CACHE_HEADROOM = 1 << 28                 # 256 MiB left free on the cache's disk after the ray casts are written
 
 
+def uncached_bytes(mesh: Mesh, cameras: Sequence[Camera], cache_dir: Path | None | bool = None) -> int:
+    """Bytes the ray casts of `cameras` not in the cache yet will take there (each distinct view
+    once; 0 without a cache)."""
+    if cache_dir is False:
+        return 0
+    cache = Path(cache_dir or default_cache_dir()) / "fragments"
+    geometry_key = mesh_key(mesh)
+    missing = {}
+    for c in cameras:
+        path = cache / f"{view_key(geometry_key, c)}.npz"
+        if path not in missing and not path.is_file():
+            missing[path] = c.height * c.width * CACHE_BYTES_PER_PIXEL + CACHE_BYTES_PER_VIEW
+    return sum(missing.values())
+
+
 def check_cache_space(cache: Path, cameras: Sequence[Camera]) -> None:
     """InputError naming `cache`, before any ray casting, when the ray casts of `cameras` (the views
     not cached yet) would not fit on its disk with CACHE_HEADROOM to spare: how much they need, how

@@ -129,11 +129,10 @@ def pixel_weights(plan: GatherPlan, counts: np.ndarray, out=None) -> np.ndarray:
     """(V, H, W) float32 loss weights per view and pixel (0 on missed pixels), a view at a time,
     into `out` when given (anything that takes `out[v] = image`, e.g. a file's rows)."""
     counts = jnp.asarray(counts, jnp.float32)[:, None]
-    if plan.index.ndim == 2:                                       # a single view's plan
-        return np.asarray(_pixel_weights(plan, counts))[None]
     out = np.empty((plan.num_views, plan.height, plan.width), np.float32) if out is None else out
     for v in range(plan.num_views):
-        out[v] = np.asarray(_pixel_weights(plan.select(v), counts))
+        one = plan if plan.index.ndim == 2 else plan.select(v)    # (a single view's plan has no view axis)
+        out[v] = np.asarray(_pixel_weights(one, counts))
     return out
 
 
