@@ -187,8 +187,9 @@ def test_a_problem_on_disk_reads_the_batches_and_scores_of_one_in_memory(tiny_sc
 
 
 def test_a_run_with_its_per_view_arrays_on_disk_writes_what_one_in_memory_writes(tiny_scene, tmp_path):
-    """The main job end to end, --view_data=memory and =disk (baselines and renders then lazy):
-    the same scores and re-rendering figures, and the same map pages bit for bit."""
+    """The main job end to end, --view_data=memory and =disk (baselines and renders then lazy, the
+    evidence's read weights in a file): the same scores and re-rendering figures, and the same map
+    and evidence pages and renders bit for bit."""
     from jaxdistill import pipeline
     from jaxdistill.io import images as imageio
 
@@ -203,8 +204,9 @@ def test_a_run_with_its_per_view_arrays_on_disk_writes_what_one_in_memory_writes
     assert disk["view_data"]["disk_bytes"] > 0 and memory["view_data"]["disk_bytes"] == 0
     for key in ("ours", "baseline_per_view_estimates", "improvement", "rerender"):     # NaN where nothing to score
         assert json.dumps(memory[key], sort_keys=True) == json.dumps(disk[key], sort_keys=True), key
-    pages = sorted(p.relative_to(tmp_path / "memory") for p in (tmp_path / "memory" / "maps").rglob("*.exr"))
-    assert pages
+    pages = sorted(p.relative_to(tmp_path / "memory") for folder in ("maps", "evidence")
+                   for p in (tmp_path / "memory" / folder).rglob("*.exr"))
+    assert any(p.parts[0] == "evidence" for p in pages) and any(p.parts[0] == "maps" for p in pages)
     for page in pages:
         np.testing.assert_array_equal(imageio.read_image(tmp_path / "memory" / page),
                                       imageio.read_image(tmp_path / "disk" / page))
@@ -213,3 +215,18 @@ def test_a_run_with_its_per_view_arrays_on_disk_writes_what_one_in_memory_writes
     for render in renders:                          # rendered a chunk at a time when asked for: the same pixels
         np.testing.assert_array_equal(imageio.read_image(tmp_path / "memory" / render),
                                       imageio.read_image(tmp_path / "disk" / render))
+
+
+def test_ragged_rows_read_back_each_views_arrays(tmp_path):
+    rng = np.random.default_rng(2)
+    rows = ViewFolder(tmp_path).ragged("reads", (np.int32, np.float32))
+    views = [(rng.integers(0, 1000, n).astype(np.int32), rng.random(n).astype(np.float32)) for n in (5, 0, 17, 1)]
+    for seen, weight in views:
+        rows.append((seen, weight))
+    assert len(rows) == 4 and rows.nbytes == sum(a.nbytes + b.nbytes for a, b in views)
+    for v in (2, 0, 3, 1, -1):
+        for got, expected in zip(rows[v], views[v]):
+            assert got.dtype == expected.dtype
+            np.testing.assert_array_equal(got, expected)
+    with pytest.raises(ValueError, match="1-D of one length"):
+        rows.append((np.zeros(3, np.int32), np.zeros(2, np.float32)))

@@ -113,7 +113,10 @@ def write_evidence(out: Path, problem: Problem, ctx: EvalContext, baseline: list
     pages = {"visibility": expand(problem.counts.astype(np.float32)[:, None], space, 0.0, dilation=0)}
     if baseline:
         plan = training_plan(problem)
-        reads = view_reads(plan, space.num_texels)      # the views' read weights, the same for every map
+        # the views' read weights, the same for every map (with --view_data on disk, in a file)
+        index = np.int32 if space.num_texels < 2 ** 31 else np.int64
+        store = problem.view_folder.ragged("evidence_reads", (index, np.float32)) if problem.view_folder else None
+        reads = view_reads(plan, space.num_texels, store)
 
         def view_images(m):                 # one view at a time, at the render size
             for camera, per_view in zip(ctx.cameras, baseline):

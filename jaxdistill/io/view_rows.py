@@ -135,6 +135,57 @@ class ViewRows:
         self._finalizer()
 
 
+class RaggedRows(Sequence):
+    """Per view a tuple of 1-D arrays (one length per view, any length), appended to a file in
+    view order as they are made (`rows.append((a, b))`) and read back by view (`rows[v]`); the
+    file is unlinked when opened, like `ViewRows`'s. For what differs in size from view to view,
+    such as the texels a view reads."""
+
+    def __init__(self, path: Path, dtypes: Sequence):
+        self.path, self.dtypes = Path(path), tuple(np.dtype(d) for d in dtypes)
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o600)
+        os.unlink(self.path)
+        self._fd, self._end, self._spans = fd, 0, []       # per view: (offset, length)
+        self._finalizer = weakref.finalize(self, os.close, fd)
+
+    @property
+    def nbytes(self) -> int:
+        return self._end
+
+    def __len__(self) -> int:
+        return len(self._spans)
+
+    def append(self, arrays) -> None:
+        arrays = [np.ascontiguousarray(a, d) for a, d in zip(arrays, self.dtypes, strict=True)]
+        length = len(arrays[0])
+        if any(a.shape != (length,) for a in arrays):
+            raise ValueError(f"{self.path.name}: a view's arrays must be 1-D of one length, got "
+                             f"{[a.shape for a in arrays]}")
+        offset = self._end
+        for a in arrays:
+            try:
+                written = os.pwrite(self._fd, a.data.cast("B"), self._end) if a.nbytes else 0
+            except OSError as err:
+                if err.errno in (errno.ENOSPC, errno.EDQUOT):
+                    raise InputError.single(str(self.path.parent), "disk space", (
+                        f"{self.path.name.split('-')[0]} does not fit on this disk; free space there, point "
+                        "$JAXDISTILL_CACHE at a folder on a larger disk, or use --view_data=memory")) from err
+                raise
+            if written != a.nbytes:
+                raise OSError(f"wrote {written} of {a.nbytes} bytes to {self.path}")
+            self._end += a.nbytes
+        self._spans.append((offset, length))
+
+    def __getitem__(self, v):
+        offset, length = self._spans[v]
+        out = tuple(np.empty(length, d) for d in self.dtypes)
+        for a in out:
+            if a.nbytes and os.preadv(self._fd, [a.data.cast("B")], offset) != a.nbytes:
+                raise OSError(f"short read of view {v} from {self.path}")
+            offset += a.nbytes
+        return out
+
+
 class ViewFolder:
     """Where `ViewRows` files are opened: `cache`/view_rows (created on first use)."""
 
@@ -164,6 +215,13 @@ class ViewFolder:
         rows = ViewRows(self.root / f"{name}-{unique}.bin", shape, dtype)
         self.nbytes += rows.nbytes
         return rows
+
+    def ragged(self, name: str, dtypes: Sequence) -> RaggedRows:
+        """A new `RaggedRows` file here (its bytes are not counted in `nbytes`: they come later)."""
+        self.root.mkdir(parents=True, exist_ok=True)
+        self._count += 1
+        return RaggedRows(self.root / f"{name}-{socket.gethostname()}-{os.getpid()}-{id(self)}-{self._count}.bin",
+                          dtypes)
 
 
 def view_array(name: str, shape: tuple[int, ...], dtype, folder: ViewFolder | None):

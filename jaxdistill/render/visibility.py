@@ -79,16 +79,19 @@ def _splat(plan: GatherPlan, images: jnp.ndarray, num_texels_like: jnp.ndarray) 
     return value
 
 
-def view_reads(plan: GatherPlan, num_texels: int) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Per view of `plan`: (the texels it reads, (K,) int64; their summed read weight, (K,) float64),
-    what `texel_view_statistics` divides by. The same for every image of a view, so a caller that
-    asks per map computes it once (a view reads a small share of the texels: sparse)."""
+def view_reads(plan: GatherPlan, num_texels: int, store=None) -> Sequence[tuple[np.ndarray, np.ndarray]]:
+    """Per view of `plan`: (the texels it reads, (K,) int32; their summed read weight, (K,) float32,
+    as the transpose of the render sums them), what `texel_view_statistics` divides by. The same for
+    every image of a view, so a caller that asks per map computes it once (a view reads a small
+    share of the texels: sparse). `store`: where they go, anything with `append((seen, weight))`
+    and `store[v]` (a list by default; `io.view_rows.RaggedRows` keeps them in a file)."""
     zeros_1 = jnp.zeros((num_texels, 1), jnp.float32)
-    reads = []
+    reads = [] if store is None else store
+    index = np.int32 if num_texels < 2 ** 31 else np.int64
     for v in range(plan.num_views):
         weight = np.asarray(_evidence(plan.select(v), zeros_1))
         seen = np.flatnonzero(weight > 0)
-        reads.append((seen, weight[seen].astype(np.float64)))
+        reads.append((seen.astype(index), weight[seen]))
     return reads
 
 
@@ -114,7 +117,7 @@ def texel_view_statistics(plan: GatherPlan, images: Iterable[np.ndarray], num_te
             second = np.zeros((num_texels, channels), np.float64)
         seen, weight = reads[v]
         value = np.asarray(_splat(plan.select(v), jnp.asarray(image, jnp.float32), zeros))[seen].astype(np.float64)
-        mean = value / weight[:, None]
+        mean = value / weight.astype(np.float64)[:, None]
         count[seen] += 1
         first[seen] += mean
         second[seen] += mean ** 2
