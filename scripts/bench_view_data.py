@@ -5,8 +5,8 @@
 
 Each case is a child process (so that its peak RSS is its own): the main job's set-up and loop
 (`build_problem`, `run_loop` with the step compiled ahead, no checkpoints, no outputs), the
-two settings alternated `--repeats` times, with the ray casts cached in `--cache` (first made
-by a warm-up child). Per case: set-up seconds, seconds per step (median over the --log_every
+two settings alternated `--repeats` times, with the ray casts read from `--cache` (or made first
+by a warm-up case in a new cache). Per case: set-up seconds, seconds per step (median over the --log_every
 windows), the host time to assemble one batch (`Problem.batch`: reads from the files on disk;
 median), and peak RSS; then the medians per setting and their ratio, disk / memory.
 """
@@ -36,7 +36,8 @@ def parse_args(argv=None):
     p.add_argument("--views_per_step", type=int, default=8)
     p.add_argument("--max_texture_size", type=int, default=4096)
     p.add_argument("--prior", default="views", choices=("views", "auto"))
-    p.add_argument("--cache", default=None, help="ray-cast cache (default: a new temporary folder)")
+    p.add_argument("--cache", default=None, help="a ray-cast cache that holds the scene's casts already (default: a "
+                   "new folder, filled by a warm-up case first)")
     p.add_argument("--json", default=None)
     p.add_argument("--one", default=None, choices=("memory", "disk"), help=argparse.SUPPRESS)   # a child's case
     args = p.parse_args(argv)
@@ -108,7 +109,8 @@ def main(argv=None) -> int:
     import numpy as np
 
     cache = args.cache or tempfile.mkdtemp(prefix="bench_view_data_cache_")
-    run_child(args, "memory", cache)                           # warm-up: the ray casts into the cache
+    if not args.cache:
+        run_child(args, "memory", cache)                       # warm-up: the ray casts into the new cache
     rows = []
     print(f"{'case':10s} {'set-up s':>9s} {'s/step':>8s} {'batch ms':>9s} {'peak RSS GB':>12s}", flush=True)
     for _ in range(args.repeats):
