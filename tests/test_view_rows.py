@@ -230,3 +230,9 @@ def test_ragged_rows_read_back_each_views_arrays(tmp_path):
             np.testing.assert_array_equal(got, expected)
     with pytest.raises(ValueError, match="1-D of one length"):
         rows.append((np.zeros(3, np.int32), np.zeros(2, np.float32)))
+    with pytest.raises(TypeError, match="int64 as int32"):                  # would wrap: refused
+        rows.append((np.zeros(3, np.int64), np.zeros(3, np.float32)))
+    folder = ViewFolder(tmp_path)
+    counted = folder.ragged("reads", (np.int32,))
+    counted.append((np.arange(10, dtype=np.int32),))
+    assert folder.nbytes == 40 == counted.nbytes                           # metrics.json's disk_bytes count them

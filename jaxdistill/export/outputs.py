@@ -22,7 +22,7 @@ from jaxdistill.io import images as imageio
 from jaxdistill.io.view_images import resize
 from jaxdistill.render import charts
 from jaxdistill.render.sampler import expand
-from jaxdistill.render.visibility import texel_view_statistics, view_reads
+from jaxdistill.render.visibility import read_dtypes, texel_view_statistics, view_reads
 from jaxdistill.scene.cameras import rgbx_camera_rotation
 
 
@@ -114,8 +114,8 @@ def write_evidence(out: Path, problem: Problem, ctx: EvalContext, baseline: list
     if baseline:
         plan = training_plan(problem)
         # the views' read weights, the same for every map (with --view_data on disk, in a file)
-        index = np.int32 if space.num_texels < 2 ** 31 else np.int64
-        store = problem.view_folder.ragged("evidence_reads", (index, np.float32)) if problem.view_folder else None
+        store = (problem.view_folder.ragged("evidence_reads", read_dtypes(space.num_texels))
+                 if problem.view_folder else None)
         reads = view_reads(plan, space.num_texels, store)
 
         def view_images(m):                 # one view at a time, at the render size

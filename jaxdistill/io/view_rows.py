@@ -141,8 +141,9 @@ class RaggedRows(Sequence):
     file is unlinked when opened, like `ViewRows`'s. For what differs in size from view to view,
     such as the texels a view reads."""
 
-    def __init__(self, path: Path, dtypes: Sequence):
+    def __init__(self, path: Path, dtypes: Sequence, on_write: Callable[[int], None] | None = None):
         self.path, self.dtypes = Path(path), tuple(np.dtype(d) for d in dtypes)
+        self._on_write = on_write                           # told the bytes of every append
         fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o600)
         os.unlink(self.path)
         self._fd, self._end, self._spans = fd, 0, []       # per view: (offset, length)
@@ -156,7 +157,11 @@ class RaggedRows(Sequence):
         return len(self._spans)
 
     def append(self, arrays) -> None:
-        arrays = [np.ascontiguousarray(a, d) for a, d in zip(arrays, self.dtypes, strict=True)]
+        arrays = [np.asarray(a) for a in arrays]
+        unsafe = [f"{a.dtype} as {d}" for a, d in zip(arrays, self.dtypes, strict=True) if not np.can_cast(a.dtype, d)]
+        if unsafe:                                          # (int64 texels as int32 would wrap silently)
+            raise TypeError(f"{self.path.name}: cannot store {', '.join(unsafe)} without loss")
+        arrays = [np.ascontiguousarray(a, d) for a, d in zip(arrays, self.dtypes)]
         length = len(arrays[0])
         if any(a.shape != (length,) for a in arrays):
             raise ValueError(f"{self.path.name}: a view's arrays must be 1-D of one length, got "
@@ -174,6 +179,8 @@ class RaggedRows(Sequence):
             if written != a.nbytes:
                 raise OSError(f"wrote {written} of {a.nbytes} bytes to {self.path}")
             self._end += a.nbytes
+            if self._on_write is not None:
+                self._on_write(a.nbytes)
         self._spans.append((offset, length))
 
     def __getitem__(self, v):
@@ -192,7 +199,7 @@ class ViewFolder:
     def __init__(self, cache: Path):
         self.root = Path(cache) / "view_rows"
         self._count = 0
-        self.nbytes = 0          # of every file opened here (on disk while their arrays live)
+        self.nbytes = 0          # of every file opened or written here (on disk while their arrays live)
 
     def check_space(self, nbytes: int, what: str) -> None:
         """InputError naming the folder, before anything is written, when `nbytes` would not fit
@@ -217,11 +224,16 @@ class ViewFolder:
         return rows
 
     def ragged(self, name: str, dtypes: Sequence) -> RaggedRows:
-        """A new `RaggedRows` file here (its bytes are not counted in `nbytes`: they come later)."""
+        """A new `RaggedRows` file here (its bytes counted in `nbytes` as they are written; no space
+        is reserved ahead: a full disk is an InputError when it happens)."""
         self.root.mkdir(parents=True, exist_ok=True)
         self._count += 1
+
+        def written(nbytes: int) -> None:
+            self.nbytes += nbytes
+
         return RaggedRows(self.root / f"{name}-{socket.gethostname()}-{os.getpid()}-{id(self)}-{self._count}.bin",
-                          dtypes)
+                          dtypes, on_write=written)
 
 
 def view_array(name: str, shape: tuple[int, ...], dtype, folder: ViewFolder | None):

@@ -79,6 +79,11 @@ def _splat(plan: GatherPlan, images: jnp.ndarray, num_texels_like: jnp.ndarray) 
     return value
 
 
+def read_dtypes(num_texels: int) -> tuple[type, type]:
+    """The dtypes of `view_reads`' (texels, weights): int32 texel ids where they fit, float32 weights."""
+    return (np.int32 if num_texels < 2 ** 31 else np.int64), np.float32
+
+
 def view_reads(plan: GatherPlan, num_texels: int, store=None) -> Sequence[tuple[np.ndarray, np.ndarray]]:
     """Per view of `plan`: (the texels it reads, (K,) int32; their summed read weight, (K,) float32,
     as the transpose of the render sums them), what `texel_view_statistics` divides by. The same for
@@ -87,7 +92,7 @@ def view_reads(plan: GatherPlan, num_texels: int, store=None) -> Sequence[tuple[
     and `store[v]` (a list by default; `io.view_rows.RaggedRows` keeps them in a file)."""
     zeros_1 = jnp.zeros((num_texels, 1), jnp.float32)
     reads = [] if store is None else store
-    index = np.int32 if num_texels < 2 ** 31 else np.int64
+    index = read_dtypes(num_texels)[0]
     for v in range(plan.num_views):
         weight = np.asarray(_evidence(plan.select(v), zeros_1))
         seen = np.flatnonzero(weight > 0)
