@@ -58,12 +58,26 @@ def _reserve(fd: int, nbytes: int, path: Path) -> None:
         else:                                       # (macOS) sparse: the space check before compute stands
             os.ftruncate(fd, nbytes)
     except OSError as err:
-        if err.errno not in (errno.ENOSPC, errno.EDQUOT):
+        if err.errno not in DISK_FULL:
             raise
-        raise InputError.single(str(path.parent), "disk space", (
-            f"{nbytes / 2 ** 30:.2f} GB for {path.name.split('-')[0]} do not fit on this disk; free space there, point "
-            "$JAXDISTILL_CACHE at a folder on a larger disk, or hold the per-view arrays in memory with "
-            "--view_data=memory")) from err
+        raise _disk_full(path, f"{nbytes / 2 ** 30:.2f} GB for {path.name.split('-')[0]} do not fit") from err
+
+
+DISK_FULL = (errno.ENOSPC, errno.EDQUOT)
+
+
+def _disk_full(path: Path, what: str) -> InputError:
+    """The InputError a full disk (or quota) under `path` is to the user."""
+    return InputError.single(str(path.parent), "disk space", (
+        f"{what} on this disk; free space there, point $JAXDISTILL_CACHE at a folder on a larger disk, or hold "
+        "the per-view arrays in memory with --view_data=memory"))
+
+
+def _open_unlinked(path: Path) -> int:
+    """A new file at `path`, unlinked at once: its space lives as long as the descriptor."""
+    fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o600)
+    os.unlink(path)
+    return fd
 
 
 class ViewRows:
@@ -79,8 +93,7 @@ class ViewRows:
         if not self.row_shape:
             raise ValueError(f"{self.path.name}: rows of shape () are not supported; hold a (V,) array in memory")
         self.row_bytes = math.prod(self.row_shape) * self.dtype.itemsize
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o600)
-        os.unlink(self.path)
+        fd = _open_unlinked(self.path)
         try:
             _reserve(fd, self.nbytes, self.path)
         except BaseException:
@@ -144,8 +157,7 @@ class RaggedRows(Sequence):
     def __init__(self, path: Path, dtypes: Sequence, on_write: Callable[[int], None] | None = None):
         self.path, self.dtypes = Path(path), tuple(np.dtype(d) for d in dtypes)
         self._on_write = on_write                           # told the bytes of every append
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o600)
-        os.unlink(self.path)
+        fd = _open_unlinked(self.path)
         self._fd, self._end, self._spans = fd, 0, []       # per view: (offset, length)
         self._finalizer = weakref.finalize(self, os.close, fd)
 
@@ -171,11 +183,9 @@ class RaggedRows(Sequence):
             try:
                 written = os.pwrite(self._fd, a.data.cast("B"), self._end) if a.nbytes else 0
             except OSError as err:
-                if err.errno in (errno.ENOSPC, errno.EDQUOT):
-                    raise InputError.single(str(self.path.parent), "disk space", (
-                        f"{self.path.name.split('-')[0]} does not fit on this disk; free space there, point "
-                        "$JAXDISTILL_CACHE at a folder on a larger disk, or use --view_data=memory")) from err
-                raise
+                if err.errno not in DISK_FULL:
+                    raise
+                raise _disk_full(self.path, f"{self.path.name.split('-')[0]} does not fit") from err
             if written != a.nbytes:
                 raise OSError(f"wrote {written} of {a.nbytes} bytes to {self.path}")
             self._end += a.nbytes
@@ -215,25 +225,24 @@ class ViewFolder:
                 f"has {free / gb:.2f} GB free; free space there, point $JAXDISTILL_CACHE at a folder on a larger "
                 "disk, or hold them in memory with --view_data=memory"))
 
-    def rows(self, name: str, shape: tuple[int, ...], dtype) -> ViewRows:
+    def _path(self, name: str) -> Path:
+        """A unique name (host, process, folder, count) for the moment before the file is unlinked."""
         self.root.mkdir(parents=True, exist_ok=True)
-        self._count += 1          # a unique name (host, process, folder, count) for the moment before the unlink
-        unique = f"{socket.gethostname()}-{os.getpid()}-{id(self)}-{self._count}"
-        rows = ViewRows(self.root / f"{name}-{unique}.bin", shape, dtype)
+        self._count += 1
+        return self.root / f"{name}-{socket.gethostname()}-{os.getpid()}-{id(self)}-{self._count}.bin"
+
+    def rows(self, name: str, shape: tuple[int, ...], dtype) -> ViewRows:
+        rows = ViewRows(self._path(name), shape, dtype)
         self.nbytes += rows.nbytes
         return rows
 
     def ragged(self, name: str, dtypes: Sequence) -> RaggedRows:
         """A new `RaggedRows` file here (its bytes counted in `nbytes` as they are written; no space
         is reserved ahead: a full disk is an InputError when it happens)."""
-        self.root.mkdir(parents=True, exist_ok=True)
-        self._count += 1
-
         def written(nbytes: int) -> None:
             self.nbytes += nbytes
 
-        return RaggedRows(self.root / f"{name}-{socket.gethostname()}-{os.getpid()}-{id(self)}-{self._count}.bin",
-                          dtypes, on_write=written)
+        return RaggedRows(self._path(name), dtypes, on_write=written)
 
 
 def view_array(name: str, shape: tuple[int, ...], dtype, folder: ViewFolder | None):
