@@ -82,7 +82,7 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
                                   "weight": dict(zip(names, np.round(problem.photos.noise_weight, 4).tolist()))}
     summary.update(run_record(config, problem, loop, wall_start))
     summary["anchor"] = anchor
-    summary["peak_host_memory_gb"] = {**peaks, "outputs": peak_host_memory_gb()}     # the peak so far at each stage's end
+    summary["peak_host_memory_gb"] = {**peaks, "outputs": peak_host_memory_gb()}    # the peak so far after each stage
     summary["output_timings"] = phases.record
     if gains is not None:
         summary["align"] = {"maps": list(align_lib.aligned_maps(problem.channels)),
@@ -107,7 +107,7 @@ def run_record(config: DistillConfig, problem, loop, wall_start: float) -> dict:
         "device": {"backend": jax.default_backend(), "devices": [str(d) for d in devices],
                    "kind": devices[0].device_kind, "processes": jax.process_count()},
         "peak_host_memory_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
-        "view_data": {"flag": config.view_data, "where": "memory" if problem.view_folder is None else "disk",
+        "view_data": {"flag": config.view_data, "where": "disk" if problem.views_on_disk else "memory",
                       "disk_bytes": problem.view_folder.nbytes if problem.view_folder else 0},
         "peak_device_memory_mb": _peak_device_memory_mb(jax.local_devices()),     # this process's
         "parameters": {"texels": problem.space.num_texels, "channels": problem.channels.num_channels,

@@ -186,6 +186,12 @@ class Problem:
     def num_views(self) -> int:
         return len(self.scene.views)
 
+    @property
+    def views_on_disk(self) -> bool:
+        """--view_data put the per-view arrays in files: what is made per view afterwards (renders,
+        estimates read back) is made a view or a chunk at a time too (`LazyViews`)."""
+        return self.view_folder is not None
+
     def empty_views(self, name: str, shape: tuple[int, ...], dtype):
         """A new (V, ...) per-view array where this problem keeps its own (`view_rows.view_array`)."""
         return view_array(name, shape, dtype, self.view_folder)

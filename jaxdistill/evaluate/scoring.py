@@ -71,7 +71,7 @@ def quick_psnr(state, problem: Problem, ctx: EvalContext) -> float:
     if "albedo" not in problem.channels.maps:
         return math.nan
     texels = np.asarray(jax.device_get(state.texels))
-    pred = evaluation.render_views(texels, ctx.plan, ctx.cameras, problem.channels, lazy=problem.view_folder is not None)
+    pred = evaluation.render_views(texels, ctx.plan, ctx.cameras, problem.channels, lazy=problem.views_on_disk)
     return evaluation.albedo_psnr(pred, ctx.gt_maps, ctx.masks)
 
 
@@ -90,7 +90,7 @@ def per_view_baseline(config: DistillConfig, problem: Problem, shapes: list[tupl
     """The rgbx prior's baseline is the model's own per-view estimates (computed once, cached);
     the views prior's is the scene's per-view targets (None when the scene has none)."""
     scene, channels = problem.scene, problem.channels
-    lazy = problem.view_folder is not None          # --view_data on disk: a view's images read when asked for
+    lazy = problem.views_on_disk                    # --view_data on disk: a view's images read when asked for
     if problem.rgbx_model is None:
         return Baseline(evaluation.read_baseline(scene, channels.maps, shapes, lazy),
                         "the scene's per-view target images")

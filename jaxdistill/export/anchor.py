@@ -116,7 +116,7 @@ def anchor_to_baseline(config: DistillConfig, problem: Problem, texels: np.ndarr
     if baseline.views:
         # measured on the texels clipped to [-1, 1], as `anchored_texels` clips them before scaling
         renders = evaluation.render_views(np.clip(texels, -1.0, 1.0), ctx.plan, ctx.cameras, problem.channels,
-                                          lazy=problem.view_folder is not None)
+                                          lazy=problem.views_on_disk)
         hits = np.asarray(ctx.plan.hit).reshape(-1, ctx.plan.height, ctx.plan.width)
         gains = anchor_gains(renders, baseline.views, list(hits), problem.channels.maps)
     if not gains:

@@ -173,7 +173,7 @@ def write_outputs(config: DistillConfig, problem: Problem, texels: np.ndarray, h
         written = write_map_files(out, problem, texels, trust)
     with phases("renders of every view"):
         pred = evaluation.render_views(texels, ctx.plan, ctx.cameras, problem.channels,
-                                       lazy=problem.view_folder is not None)   # on disk: rendered when asked for
+                                       lazy=problem.views_on_disk)   # on disk: rendered when asked for
         if config.renders:
             evaluation.write_renders(out / "renders", [v.name for v in problem.scene.views], pred)
     result = {"estimates_folder": str(baseline.folder)} if baseline.folder is not None else {}
