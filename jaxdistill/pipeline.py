@@ -38,7 +38,8 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
     out = Path(config.out_dir)
     latest = loop_lib.check_before_compute(config, out, choose_prior(config))
     problem = build_problem(config, check_scene=lambda scene: (
-        check_views_per_step(config, len(scene.views), config.scene), evaluation.read_ground_truth(scene)))
+        check_views_per_step(config, len(scene.views), config.scene), anchor_lib.check_anchor(config, scene),
+        evaluation.read_ground_truth(scene)))
     recorded = loop_lib.recorded_config(config, problem.choice.kind)
     banner = f"PRIOR: {problem.choice.kind.upper()} -- {problem.choice.reason}"
     logging.warning("%s\n%s\n%s", "=" * len(banner), banner, "=" * len(banner))

@@ -11,7 +11,8 @@ product and takes only the split from the estimates:
 
 (log s halves the disagreement between the two maps' gains, so an error of the model's overall
 brightness, which moves g_a and g_i alike, cancels). Rows: none (the distilled scale), estimates
-and split, each scored against GT as the main job scores (`evaluate.ground_truth.evaluate`):
+split and `--anchor=traced` (albedo × g, irradiance ÷ g, g from the irradiance traced from
+the photos: `export.anchor.traced_albedo_gain`), each scored against GT as the main job scores (`evaluate.ground_truth.evaluate`):
 
     python scripts/rescore_anchor.py --runs=data/exp_val_budget/room_0/room_0/sds+p1sa_v8r2,... \
         --json=docs/data/anchor_split.json
@@ -31,10 +32,17 @@ import numpy as np
 from jaxdistill.engine.config import DistillConfig, validate
 from jaxdistill.engine.problem import build_problem
 from jaxdistill.evaluate import ground_truth as evaluation, scoring
-from jaxdistill.export import anchor as anchor_lib
+from jaxdistill.export import anchor as anchor_lib, photo_light
 from jaxdistill.io.checkpoint import CheckpointStore
 
 METRICS = ("albedo_psnr", "albedo_si_psnr", "albedo_ssim", "irradiance_si_psnr")
+NAMES = ("none", "estimates", "split", "traced")
+
+
+def anchor_rows(gains: dict, traced: dict) -> tuple:
+    """(name, gains) of each row: as distilled, `--anchor=estimates`, its product-keeping split,
+    `--anchor=traced`."""
+    return ("none", {}), ("estimates", gains), ("split", split_gains(gains)), ("traced", traced)
 
 
 def split_gains(gains: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -69,8 +77,11 @@ def rescore(run: Path) -> dict:
         renders = evaluation.render_views(np.clip(texels, -1.0, 1.0), ctx.plan, ctx.cameras, problem.channels)
         hits = list(np.asarray(ctx.plan.hit).reshape(-1, ctx.plan.height, ctx.plan.width))
         gains = anchor_lib.anchor_gains(renders, baseline.views, hits, problem.channels.maps)
-        row = {"run": "/".join(run.parts[-4:]), "gains": {m: g.tolist() for m, g in gains.items()}}
-        for name, mode_gains in (("none", {}), ("estimates", gains), ("split", split_gains(gains))):
+        traced, record = photo_light.traced_albedo_gain(problem.scene, renders, hits, seed=config.seed)
+        traced = {} if traced is None else anchor_lib.traced_gains(traced, problem.channels.maps)
+        row = {"run": "/".join(run.parts[-4:]), "gains": {m: g.tolist() for m, g in gains.items()},
+               "traced_gains": {m: g.tolist() for m, g in traced.items()}, "trace": record}
+        for name, mode_gains in anchor_rows(gains, traced):
             scaled = anchor_lib.anchored_texels(texels, mode_gains, problem.channels)
             scores = evaluation.evaluate(evaluation.render_views(scaled, ctx.plan, ctx.cameras, problem.channels),
                                          ctx.gt_maps, ctx.masks, ctx.seams)
@@ -86,7 +97,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     args = parser.parse_args(argv)
     rows = [rescore(Path(r)) for r in args.runs.split(",") if r]
     means = {name: {k: float(np.mean([r[name][k] for r in rows])) for k in METRICS if k in rows[0][name]}
-             for name in ("none", "estimates", "split")}
+             for name in NAMES}
     for name, m in means.items():
         print("mean", name, " ".join(f"{k} {v:.3f}" for k, v in m.items()))
     if args.json:

@@ -223,3 +223,20 @@ def test_srgb_slope_is_x_times_the_encodings_derivative():
     exact = np.where(xd <= 0.0031308, 12.92, 1.055 / 2.4 * xd ** (1 / 2.4 - 1)) * xd
     assert_close(slope[inside], exact, rtol=1e-5)
     assert (slope[(x <= 0) | (x >= 1)] == 0).all()
+
+
+def test_anchor_traced_says_when_the_photos_show_too_little_of_the_light(problem, caplog):
+    from jaxdistill.evaluate.scoring import evaluation_context, per_view_baseline
+    from jaxdistill.export.anchor import anchor_to_baseline
+
+    # the tiny room's views circle at eye height: no photo shows its ceiling, so a quarter of every
+    # point's hemisphere has no known radiance (the gain itself: tests/test_light_trace.py's furnace)
+    config = DistillConfig(scene="unused", out_dir="unused", maps=problem.channels.maps, prior="views",
+                           anchor="traced")
+    ctx = evaluation_context(config, problem)
+    baseline = per_view_baseline(config, problem, ctx.shapes)
+    texels = np.full((problem.space.num_texels, 3), -0.6, np.float32)
+    with caplog.at_level("WARNING"):
+        out, record = anchor_to_baseline(config, problem, texels, ctx, baseline)
+    assert record is None and out is texels
+    assert "too few surface points have a known light" in caplog.text and "--anchor=estimates" in caplog.text

@@ -26,7 +26,7 @@ from jaxdistill.io.view_rows import VIEW_DATA
 PRIORS = ("auto", "rgbx", "views")
 LOSS_SPACES = ("image", "latent")
 ALIGN_MODES = ("none", "gain")
-ANCHOR_MODES = ("auto", "estimates", "none")
+ANCHOR_MODES = ("auto", "estimates", "traced", "none")
 ANNEALING = ("none", "linear", "sqrt")
 T_WEIGHTINGS = ("none", "sds")
 LATENT_MODES = ("mode", "sample")
@@ -169,8 +169,9 @@ def define_flags(fv: flags.FlagValues = flags.FLAGS, *, main_module: bool = Fals
     flags.DEFINE_enum("anchor", d.anchor, ANCHOR_MODES, "overall scale of the distilled albedo and irradiance: "
                       "estimates (after the loop, one gain per channel sets the renders' sRGB mean over the views to "
                       "the per-view estimates': the model's own with the rgbx prior, the scene's targets with views), "
-                      "none (as distilled), or auto: estimates with the rgbx prior, none with views (a fusion already "
-                      "has its targets' scale)", **where)
+                      "traced (albedo x g, irradiance / g: g from the irradiance traced through the mesh from the HDR "
+                      "photos' own radiance), none (as distilled), or auto: estimates with the rgbx prior, none with "
+                      "views (a fusion already has its targets' scale)", **where)
     flags.DEFINE_float("photo_weight", d.photo_weight, "weight of the re-rendering term: every view's photo rendered "
                        "back from the texels as albedo x irradiance and compared with the photo (0: off, the "
                        "prior alone)", **where)

@@ -26,12 +26,16 @@ from absl import logging
 from jaxdistill.engine.config import DistillConfig
 from jaxdistill.engine.gains import ALIGNED_MAPS
 from jaxdistill.engine.problem import Problem
+from jaxdistill.errors import InputError
 from jaxdistill.evaluate import ground_truth as evaluation
 from jaxdistill.evaluate.scoring import Baseline, EvalContext
-from jaxdistill.io.images import linear_to_srgb, linear_to_srgb_and_slope, srgb_to_linear
+from jaxdistill.export.photo_light import TRACE_MIN_POINTS, traced_albedo_gain
+from jaxdistill.io.images import is_linear_format, linear_to_srgb, linear_to_srgb_and_slope, srgb_to_linear
 from jaxdistill.scene.maps import MapChannels
+from jaxdistill.scene.model import Scene
 
 ANCHOR_GAIN_RANGE = (1.0 / 64.0, 64.0)
+ESCAPED_WARNING = 0.001     # --anchor=traced warns when more of its rays leave the mesh into what no photo shows
 
 
 def _display_mean_gain(render: np.ndarray, target_mean: float, tol: float = 1e-7) -> float:
@@ -108,10 +112,14 @@ def anchor_to_baseline(config: DistillConfig, problem: Problem, texels: np.ndarr
                        baseline: Baseline) -> tuple[np.ndarray, dict | None]:
     """With `--anchor` resolving to estimates (`anchor_mode`): the texels with albedo and irradiance
     scaled per channel so that their renders' sRGB mean over the covered pixels of all views is
-    the baseline's (`align.anchor_gains`), and what was done, for metrics.json; otherwise the
-    texels unchanged and None."""
-    if anchor_mode(config, problem) == "none":
+    the baseline's (`align.anchor_gains`); with traced: albedo × g and irradiance ÷ g with g from
+    the irradiance traced from the photos (`traced_albedo_gain`); and what was done, for
+    metrics.json. Otherwise the texels unchanged and None."""
+    mode = anchor_mode(config, problem)
+    if mode == "none":
         return texels, None
+    if mode == "traced":
+        return anchor_to_photos(config, problem, texels, ctx)
     gains = {}
     if baseline.views:
         # measured on the texels clipped to [-1, 1], as `anchored_texels` clips them before scaling
@@ -126,13 +134,65 @@ def anchor_to_baseline(config: DistillConfig, problem: Problem, texels: np.ndarr
         return texels, None
     logging.info("anchored to %s: per-channel gains %s", baseline.source,
                  ", ".join(f"{m} {np.round(g, 3).tolist()}" for m, g in gains.items()))
+    warn_extreme(gains, baseline.folder or "the scene's targets")
+    return (anchored_texels(texels, gains, problem.channels),
+            {"to": baseline.source, "gains": {m: g.tolist() for m, g in gains.items()}})
+
+
+def warn_extreme(gains: dict[str, np.ndarray], source) -> None:
+    """A warning naming each gain at the end of ANCHOR_GAIN_RANGE (the two scales disagree by more)."""
     low, high = ANCHOR_GAIN_RANGE
     extreme = [f"{m}[{c}] = {g:.3g}" for m, gs in gains.items() for c, g in enumerate(gs)
                if g <= low * 1.001 or g >= high * 0.999]
     if extreme:
-        logging.warning("--anchor: %s reached the end of the gain range [%g, %g]: the renders and the per-view "
-                        "estimates disagree about that channel's scale by more than the range (check the "
-                        "estimates in %s, or run with --anchor=none)", ", ".join(extreme), low, high,
-                        baseline.folder or "the scene's targets")
+        logging.warning("--anchor: %s reached the end of the gain range [%g, %g]: the renders and %s disagree "
+                        "about that channel's scale by more than the range (run with --anchor=none to keep the "
+                        "distilled scale)", ", ".join(extreme), low, high, source)
+
+
+def traced_gains(gain: np.ndarray, maps) -> dict[str, np.ndarray]:
+    """{albedo: g, irradiance: 1/g} (those of `maps`), g clipped to ANCHOR_GAIN_RANGE: the split
+    moves, the product albedo ⊙ irradiance that the photos fixed stays."""
+    g = np.clip(np.asarray(gain, np.float64), *ANCHOR_GAIN_RANGE)
+    return {m: x for m, x in (("albedo", g), ("irradiance", 1.0 / g)) if m in maps}
+
+
+def anchor_to_photos(config: DistillConfig, problem: Problem, texels: np.ndarray,
+                     ctx: EvalContext) -> tuple[np.ndarray, dict | None]:
+    """--anchor=traced: the albedo's scale from the photos' own light (`traced_albedo_gain`)."""
+    if "albedo" not in problem.channels.maps:
+        logging.warning("--anchor=traced: nothing to anchor: the run does not distil albedo")
+        return texels, None
+    renders = evaluation.render_views(np.clip(texels, -1.0, 1.0), ctx.plan, ctx.cameras, problem.channels,
+                                      lazy=problem.views_on_disk)
+    hits = np.asarray(ctx.plan.hit).reshape(-1, ctx.plan.height, ctx.plan.width)
+    gain, record = traced_albedo_gain(problem.scene, renders, list(hits), seed=config.seed)
+    if gain is None:
+        logging.warning("--anchor=traced: too few surface points have a known light (%d counted of %d, at least %d "
+                        "needed: the photos see too little of the room); the maps keep their distilled scale "
+                        "(or run with --anchor=estimates)", record["counted"], record["points"], TRACE_MIN_POINTS)
+        return texels, None
+    if record["escaped_unseen"] > ESCAPED_WARNING:
+        logging.warning("--anchor=traced: %.2g %% of the traced rays leave the mesh where no photo shows what lies "
+                        "beyond (windows, openings): that light is missing from the trace, so the albedo reads too "
+                        "bright (measured on generated rooms lit through windows: 1.2-1.7x; --anchor=estimates or "
+                        "none keep other scales)", 100 * record["escaped_unseen"])
+    gains = traced_gains(gain, problem.channels.maps)
+    logging.info("anchored to the photos' traced light: albedo gains %s", np.round(gains["albedo"], 3).tolist())
+    warn_extreme(gains, "the photos' traced light")
     return (anchored_texels(texels, gains, problem.channels),
-            {"to": baseline.source, "gains": {m: g.tolist() for m, g in gains.items()}})
+            {"to": "the irradiance traced from the photos", "gains": {m: g.tolist() for m, g in gains.items()},
+             "trace": record})
+
+
+def check_anchor(config: DistillConfig, scene: Scene) -> None:
+    """Before compute: --anchor=traced reads the photos' radiance, which LDR photos have lost
+    (sRGB-encoded and clipped, the lights above all, each view at its own auto-exposure)."""
+    if config.anchor != "traced":
+        return
+    ldr = [v for v in scene.views if not is_linear_format(v.photo)]
+    if ldr:
+        raise InputError.single(str(ldr[0].photo), "photo", f"--anchor=traced needs linear HDR photos (EXR): "
+                                f"{len(ldr)} of the {len(scene.views)} photos are LDR (sRGB-encoded, clipped; "
+                                f"the first: view {ldr[0].name}), whose lights read too dark; run with "
+                                f"--anchor=estimates or --anchor=none")
