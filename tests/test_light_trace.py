@@ -194,3 +194,54 @@ def test_the_traced_anchor_refuses_ldr_photos_before_compute(tmp_path):
         anchor.check_anchor(config, scene)
     anchor.check_anchor(dataclasses.replace(config, anchor="estimates"), scene)     # others read no radiance
     anchor.check_anchor(config, furnace_scene(tmp_path / "hdr"))
+
+
+def unit_cube() -> Mesh:
+    v = np.array([[x, y, z] for x in (0.0, 1.0) for y in (0.0, 1.0) for z in (0.0, 1.0)])
+    quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    faces = np.array([t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))], np.int64)
+    uv = np.tile(np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0]]), (len(faces), 1, 1))
+    return Mesh(v, faces, uv, np.zeros(len(faces), np.int32), ("cube",))
+
+
+def test_a_floor_point_sees_the_photographed_ceilings_form_factor():
+    """A unit cube seen whole by six views from inside; the photos show radiance 1 on the ceiling
+    and 0 elsewhere. At the floor's centre E/π is the ceiling's form factor, four corner
+    rectangles of 0.5 × 0.5 at height 1: 0.2394, found through the photos both by the
+    hemisphere's rays and by sampling the ceiling as an emitter (it is far brighter than the rest)."""
+    from jaxdistill.export.photo_light import PhotoRadiance
+
+    mesh, size = unit_cube(), 48
+    centre = np.array([0.5, 0.5, 0.5])
+    f = size / 2 / np.tan(np.radians(50))                # 100° field of view: each camera sees its whole wall
+    K = np.array([[f, 0, size / 2], [0, f, size / 2], [0, 0, 1.0]])
+    axes = [np.eye(3)[i] * s for i in range(3) for s in (1, -1)]
+    cams = [look_at(centre - 0.3 * d, centre + d, np.array([0.0, 0.0, 1.0]) if abs(d[1]) else np.array([0.0, 1.0, 0.0]),
+                    K, size, size) for d in axes]
+    caster = RayCaster(mesh)
+    ceiling = np.all(np.isclose(mesh.triangles()[:, :, 1], 1.0), axis=1)
+    triangles, depths, photos = [], [], []
+    for cam in cams:
+        o, d = cam.pixel_rays()
+        tri, _, dist = caster.intersect(o, d)
+        triangles.append(tri.reshape(size, size))
+        depths.append(np.where(tri >= 0, dist * (d @ cam.c2w[:3, 2]), np.inf).reshape(size, size))
+        photos.append(np.where(ceiling[np.maximum(tri, 0)] & (tri >= 0), 1.0, 0.0)[:, None].repeat(3, 1)
+                      .reshape(size, size, 3))
+    mean, pixels, peak = light_trace.face_radiance(len(mesh.faces), triangles, photos)
+    light = PhotoRadiance(cams, depths, photos, mean, pixels, mean[:1] * 0, np.zeros(1), None, None)
+    look = lambda y, tri: light.lookup(y, tri, mesh.face_object)
+    p, n = np.array([[0.5, 0.0, 0.5]]), np.array([[0.0, 1.0, 0.0]])
+    x = 0.5                                                        # each quarter: a 0.5 × 0.5 corner rectangle
+    quarter = (x / np.sqrt(1 + x * x) * np.arctan(x / np.sqrt(1 + x * x))) * 2 / (2 * np.pi)
+    expected = 4 * quarter                                         # 0.2394
+    e, known, escaped = light_trace.traced_irradiance(caster.intersect, p, n, look, rays=8192,
+                                                      rng=np.random.default_rng(1), offset=1e-6)
+    assert known[0] == 1 and escaped[0] == 0
+    # Monte Carlo with 8192 stratified rays, sd below sqrt(F (1 - F) / 8192) = 0.0047 (2 % of F)
+    assert_close(e[0], np.full(3, expected), rtol=0.06)
+    emitters = light_trace.find_emitters(mesh.vertices, mesh.faces, mesh.face_object, mean, pixels, peak)
+    assert sorted(emitters.faces.tolist()) == np.flatnonzero(ceiling).tolist()
+    e, _, _ = light_trace.traced_irradiance(caster.intersect, p, n, look, rays=64, rng=np.random.default_rng(2),
+                                            offset=1e-6, emitters=emitters, emitter_samples=8192)
+    assert_close(e[0], np.full(3, expected), rtol=0.03)

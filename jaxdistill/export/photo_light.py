@@ -186,8 +186,18 @@ def traced_albedo_gain(scene: Scene, renders, hits, *, seed: int = 0, views: int
     the median over the objects weighted by their points (a sun-lit floor does not decide it).
     A point counts where at least TRACE_KNOWN of its rays met a known radiance, some view sees
     it, and it is not on an emitter. None when fewer than TRACE_MIN_POINTS count."""
-    t = trace_points(scene, renders, hits, seed=seed, views=views, points=points, rays=rays)
-    ok = (t.known >= TRACE_KNOWN) & (t.views > 0) & ~t.emitter & (t.albedo > 1.0 / 255.0).all(axis=1)
+    return gain_from_points(trace_points(scene, renders, hits, seed=seed, views=views, points=points, rays=rays))
+
+
+def counted_points(t: TracedPoints) -> np.ndarray:
+    """(N,) bool: the points that count: at least TRACE_KNOWN of their rays met a known radiance,
+    some view sees them, they are not on an emitter and the albedo there is not black."""
+    return (t.known >= TRACE_KNOWN) & (t.views > 0) & ~t.emitter & (t.albedo > 1.0 / 255.0).all(axis=1)
+
+
+def gain_from_points(t: TracedPoints) -> tuple[np.ndarray | None, dict]:
+    """`traced_albedo_gain` from the traced points."""
+    ok = counted_points(t)
     record = {**t.record, "counted": int(ok.sum()),
               "escaped_unseen": float(t.escaped[ok].mean()) if ok.any() and t.background is None else 0.0}
     if ok.sum() < TRACE_MIN_POINTS:
