@@ -46,12 +46,14 @@ def weighted_median(values: np.ndarray, weights: np.ndarray) -> float:
 
 @dataclasses.dataclass(frozen=True)
 class TracedPoints:
-    """Surface points seen by the photos, with what the trace found there: radiance (N, 3) the
-    photos' mean over the views that see the point (views (N,)), albedo (N, 3) the run's render,
-    irradiance (N, 3) traced (E/π), known / escaped (N,) fractions of its rays, emitter (N,) on
-    an emitter's face, object (N,) the mesh object; background (3,) or None: what the photos show
-    where they hit nothing."""
+    """Surface points (N, 3) seen by the photos, their normals (N, 3) towards the views, and
+    what the trace found there: radiance (N, 3) the photos' mean over the views that see the
+    point (views (N,)), albedo (N, 3) the run's render, irradiance (N, 3) traced (E/π), known /
+    escaped (N,) fractions of its rays, emitter (N,) on an emitter's face, object (N,) the mesh
+    object; background (3,) or None: what the photos show where they hit nothing."""
 
+    points: np.ndarray
+    normals: np.ndarray
     radiance: np.ndarray
     views: np.ndarray
     albedo: np.ndarray
@@ -171,7 +173,7 @@ def trace_points(scene: Scene, renders, hits, *, seed: int = 0, views: int = TRA
               "escaped_mean": float(escaped.mean()) if len(escaped) else 0.0,
               "background": None if light.background is None else np.round(light.background, 5).tolist(),
               "emitter_faces": 0 if light.emitters is None else int(len(light.emitters.faces))}
-    return TracedPoints(radiance, seen, albedo, irradiance, known, escaped, emitting[face], mesh.face_object[face],
+    return TracedPoints(p, n, radiance, seen, albedo, irradiance, known, escaped, emitting[face], mesh.face_object[face],
                         light.background, record)
 
 
