@@ -11,8 +11,9 @@ product and takes only the split from the estimates:
 
 (log s halves the disagreement between the two maps' gains, so an error of the model's overall
 brightness, which moves g_a and g_i alike, cancels). Rows: none (the distilled scale), estimates
-split and `--anchor=traced` (albedo × g, irradiance ÷ g, g from the irradiance traced from
-the photos: `export.anchor.traced_albedo_gain`), each scored against GT as the main job scores (`evaluate.ground_truth.evaluate`):
+split, `--anchor=traced` (albedo × g, irradiance ÷ g, g from the irradiance traced from
+the photos: `export.photo_light.traced_albedo_gain`) and `--anchor=auto` (traced where the trace
+is trusted, `export.anchor.trace_trusted`, else estimates), each scored against GT as the main job scores (`evaluate.ground_truth.evaluate`):
 
     python scripts/rescore_anchor.py --runs=data/exp_val_budget/room_0/room_0/sds+p1sa_v8r2,... \
         --json=docs/data/anchor_split.json
@@ -36,13 +37,14 @@ from jaxdistill.export import anchor as anchor_lib, photo_light
 from jaxdistill.io.checkpoint import CheckpointStore
 
 METRICS = ("albedo_psnr", "albedo_si_psnr", "albedo_ssim", "irradiance_si_psnr")
-NAMES = ("none", "estimates", "split", "traced")
+NAMES = ("none", "estimates", "split", "traced", "auto")
 
 
-def anchor_rows(gains: dict, traced: dict) -> tuple:
+def anchor_rows(gains: dict, traced: dict, trusted: bool) -> tuple:
     """(name, gains) of each row: as distilled, `--anchor=estimates`, its product-keeping split,
-    `--anchor=traced`."""
-    return ("none", {}), ("estimates", gains), ("split", split_gains(gains)), ("traced", traced)
+    `--anchor=traced`, and `--anchor=auto` (traced where the trace is trusted, else estimates)."""
+    return (("none", {}), ("estimates", gains), ("split", split_gains(gains)), ("traced", traced),
+            ("auto", traced if trusted else gains))
 
 
 def split_gains(gains: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -81,7 +83,9 @@ def rescore(run: Path) -> dict:
         traced = {} if traced is None else anchor_lib.traced_gains(traced, problem.channels.maps)
         row = {"run": "/".join(run.parts[-4:]), "gains": {m: g.tolist() for m, g in gains.items()},
                "traced_gains": {m: g.tolist() for m, g in traced.items()}, "trace": record}
-        for name, mode_gains in anchor_rows(gains, traced):
+        trusted = bool(traced) and anchor_lib.trace_trusted(record)
+        row["trusted"] = trusted
+        for name, mode_gains in anchor_rows(gains, traced, trusted):
             scaled = anchor_lib.anchored_texels(texels, mode_gains, problem.channels)
             scores = evaluation.evaluate(evaluation.render_views(scaled, ctx.plan, ctx.cameras, problem.channels),
                                          ctx.gt_maps, ctx.masks, ctx.seams)

@@ -240,3 +240,43 @@ def test_anchor_traced_says_when_the_photos_show_too_little_of_the_light(problem
         out, record = anchor_to_baseline(config, problem, texels, ctx, baseline)
     assert record is None and out is texels
     assert "too few surface points have a known light" in caplog.text and "--anchor=estimates" in caplog.text
+
+
+def test_anchor_auto_with_the_rgbx_prior_takes_the_photos_light_only_where_it_can_be_trusted(problem, caplog):
+    from jaxdistill.evaluate.scoring import evaluation_context
+    from jaxdistill.export.anchor import ESCAPED_WARNING, anchor_mode, anchor_to_photos, trace_trusted
+
+    config = DistillConfig(scene="unused", out_dir="unused", maps=problem.channels.maps, prior="views")
+    rgbx = dataclasses.replace(problem, rgbx_model=object())
+    assert anchor_mode(config, problem) == "none" and anchor_mode(config, rgbx) == "photos"      # HDR photos
+    ldr = dataclasses.replace(rgbx, scene=dataclasses.replace(rgbx.scene, views=tuple(
+        dataclasses.replace(v, photo=v.photo.with_suffix(".png")) for v in rgbx.scene.views)))
+    assert anchor_mode(config, ldr) == "estimates"                      # LDR: their lights are clipped
+    assert trace_trusted({"escaped_unseen": ESCAPED_WARNING}) and not trace_trusted({"escaped_unseen": 0.01})
+    # the tiny room's ceiling is in no photo: an untrusted trace hands over to the estimates
+    ctx = evaluation_context(config, problem)
+    texels = np.full((problem.space.num_texels, 3), -0.6, np.float32)
+    with caplog.at_level("INFO"):
+        assert anchor_to_photos(config, rgbx, texels, ctx, trusted_only=True) is None
+    assert "--anchor=auto: the photos' traced light is not used (too few points with a known light)" in caplog.text
+
+
+def test_a_trusted_trace_scales_the_albedo_by_its_gain(problem, monkeypatch):
+    from jaxdistill.evaluate.scoring import evaluation_context, per_view_baseline
+    from jaxdistill.export import anchor as anchor_lib
+
+    # the gain's own estimator is tested against analytic light in tests/test_light_trace.py
+    record = {"escaped_unseen": 0.0, "counted": 500, "points": 512}
+    monkeypatch.setattr(anchor_lib, "traced_albedo_gain", lambda *a, **k: (np.array([2.0, 1.5, 0.5]), record))
+    config = DistillConfig(scene="unused", out_dir="unused", maps=problem.channels.maps, prior="views", anchor="auto")
+    rgbx = dataclasses.replace(problem, rgbx_model=object())
+    ctx = evaluation_context(config, rgbx)
+    baseline = per_view_baseline(config, problem, ctx.shapes)
+    texels = np.full((problem.space.num_texels, 3), -0.6, np.float32)           # albedo 0.2
+    out, done = anchor_lib.anchor_to_baseline(config, rgbx, texels, ctx, baseline)
+    assert done["to"] == "the irradiance traced from the photos" and done["trace"] is record
+    assert_close(np.asarray(done["gains"]["albedo"]), np.array([2.0, 1.5, 0.5]), rtol=1e-12)
+    assert_close(out, np.broadcast_to(np.array([0.4, 0.3, 0.1]) * 2 - 1, out.shape), rtol=1e-6, floor=1e-6)
+    record["escaped_unseen"] = 0.01                                              # untrusted: the estimates anchor
+    out, done = anchor_lib.anchor_to_baseline(config, rgbx, texels, ctx, baseline)
+    assert done["to"] == baseline.source

@@ -164,14 +164,15 @@ def define_flags(fv: flags.FlagValues = flags.FLAGS, *, main_module: bool = Fals
     flags.DEFINE_float("align_strength", d.align_strength, "ridge on the per-view log-gains, per unit of pixel "
                        "weight (--align=gain)", **where)
     flags.DEFINE_integer("estimate_steps", d.estimate_steps, "rgbx prior: DDIM steps of the model's own per-view "
-                         "estimates after the loop, the baseline the run is scored against and (--anchor=auto) the "
-                         "overall scale it is anchored to; fewer is faster and coarser (50: RGB<->X's demo)", **where)
+                         "estimates after the loop, the baseline the run is scored against and (--anchor=auto, "
+                         "unless the photos' traced light is used) the overall scale it is anchored to; fewer is faster and coarser (50: RGB<->X's demo)", **where)
     flags.DEFINE_enum("anchor", d.anchor, ANCHOR_MODES, "overall scale of the distilled albedo and irradiance: "
                       "estimates (after the loop, one gain per channel sets the renders' sRGB mean over the views to "
                       "the per-view estimates': the model's own with the rgbx prior, the scene's targets with views), "
                       "traced (albedo x g, irradiance / g: g from the irradiance traced through the mesh from the HDR "
-                      "photos' own radiance), none (as distilled), or auto: estimates with the rgbx prior, none with "
-                      "views (a fusion already has its targets' scale)", **where)
+                      "photos' own radiance), none (as distilled), or auto: with the rgbx prior traced where the HDR "
+                      "photos show all the light that leaves the mesh, else estimates; none with views (a fusion "
+                      "already has its targets' scale)", **where)
     flags.DEFINE_float("photo_weight", d.photo_weight, "weight of the re-rendering term: every view's photo rendered "
                        "back from the texels as albedo x irradiance and compared with the photo (0: off, the "
                        "prior alone)", **where)

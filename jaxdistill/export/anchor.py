@@ -100,12 +100,16 @@ def anchored_texels(texels: np.ndarray, gains: dict[str, np.ndarray], channels: 
 
 
 def anchor_mode(config: DistillConfig, problem: Problem) -> str:
-    """--anchor resolved: auto is `estimates` with the rgbx prior (SDS follows the prior's x̂0 and
-    drifts from the estimates' overall scale) and `none` with the views prior (a least-squares
-    fusion of the targets has their scale already; docs/seams.md measures both)."""
+    """--anchor resolved. auto with the rgbx prior: `photos` when every photo is HDR (the scale
+    from the photos' traced light where they show all the light that leaves the mesh, else from
+    the estimates: `anchor_to_photos`), else `estimates` (SDS follows the prior's x̂0 and drifts
+    from the estimates' overall scale); with the views prior `none` (a least-squares fusion of
+    the targets has their scale already; docs/seams.md measures both)."""
     if config.anchor != "auto":
         return config.anchor
-    return "estimates" if problem.rgbx_model is not None else "none"
+    if problem.rgbx_model is None:
+        return "none"
+    return "photos" if all(is_linear_format(v.photo) for v in problem.scene.views) else "estimates"
 
 
 def anchor_to_baseline(config: DistillConfig, problem: Problem, texels: np.ndarray, ctx: EvalContext,
@@ -113,13 +117,16 @@ def anchor_to_baseline(config: DistillConfig, problem: Problem, texels: np.ndarr
     """With `--anchor` resolving to estimates (`anchor_mode`): the texels with albedo and irradiance
     scaled per channel so that their renders' sRGB mean over the covered pixels of all views is
     the baseline's (`align.anchor_gains`); with traced: albedo × g and irradiance ÷ g with g from
-    the irradiance traced from the photos (`traced_albedo_gain`); and what was done, for
-    metrics.json. Otherwise the texels unchanged and None."""
+    the irradiance traced from the photos (`traced_albedo_gain`); with photos: traced where the
+    trace can be trusted, else estimates; and what was done, for metrics.json. Otherwise the
+    texels unchanged and None."""
     mode = anchor_mode(config, problem)
     if mode == "none":
         return texels, None
-    if mode == "traced":
-        return anchor_to_photos(config, problem, texels, ctx)
+    if mode in ("traced", "photos"):
+        anchored = anchor_to_photos(config, problem, texels, ctx, trusted_only=mode == "photos")
+        if anchored is not None:
+            return anchored
     gains = {}
     if baseline.views:
         # measured on the texels clipped to [-1, 1], as `anchored_texels` clips them before scaling
@@ -157,26 +164,44 @@ def traced_gains(gain: np.ndarray, maps) -> dict[str, np.ndarray]:
     return {m: x for m, x in (("albedo", g), ("irradiance", 1.0 / g)) if m in maps}
 
 
-def anchor_to_photos(config: DistillConfig, problem: Problem, texels: np.ndarray,
-                     ctx: EvalContext) -> tuple[np.ndarray, dict | None]:
-    """--anchor=traced: the albedo's scale from the photos' own light (`traced_albedo_gain`)."""
+def trace_trusted(record: dict) -> bool:
+    """Whether a trace (`traced_albedo_gain`'s record) saw the light that leaves the mesh: at most
+    ESCAPED_WARNING of its rays left where no photo shows what lies beyond."""
+    return record["escaped_unseen"] <= ESCAPED_WARNING
+
+
+def anchor_to_photos(config: DistillConfig, problem: Problem, texels: np.ndarray, ctx: EvalContext, *,
+                     trusted_only: bool = False) -> tuple[np.ndarray, dict | None] | None:
+    """The albedo's scale from the photos' own light (`traced_albedo_gain`): the anchored texels
+    and the record. --anchor=traced: the texels unchanged and None when the trace has too few
+    points (a warning), a warning when light left the mesh unseen. With `trusted_only`
+    (--anchor=auto): None when the trace cannot be trusted (`trace_trusted`), for the estimates
+    to anchor instead (an info line says why)."""
     if "albedo" not in problem.channels.maps:
-        logging.warning("--anchor=traced: nothing to anchor: the run does not distil albedo")
-        return texels, None
+        if not trusted_only:
+            logging.warning("--anchor=traced: nothing to anchor: the run does not distil albedo")
+            return texels, None
+        return None
     renders = evaluation.render_views(np.clip(texels, -1.0, 1.0), ctx.plan, ctx.cameras, problem.channels,
                                       lazy=problem.views_on_disk)
     hits = np.asarray(ctx.plan.hit).reshape(-1, ctx.plan.height, ctx.plan.width)
     gain, record = traced_albedo_gain(problem.scene, renders, list(hits), seed=config.seed)
+    if trusted_only and (gain is None or not trace_trusted(record)):
+        logging.info("--anchor=auto: the photos' traced light is not used (%s): anchoring to the estimates",
+                     "too few points with a known light" if gain is None else
+                     f"{100 * record['escaped_unseen']:.2g} % of its rays left the mesh where no photo shows what "
+                     "lies beyond")
+        return None
     if gain is None:
         logging.warning("--anchor=traced: too few surface points have a known light (%d counted of %d, at least %d "
                         "needed: the photos see too little of the room); the maps keep their distilled scale "
                         "(or run with --anchor=estimates)", record["counted"], record["points"], TRACE_MIN_POINTS)
         return texels, None
-    if record["escaped_unseen"] > ESCAPED_WARNING:
+    if not trace_trusted(record):
         logging.warning("--anchor=traced: %.2g %% of the traced rays leave the mesh where no photo shows what lies "
                         "beyond (windows, openings): that light is missing from the trace, so the albedo reads too "
-                        "bright (measured on generated rooms lit through windows: 1.2-1.7x; --anchor=estimates or "
-                        "none keep other scales)", 100 * record["escaped_unseen"])
+                        "bright (measured on generated rooms lit through windows: 1.2-1.7x; --anchor=auto uses the "
+                        "estimates then)", 100 * record["escaped_unseen"])
     gains = traced_gains(gain, problem.channels.maps)
     logging.info("anchored to the photos' traced light: albedo gains %s", np.round(gains["albedo"], 3).tolist())
     warn_extreme(gains, "the photos' traced light")
