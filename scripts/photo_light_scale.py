@@ -60,6 +60,8 @@ def main():
                         "samples) per point")
     parser.add_argument("--json", type=Path, help="write the results here")
     args = parser.parse_args()
+    if args.points < 1 or args.rays < 1:
+        parser.error(f"--points and --rays must be at least 1 (got {args.points}, {args.rays})")
     results = {}
     for path in args.scenes.split(","):
         results[Path(path).name] = scene_scale(path, points=args.points, rays=args.rays)

@@ -10,10 +10,11 @@ product and takes only the split from the estimates:
     split:  albedo × s,  irradiance ÷ s,   s_c = (g_a,c / g_i,c)^½
 
 (log s halves the disagreement between the two maps' gains, so an error of the model's overall
-brightness, which moves g_a and g_i alike, cancels). Rows: none (the distilled scale), estimates
+brightness, which moves g_a and g_i alike, cancels). Rows: none (the distilled scale), estimates,
 split, `--anchor=traced` (albedo × g, irradiance ÷ g, g from the irradiance traced from
 the photos: `export.photo_light.traced_albedo_gain`) and `--anchor=auto` (traced where the trace
-is trusted, `export.anchor.trace_trusted`, else estimates), each scored against GT as the main job scores (`evaluate.ground_truth.evaluate`):
+is trusted, `export.anchor.trace_trusted`, else estimates), each scored against GT as the
+main job scores (`evaluate.ground_truth.evaluate`):
 
     python scripts/rescore_anchor.py --runs=data/exp_val_budget/room_0/room_0/sds+p1sa_v8r2,... \
         --json=docs/data/anchor_split.json

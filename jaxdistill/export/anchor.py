@@ -165,8 +165,10 @@ def traced_gains(gain: np.ndarray, maps) -> dict[str, np.ndarray]:
 
 
 def trace_trusted(record: dict) -> bool:
-    """Whether a trace (`traced_albedo_gain`'s record) saw the light that leaves the mesh: at most
-    ESCAPED_WARNING of its rays left where no photo shows what lies beyond."""
+    """Whether a trace (`traced_albedo_gain`'s record) can be trusted: at most ESCAPED_WARNING of
+    its rays left the mesh with no radiance to take, i.e. the photos show a background (pixels
+    that hit nothing, whose mean every escaping ray takes, whatever its direction) or almost no
+    ray escapes (a closed room). It does not see a directional sun (README "the overall scale")."""
     return record["escaped_unseen"] <= ESCAPED_WARNING
 
 
@@ -200,7 +202,7 @@ def anchor_to_photos(config: DistillConfig, problem: Problem, texels: np.ndarray
     if not trace_trusted(record):
         logging.warning("--anchor=traced: %.2g %% of the traced rays leave the mesh where no photo shows what lies "
                         "beyond (windows, openings): that light is missing from the trace, so the albedo reads too "
-                        "bright (measured on generated rooms lit through windows: 1.2-1.7x; --anchor=auto uses the "
+                        "bright (measured on generated rooms lit through windows: up to 2x; --anchor=auto uses the "
                         "estimates then)", 100 * record["escaped_unseen"])
     gains = traced_gains(gain, problem.channels.maps)
     logging.info("anchored to the photos' traced light: albedo gains %s", np.round(gains["albedo"], 3).tolist())

@@ -24,7 +24,7 @@ import dataclasses
 
 import numpy as np
 
-from jaxdistill.io.images import read_image
+from jaxdistill.io.view_images import read_mask, read_photo_linear
 from jaxdistill.render import light_trace
 from jaxdistill.render.fragments import RayCaster, cast_view
 from jaxdistill.scene.model import Scene
@@ -96,19 +96,27 @@ class PhotoRadiance:
 
 
 def read_photo_radiance(scene: Scene, chosen: np.ndarray, caster: RayCaster) -> PhotoRadiance:
-    """The photos of the views `chosen` (raw linear values: their exposure cancels in
-    radiance / irradiance) with their own ray casts."""
+    """The photos of the views `chosen`, linear and exposed as the scene says (a shared exposure
+    cancels in radiance / irradiance), with their own ray casts; unusable pixels (an LDR photo's
+    clipped ones, a mask's empty ones) are seen by no one."""
     mesh = scene.mesh
     cams = [scene.views[v].camera for v in chosen]
     depths, photos, triangles, background = [], [], [], []
     for v, cam in zip(chosen, cams):
+        view = scene.views[v]
         tri, _, dist = cast_view(caster, cam)
+        tri = tri.copy()
+        photo, usable = read_photo_linear(view.photo, view.exposure, cam.height, cam.width)
+        # a mask drops emitters from the loss, but their light is what the trace needs: a masked
+        # pixel counts unless it holds no light at all (an undistortion's unfilled border)
+        empty = ~read_mask(view.mask, cam.height, cam.width) & ~(photo > 0).any(axis=-1) if view.mask \
+            else np.zeros(usable.shape, bool)
+        tri[(usable < 0.5) | empty] = -2                         # seen by no pixel of this view
         forward = cam.pixel_rays()[1].reshape(cam.height, cam.width, 3) @ cam.c2w[:3, 2]
         depths.append(np.where(tri >= 0, dist * forward, np.inf).astype(np.float32))
-        photo = np.asarray(read_image(scene.views[v].photo), np.float32)[..., :3]
         photos.append(photo)
         triangles.append(tri)
-        background.append(photo[tri < 0])
+        background.append(photo[tri == -1])
     background = np.concatenate(background)
     sky = (background.mean(axis=0, dtype=np.float64)
            if len(background) >= BACKGROUND_PIXELS * sum(d.size for d in depths) else None)
@@ -122,12 +130,13 @@ def read_photo_radiance(scene: Scene, chosen: np.ndarray, caster: RayCaster) -> 
     return PhotoRadiance(cams, depths, photos, face_mean, face_pixels, object_mean, object_pixels, emitters, sky)
 
 
-def surface_points(mesh, caster: RayCaster, cameras, hits, renders, count: int, rng: np.random.Generator):
+def surface_points(mesh, caster: RayCaster, cameras, views, hits, renders, count: int, rng: np.random.Generator):
     """(points (N, 3), normals (N, 3) towards the camera, faces (N,), albedo (N, 3)) at `count`
-    random covered pixels (hits[k] (H, W)) of each camera, albedo from renders[k]["albedo"]."""
+    random covered pixels (hits[v] (H, W)) of each camera of views v, albedo from
+    renders[v]["albedo"] (read a view at a time: renders may be lazy)."""
     out = [], [], [], []
-    for cam, hit, render in zip(cameras, hits, renders):
-        rows, cols = np.nonzero(np.asarray(hit))
+    for cam, v in zip(cameras, views):
+        rows, cols = np.nonzero(np.asarray(hits[v]))
         if not len(rows):
             continue
         pick = rng.choice(len(rows), min(count, len(rows)), replace=False)
@@ -139,8 +148,8 @@ def surface_points(mesh, caster: RayCaster, cameras, hits, renders, count: int, 
         n = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
         n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
         n *= -np.sign(np.einsum("nc,nc->n", n, d[keep]))[:, None]
-        for part, value in zip(out, (o[keep] + dist[keep, None] * d[keep], n, tri[keep],
-                                     np.asarray(render["albedo"], np.float64)[r[keep], c[keep], :3])):
+        albedo = np.asarray(renders[v]["albedo"], np.float64)[r[keep], c[keep], :3]
+        for part, value in zip(out, (o[keep] + dist[keep, None] * d[keep], n, tri[keep], albedo)):
             part.append(value)
     if not out[0]:
         return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros((0, 3))
@@ -159,8 +168,7 @@ def trace_points(scene: Scene, renders, hits, *, seed: int = 0, views: int = TRA
     mesh = scene.mesh
     caster = RayCaster(mesh)
     light = read_photo_radiance(scene, chosen, caster)
-    p, n, face, albedo = surface_points(mesh, caster, light.cameras, [hits[v] for v in chosen],
-                                        [renders[v] for v in chosen], points, rng)
+    p, n, face, albedo = surface_points(mesh, caster, light.cameras, chosen, hits, renders, points, rng)
     radiance, seen = light_trace.visible_radiance(p, light.cameras, light.depths, light.photos)
     irradiance, known, escaped = light_trace.traced_irradiance(
         caster.intersect, p, n, lambda y, tri: light.lookup(y, tri, mesh.face_object), rays=rays, rng=rng,
@@ -201,7 +209,7 @@ def gain_from_points(t: TracedPoints) -> tuple[np.ndarray | None, dict]:
     """`traced_albedo_gain` from the traced points."""
     ok = counted_points(t)
     record = {**t.record, "counted": int(ok.sum()),
-              "escaped_unseen": float(t.escaped[ok].mean()) if ok.any() and t.background is None else 0.0}
+              "escaped_unseen": float(t.escaped.mean()) if len(t.escaped) and t.background is None else 0.0}
     if ok.sum() < TRACE_MIN_POINTS:
         return None, record
     ids, inverse, count = np.unique(t.object[ok], return_inverse=True, return_counts=True)

@@ -13,12 +13,12 @@ overall exposure cancels in albedo = L(p) / (E(p)/π), so this gives the albedo'
 with no prior, which score distillation cannot (albedo ⊙ irradiance is all the photos fix).
 
 What it cannot see: light from no surface a photo shows (a directional sun, point lights: their
-patches read too bright an albedo; `export.anchor` takes a median over many points), and rays
+patches read too bright an albedo; `export.photo_light` takes a median over objects), and rays
 that leave through openings (counted as unknown unless the photos show what lies beyond: pixels
 that hit no surface give one background radiance) or hit surfaces no view sees (unknown).
 
 Primitives on arrays, no I/O (the caller reads the photos): `cosine_directions`, `visible_radiance`,
-`traced_irradiance`.
+`face_radiance`, `find_emitters`, `emitted_irradiance`, `traced_irradiance`.
 """
 
 from __future__ import annotations
@@ -33,6 +33,7 @@ from jaxdistill.scene.cameras import Camera
 DEPTH_TOLERANCE = 0.01      # a view sees y when its own depth at y's pixel is within 1 % of y's depth
 CHUNK = 1 << 18             # points per projection pass
 EMITTER_RATIO = 30.0        # a face is an emitter when its photos' luminance is this × the median face pixel's
+DARK_FLOOR = 1e-5           # find_emitters' reference is at least this × the brightest face's luminance
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
 
@@ -116,6 +117,8 @@ def face_radiance(num_faces: int, triangles: Sequence[np.ndarray], radiance: Seq
     peak_lum = np.full(num_faces, -np.inf)
     for tri, image in zip(triangles, radiance):
         hit = tri >= 0
+        if not hit.any():                                    # a view that sees no surface
+            continue
         faces, values = tri[hit], image[hit].astype(np.float64)
         pixels += np.bincount(faces, minlength=num_faces)
         for c in range(3):
@@ -137,9 +140,10 @@ def find_emitters(vertices: np.ndarray, faces: np.ndarray, face_object: np.ndarr
     whose back no photo shows), with the object's mean radiance over its emitting pixels. With
     `peak` (F, 3), each emitting face's brightest pixel instead of its mean, and the object's
     brightest for the faces no photo shows: a small light's pixels mostly cover its edge and
-    something darker beside it, and the brightest is the one that covers only the light.
-    A bright sun patch taken for one does no harm: its light is then sampled towards, not found
-    by the hemisphere's rays, with the same expectation."""
+    something darker beside it, and the brightest is the one that covers only the light. A
+    bright sun patch taken for one is sampled towards instead of found by the hemisphere's rays:
+    with its mean, the same expectation; with its peak, more light than it sends where its
+    brightness varies (a panel brighter at its rim reads too bright, README "the overall scale")."""
     lum = mean @ LUMINANCE
     seen = pixels > 0
     if not seen.any():
@@ -147,7 +151,11 @@ def find_emitters(vertices: np.ndarray, faces: np.ndarray, face_object: np.ndarr
     order = np.argsort(lum[seen])
     cumulative = np.cumsum(pixels[seen][order])
     reference = lum[seen][order][np.searchsorted(cumulative, 0.5 * cumulative[-1])]      # the median pixel's
-    bright = seen & (lum > ratio * max(reference, 1e-12))
+    # most pixels black: a floor under the brightest face's, so that not every lit face is a light
+    reference = max(reference, DARK_FLOOR * float(lum[seen].max()))
+    if reference <= 0:
+        return None
+    bright = seen & (lum > ratio * reference)
     if not bright.any():
         return None
     objects = int(face_object.max()) + 1
@@ -159,8 +167,10 @@ def find_emitters(vertices: np.ndarray, faces: np.ndarray, face_object: np.ndarr
                                          minlength=objects) for c in range(3)], axis=1) / np.maximum(bright_pixels, 1)[:, None]
     else:                       # the object's brightest pixel on an emitting face
         radiance = np.zeros((objects, 3))
-        order = np.flatnonzero(bright)[np.argsort(peak[bright] @ LUMINANCE)]       # brightest last
-        radiance[face_object[order]] = peak[order]
+        faces_lit = np.flatnonzero(bright)
+        order = faces_lit[np.lexsort((peak[faces_lit] @ LUMINANCE, face_object[faces_lit]))]   # by object, brightest last
+        last = np.r_[face_object[order][1:] != face_object[order][:-1], True]
+        radiance[face_object[order][last]] = peak[order][last]
     fill = ~seen & emitting_object[face_object]
     chosen = np.flatnonzero(bright | fill)
     corners = np.asarray(vertices, np.float64)[np.asarray(faces)[chosen]]
@@ -215,11 +225,16 @@ def traced_irradiance(intersect: Callable, points: np.ndarray, normals: np.ndarr
     intersect(origins (M, 3), directions (M, 3)) → (triangle (M,), barycentric, distance (M,)),
     -1 / inf on a miss (`fragments.RayCaster.intersect`); lookup(points (M, 3), triangles (M,))
     → (radiance (M, 3), known (M,) bool) at hit points. A hit of unknown radiance takes the mean
-    of the point's known hits; a ray that hits nothing takes `background` (3,) if given (and is
+    of the point's known hits (emitters aside); a ray that hits nothing takes `background` (3,) if given (and is
     known), else adds nothing: the caller may add escaped × its own background. With `emitters`,
     their light is sampled directly (`emitted_irradiance`, `emitter_samples` shadow rays per
     point) and a hemisphere ray that hits one adds nothing (it is counted there). Origins move
     `offset` (world units) along the normal so that a ray does not hit its own surface."""
+    if rays < 1:
+        raise ValueError(f"traced_irradiance: rays must be at least 1, got {rays}")
+    if emitters is not None and emitter_samples < 1:
+        raise ValueError("traced_irradiance: emitters given with emitter_samples < 1: the rays that hit them add "
+                         "nothing, so their light would be lost")
     pts = np.asarray(points, np.float64).reshape(-1, 3)
     nrm = np.asarray(normals, np.float64).reshape(-1, 3)
     irradiance = np.zeros((len(pts), 3), np.float64)
@@ -240,18 +255,19 @@ def traced_irradiance(intersect: Callable, points: np.ndarray, normals: np.ndarr
         ok = np.zeros(len(tri), bool)
         y = o.reshape(-1, 3)[hit] + dist[hit, None] * d.reshape(-1, 3)[hit]
         value[hit], ok[hit] = lookup(y, tri[hit])
+        on = np.zeros(len(tri), bool)
         if emitting is not None:
             on = hit & (tri < len(emitting))
             on[on] = emitting[tri[on]]
-            value[on], ok[on] = 0.0, True
-        value, ok, hit = value.reshape(d.shape), ok.reshape(d.shape[:2]), hit.reshape(d.shape[:2])
-        hits, found = hit.sum(axis=1), ok.sum(axis=1)
+            value[on], ok[on] = 0.0, False          # counted by the direct sampling below
+        shape = d.shape[:2]
+        value, ok, hit, on = value.reshape(d.shape), ok.reshape(shape), hit.reshape(shape), on.reshape(shape)
+        surfaces, found = (hit & ~on).sum(axis=1), ok.sum(axis=1)
         hit_mean = np.divide((value * ok[..., None]).sum(axis=1), found[:, None], out=np.zeros((len(found), 3)),
                              where=found[:, None] > 0)
-        irradiance[sl] = hit_mean * (hits / rays)[:, None]           # unknown hits at the known hits' mean
-        misses = rays - hits
-        escaped[sl] = misses / rays
-        known[sl] = found / rays
+        irradiance[sl] = hit_mean * (surfaces / rays)[:, None]      # unknown surfaces at the known ones' mean
+        escaped[sl] = (rays - hit.sum(axis=1)) / rays
+        known[sl] = (found + on.sum(axis=1)) / rays
         if background is not None:
             irradiance[sl] += np.asarray(background, np.float64)[:3] * escaped[sl, None]
             known[sl] += escaped[sl]
