@@ -84,6 +84,8 @@ def rescore(run: Path) -> dict:
         traced = {} if traced is None else anchor_lib.traced_gains(traced, problem.channels.maps)
         row = {"run": "/".join(run.parts[-4:]), "gains": {m: g.tolist() for m, g in gains.items()},
                "traced_gains": {m: g.tolist() for m, g in traced.items()}, "trace": record}
+        if traced:
+            record["albedo_above_one"] = anchor_lib.albedo_above_one(texels, traced["albedo"], problem.channels)
         trusted = bool(traced) and anchor_lib.trace_trusted(record)
         row["trusted"] = trusted
         for name, mode_gains in anchor_rows(gains, traced, trusted):

@@ -277,6 +277,23 @@ def test_a_trusted_trace_scales_the_albedo_by_its_gain(problem, monkeypatch):
     assert done["to"] == "the irradiance traced from the photos" and done["trace"] is record
     assert_close(np.asarray(done["gains"]["albedo"]), np.array([2.0, 1.5, 0.5]), rtol=1e-12)
     assert_close(out, np.broadcast_to(np.array([0.4, 0.3, 0.1]) * 2 - 1, out.shape), rtol=1e-6, floor=1e-6)
+    assert done["trace"]["albedo_above_one"] == 0.0
     record["escaped_unseen"] = 0.01                                              # untrusted: the estimates anchor
     out, done = anchor_lib.anchor_to_baseline(config, rgbx, texels, ctx, baseline)
     assert done["to"] == baseline.source
+    # a gain that makes albedo brighter than any surface (0.2 × 6 > 1): light the photos do not show
+    record["escaped_unseen"] = 0.0
+    monkeypatch.setattr(anchor_lib, "traced_albedo_gain", lambda *a, **k: (np.array([6.0, 1.0, 1.0]), record))
+    out, done = anchor_lib.anchor_to_baseline(config, rgbx, texels, ctx, baseline)
+    assert done["to"] == baseline.source and record["albedo_above_one"] == 1.0
+
+
+def test_albedo_above_one_counts_the_texels_a_gain_pushes_past_white():
+    from jaxdistill.export.anchor import albedo_above_one
+
+    channels = MapChannels(("albedo", "roughness"))
+    albedo = np.array([[0.1, 0.1, 0.1], [0.5, 0.2, 0.2], [0.2, 0.2, 0.6], [0.9, 0.9, 0.9]])
+    texels = np.concatenate([albedo * 2 - 1, np.zeros((4, 1))], axis=1).astype(np.float32)
+    assert albedo_above_one(texels, np.array([2.5, 1.0, 1.0]), channels) == 0.5     # 1.25 and 2.25 in red
+    assert albedo_above_one(texels, np.array([1.0, 1.0, 1.0]), channels) == 0.0
+    assert albedo_above_one(texels, np.array([1.0, 1.0, 2.0]), channels) == 0.5     # 1.2 and 1.8 in blue

@@ -36,6 +36,7 @@ from jaxdistill.scene.model import Scene
 
 ANCHOR_GAIN_RANGE = (1.0 / 64.0, 64.0)
 ESCAPED_WARNING = 0.001     # --anchor=traced warns when more of its rays leave the mesh into what no photo shows
+ABOVE_ONE_LIMIT = 0.1       # ... and when its gain puts more than this fraction of the albedo texels above 1
 
 
 def _display_mean_gain(render: np.ndarray, target_mean: float, tol: float = 1e-7) -> float:
@@ -164,12 +165,21 @@ def traced_gains(gain: np.ndarray, maps) -> dict[str, np.ndarray]:
     return {m: x for m, x in (("albedo", g), ("irradiance", 1.0 / g)) if m in maps}
 
 
+def albedo_above_one(texels: np.ndarray, gain: np.ndarray, channels: MapChannels) -> float:
+    """The fraction of texels whose albedo (file value, clipped to [0, 1]) times `gain` (3,)
+    exceeds 1 in some channel: an albedo no surface has, so light the trace missed."""
+    albedo = np.clip((np.asarray(texels[:, channels.slice("albedo")], np.float32) + 1.0) / 2.0, 0.0, 1.0)
+    return float(np.mean(np.any(albedo * np.asarray(gain, np.float32) > 1.0, axis=1))) if len(albedo) else 0.0
+
+
 def trace_trusted(record: dict) -> bool:
     """Whether a trace (`traced_albedo_gain`'s record) can be trusted: at most ESCAPED_WARNING of
     its rays left the mesh with no radiance to take, i.e. the photos show a background (pixels
     that hit nothing, whose mean every escaping ray takes, whatever its direction) or almost no
-    ray escapes (a closed room). It does not see a directional sun (README "the overall scale")."""
-    return record["escaped_unseen"] <= ESCAPED_WARNING
+    ray escapes (a closed room); and its gain puts at most ABOVE_ONE_LIMIT of the albedo texels
+    above 1 (more means light the photos do not show: a ceiling light no view looks at). It does
+    not see a directional sun (README "the overall scale")."""
+    return record["escaped_unseen"] <= ESCAPED_WARNING and record.get("albedo_above_one", 0.0) <= ABOVE_ONE_LIMIT
 
 
 def anchor_to_photos(config: DistillConfig, problem: Problem, texels: np.ndarray, ctx: EvalContext, *,
@@ -188,18 +198,24 @@ def anchor_to_photos(config: DistillConfig, problem: Problem, texels: np.ndarray
                                       lazy=problem.views_on_disk)
     hits = np.asarray(ctx.plan.hit).reshape(-1, ctx.plan.height, ctx.plan.width)
     gain, record = traced_albedo_gain(problem.scene, renders, list(hits), seed=config.seed)
+    if gain is not None:
+        record["albedo_above_one"] = albedo_above_one(texels, gain, problem.channels)
     if trusted_only and (gain is None or not trace_trusted(record)):
         logging.info("--anchor=auto: the photos' traced light is not used (%s): anchoring to the estimates",
                      "too few points with a known light" if gain is None else
                      f"{100 * record['escaped_unseen']:.2g} % of its rays left the mesh where no photo shows what "
-                     "lies beyond")
+                     f"lies beyond, {100 * record['albedo_above_one']:.2g} % of the albedo would exceed 1")
         return None
     if gain is None:
         logging.warning("--anchor=traced: too few surface points have a known light (%d counted of %d, at least %d "
                         "needed: the photos see too little of the room); the maps keep their distilled scale "
                         "(or run with --anchor=estimates)", record["counted"], record["points"], TRACE_MIN_POINTS)
         return texels, None
-    if not trace_trusted(record):
+    if record["albedo_above_one"] > ABOVE_ONE_LIMIT:
+        logging.warning("--anchor=traced: its gain puts %.2g %% of the albedo above 1: the photos do not show all of "
+                        "the light (a light no view looks at?), so the albedo reads too bright; --anchor=auto uses "
+                        "the estimates then", 100 * record["albedo_above_one"])
+    if record["escaped_unseen"] > ESCAPED_WARNING:
         logging.warning("--anchor=traced: %.2g %% of the traced rays leave the mesh where no photo shows what lies "
                         "beyond (windows, openings): that light is missing from the trace, so the albedo reads too "
                         "bright (measured on generated rooms lit through windows: up to 2x; --anchor=auto uses the "
