@@ -171,7 +171,8 @@ def define_flags(fv: flags.FlagValues = flags.FLAGS, *, main_module: bool = Fals
                       "the per-view estimates': the model's own with the rgbx prior, the scene's targets with views), "
                       "traced (albedo x g, irradiance / g: g from the irradiance traced through the mesh from the HDR "
                       "photos' own radiance), none (as distilled), or auto: with the rgbx prior traced where the HDR "
-                      "photos show what the trace's escaping rays meet (a background, or a closed room), else estimates; none with views (a fusion "
+                      "photos show what the trace's escaping rays meet (a background, or a closed room) and its gain "
+                      "puts at most a tenth of the albedo above 1, else estimates; none with views (a fusion "
                       "already has its targets' scale)", **where)
     flags.DEFINE_float("photo_weight", d.photo_weight, "weight of the re-rendering term: every view's photo rendered "
                        "back from the texels as albedo x irradiance and compared with the photo (0: off, the "
