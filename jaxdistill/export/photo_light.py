@@ -26,7 +26,7 @@ import numpy as np
 
 from jaxdistill.io.view_images import read_mask, read_photo_linear
 from jaxdistill.render import light_trace
-from jaxdistill.render.fragments import RayCaster, cast_view
+from jaxdistill.render.fragments import RayCaster, compute_fragments
 from jaxdistill.scene.model import Scene
 
 TRACE_VIEWS = 64            # --anchor=traced: views whose photos give the radiance (evenly spaced)
@@ -95,25 +95,25 @@ class PhotoRadiance:
         return radiance, (seen > 0) | face_seen | (self.object_pixels[obj] > 0)
 
 
-def read_photo_radiance(scene: Scene, chosen: np.ndarray, caster: RayCaster) -> PhotoRadiance:
+def read_photo_radiance(scene: Scene, chosen: np.ndarray) -> PhotoRadiance:
     """The photos of the views `chosen`, linear and exposed as the scene says (a shared exposure
-    cancels in radiance / irradiance), with their own ray casts; unusable pixels (an LDR photo's
+    cancels in radiance / irradiance), with their fragments (the set-up's cached ray casts); unusable pixels (an LDR photo's
     clipped ones, a mask's empty ones) are seen by no one."""
     mesh = scene.mesh
     cams = [scene.views[v].camera for v in chosen]
     depths, photos, triangles, background = [], [], [], []
-    for v, cam in zip(chosen, cams):
+    frags = compute_fragments(mesh, cams, progress=False)      # the set-up's ray casts, from the cache
+    for k, (v, cam) in enumerate(zip(chosen, cams)):
         view = scene.views[v]
-        tri, _, dist = cast_view(caster, cam)
-        tri = tri.copy()
+        frag = frags[k]
+        tri = frag.triangle.copy()
         photo, usable = read_photo_linear(view.photo, view.exposure, cam.height, cam.width)
         # a mask drops emitters from the loss, but their light is what the trace needs: a masked
         # pixel counts unless it holds no light at all (an undistortion's unfilled border)
         empty = ~read_mask(view.mask, cam.height, cam.width) & ~(photo > 0).any(axis=-1) if view.mask \
             else np.zeros(usable.shape, bool)
         tri[(usable < 0.5) | empty] = -2                         # seen by no pixel of this view
-        forward = cam.pixel_rays()[1].reshape(cam.height, cam.width, 3) @ cam.c2w[:3, 2]
-        depths.append(np.where(tri >= 0, dist * forward, np.inf).astype(np.float32))
+        depths.append(np.where(tri >= 0, frag.depth, np.inf).astype(np.float32))
         photos.append(photo)
         triangles.append(tri)
         background.append(photo[tri == -1])
@@ -167,7 +167,7 @@ def trace_points(scene: Scene, renders, hits, *, seed: int = 0, views: int = TRA
     chosen = np.unique(np.linspace(0, len(scene.views) - 1, min(views, len(scene.views))).round().astype(int))
     mesh = scene.mesh
     caster = RayCaster(mesh)
-    light = read_photo_radiance(scene, chosen, caster)
+    light = read_photo_radiance(scene, chosen)
     p, n, face, albedo = surface_points(mesh, caster, light.cameras, chosen, hits, renders, points, rng)
     radiance, seen = light_trace.visible_radiance(p, light.cameras, light.depths, light.photos)
     irradiance, known, escaped = light_trace.traced_irradiance(
