@@ -46,7 +46,8 @@ def two_process_run(tmp_path_factory):
     scene = write_tiny_scene(work / "scene")
     out = work / "two"
     env = {**os.environ, "JAX_PLATFORMS": "cpu", "JAXDISTILL_CACHE": str(work / "cache")}
-    env.pop("XLA_FLAGS", None)                     # one CPU device per process
+    env["XLA_FLAGS"] = " ".join(f for f in env.get("XLA_FLAGS", "").split()     # one CPU device per process
+                                if not f.startswith("--xla_force_host_platform_device_count"))
     env.pop("JAXDISTILL_RGBX_DIR", None)
     address = f"localhost:{free_port()}"
     flags = [f"--{k}={str(v).lower() if isinstance(v, bool) else v}" for k, v in FLAGS.items()]
