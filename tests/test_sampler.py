@@ -11,6 +11,7 @@ from scipy import ndimage
 from conftest import look_at_camera
 from jaxdistill.scene import shapes as synthetic
 from jaxdistill.render import fragments as fr
+from jaxdistill.render import gather_plan
 from jaxdistill.render.gather_plan import build_gather_plans, build_texel_space
 from jaxdistill.render.layout import TextureLayout, make_layout
 from jaxdistill.render.sampler import compact, coverage, expand, push_pull, render
@@ -284,3 +285,67 @@ def test_push_pull_weights_blend_and_extremes():
     np.testing.assert_array_equal(push_pull(noisy, np.zeros((16, 16))), noisy)  # nothing observed: as it was
     np.testing.assert_array_equal(push_pull(noisy, np.ones((16, 16))), noisy)
     assert push_pull(noisy[..., 0], weight).shape == (16, 16)
+
+
+# ----------------------------------------------------------------------------- sparse tile lookup
+
+
+@pytest.mark.parametrize("held", ["dense", "sparse"])
+def test_tile_grid_reads_like_its_dense_table(held, monkeypatch):
+    """`TileGrid` indexed with integer arrays of any shape gives what the dense int32 table gives
+    (-1 off the entries), whichever way it is held; a cell outside the grid is an IndexError."""
+    monkeypatch.setattr(gather_plan, "holds_dense", lambda cells, entries: held == "dense")
+    rng = np.random.default_rng(3)
+    shape = (50, 70)
+    cells = rng.choice(shape[0] * shape[1], 300, replace=False)
+    rows, cols, ids = cells // shape[1], cells % shape[1], rng.permutation(300) + 7
+    table = np.full(shape, -1, np.int32)
+    table[rows, cols] = ids
+    grid = gather_plan.TileGrid.from_entries(shape, rows, cols, ids)
+    assert grid.sparse == (held == "sparse")
+    np.testing.assert_array_equal(grid.dense(), table)
+    qr, qc = rng.integers(0, shape[0], (4, 9)), rng.integers(0, shape[1], (4, 9))
+    qr[0, :5], qc[0, :5] = rows[:5], cols[:5]                  # some hits for certain
+    np.testing.assert_array_equal(grid[qr, qc], table[qr, qc])
+    np.testing.assert_array_equal(grid[qr[0], 3], table[qr[0], 3])          # broadcast, as NumPy does
+    empty = gather_plan.TileGrid.from_entries(shape, [], [], [])
+    assert (empty[qr, qc] == -1).all() and (empty.dense() == -1).all()
+    with pytest.raises(IndexError):
+        grid[np.array([shape[0]]), np.array([0])]
+
+
+@pytest.mark.parametrize("sampler,tile_size", [("bilinear", 1), ("trilinear", 1), ("trilinear", 4)])
+def test_plans_are_the_same_with_sparse_tile_grids(room, sampler, tile_size, monkeypatch):
+    """Every tile and coarse-level grid held sparse gives the same texel space, plans and coverage
+    as dense tables (the reference test above runs with the default, dense at these sizes)."""
+    mesh, frags = room
+    layout = TextureLayout(page_sizes=tuple(16 if i % 3 else 32 for i in range(len(mesh.object_names))),
+                           object_page=tuple(range(len(mesh.object_names))), mipmaps=sampler == "trilinear",
+                           tile_size=tile_size)
+    dense_space = build_texel_space(frags, layout, sampler)
+    monkeypatch.setattr(gather_plan, "holds_dense", lambda cells, entries: False)
+    sparse_space = build_texel_space(frags, layout, sampler)
+    assert all(g.sparse for g in sparse_space.tile_map) and all(g.sparse for m in sparse_space.coarse_maps for g in m)
+    for name in ("tile_page", "tile_row", "tile_col"):
+        np.testing.assert_array_equal(getattr(sparse_space, name), getattr(dense_space, name))
+    for a, b in zip(sparse_space.children, dense_space.children):
+        np.testing.assert_array_equal(a, b)
+    a, b = build_gather_plans(frags, sparse_space, sampler), build_gather_plans(frags, dense_space, sampler)
+    np.testing.assert_array_equal(np.asarray(a.index), np.asarray(b.index))
+    for a, b in zip(coverage(sparse_space), coverage(dense_space)):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_4096_pages_of_single_texel_tiles_keep_bookkeeping_of_the_tiles_read(room):
+    """Bilinear, 1 x 1 tiles, 4096² pages: a dense id table would be 64 MB a page; the grids hold
+    12 bytes per tile read (sorted int64 keys and int32 ids) and still index every tap."""
+    mesh, frags = room
+    pages = len(mesh.object_names)
+    layout = TextureLayout(page_sizes=(4096,) * pages, object_page=tuple(range(pages)), mipmaps=False, tile_size=1)
+    space = build_texel_space(frags, layout, "bilinear")
+    assert all(g.sparse for g in space.tile_map)
+    assert sum(g.nbytes for g in space.tile_map) == 12 * space.num_tiles < 1e-3 * pages * 4096 ** 2 * 4
+    plan = build_gather_plans(frags, space, "bilinear")
+    reads = np.asarray(plan.index)[np.asarray(plan.weight) > 0]
+    assert reads.min() >= 0 and reads.max() < space.num_texels
+    assert np.unique(reads).size == space.num_texels            # every tile is read, none is missing

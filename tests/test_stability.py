@@ -474,7 +474,7 @@ def test_8192_pages_allocate_only_the_tiles_views_read():
     here from the fragments' UVs), at most 256 x 4 x the hit pixels, under 0.1 % of the pages.
     Trilinear taps (footprints of <= 16 texels here: only in-tile mip levels) stay within
     256 x 8 x the hit pixels. Counts only. (Tile 1, the bilinear default, is as compact in
-    parameters, but its per-page tile_map bookkeeping is dense: 8192² entries per page.)"""
+    parameters; its tile grids are then held as sorted keys, tests/test_sampler.py.)"""
     mesh = synthetic.box_room((4.0, 2.5, 3.0), subdivisions=1)
     cameras = [look_at_camera((2.0, 1.2, 2.75), (2.0, 1.1, 3.0), 32, 24, fx=80.0),
                look_at_camera((0.3, 1.0, 1.0), (0.0, 0.95, 1.1), 32, 24, fx=80.0)]

@@ -73,12 +73,85 @@ class GatherPlan:
         return int(self.index.shape[0]) if self.index.ndim == 3 else 1
 
 
+DENSE_GRID_CELLS = 1 << 20      # a grid of compact ids is held densely up to 4 MB of int32
+
+
+def holds_dense(cells: int, entries: int) -> bool:
+    """Whether a `TileGrid` of `cells` cells and `entries` ids is held as a dense table: when that
+    is small, or no more than the sorted keys and ids would take (12 bytes an entry, 4 a cell)."""
+    return cells <= DENSE_GRID_CELLS or 3 * entries >= cells
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class TileGrid:
+    """An int32 grid of compact ids, -1 where there is no entry, indexed like the dense array:
+    `grid[rows, cols]` with integer arrays of any shape (out of range is an IndexError).
+
+    Held densely where that is small (`holds_dense`); otherwise as the entries' sorted flat keys (row * cols + col, int64) and ids (int32),
+    looked up by binary search, so memory grows with the entries and not with the page: a 4096²
+    page of 1 x 1 tiles (bilinear) is 64 MB as a dense grid, 12 bytes per tile read as keys."""
+
+    shape: tuple
+    table: np.ndarray | None = None       # (rows, cols) int32, or None when sparse
+    keys: np.ndarray | None = None        # (N,) int64 ascending, when sparse
+    ids: np.ndarray | None = None         # (N,) int32, when sparse
+
+    @classmethod
+    def from_entries(cls, shape, rows, cols, ids) -> "TileGrid":
+        """The grid with ids[i] at (rows[i], cols[i]) and -1 elsewhere."""
+        shape = (int(shape[0]), int(shape[1]))
+        rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
+        ids = np.asarray(ids, np.int32)
+        if holds_dense(shape[0] * shape[1], len(ids)):
+            table = np.full(shape, -1, np.int32)
+            table[rows, cols] = ids
+            return cls(shape=shape, table=table)
+        keys = rows * shape[1] + cols
+        order = np.argsort(keys, kind="stable")
+        return cls(shape=shape, keys=keys[order], ids=ids[order])
+
+    @classmethod
+    def from_mask(cls, mask: np.ndarray, start: int) -> "TileGrid":
+        """Ids start, start + 1, ... over the True cells of `mask` in row-major order."""
+        rows, cols = np.nonzero(mask)
+        return cls.from_entries(mask.shape, rows, cols, np.arange(start, start + len(rows)))
+
+    @property
+    def sparse(self) -> bool:
+        return self.table is None
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.table.nbytes if self.table is not None else self.keys.nbytes + self.ids.nbytes)
+
+    def __getitem__(self, index) -> np.ndarray:
+        rows, cols = (np.asarray(a, np.int64) for a in index)
+        if self.table is not None:
+            return self.table[rows, cols]
+        if rows.size and (rows.min() < 0 or cols.min() < 0 or rows.max() >= self.shape[0] or cols.max() >= self.shape[1]):
+            raise IndexError(f"a cell outside the {self.shape[0]} x {self.shape[1]} grid")
+        rows, cols = np.broadcast_arrays(rows, cols)
+        if not len(self.keys):
+            return np.full(rows.shape, -1, np.int32)
+        wanted = rows * self.shape[1] + cols
+        at = np.minimum(np.searchsorted(self.keys, wanted), len(self.keys) - 1)
+        return np.where(self.keys[at] == wanted, self.ids[at], np.int32(-1))
+
+    def dense(self) -> np.ndarray:
+        """The (rows, cols) int32 grid."""
+        if self.table is not None:
+            return self.table
+        out = np.full(self.shape, -1, np.int32)
+        out.reshape(-1)[self.keys] = self.ids
+        return out
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class TexelSpace:
     """The compact tile set of a scene (NumPy, outside jit).
 
     tile_page, tile_row, tile_col (N_tiles,) int64: page and tile-grid position of each tile,
-    sorted by (page, row, col). tile_map[p]: (S_p / B, S_p / B) int32 compact tile id or -1.
+    sorted by (page, row, col). tile_map[p]: a (S_p / B, S_p / B) `TileGrid` of compact tile ids or -1.
     coarse_maps[p][j]: index of each level-(k+1+j) entry of page p within that level, or -1;
     children[j]: (N, 4) indices, within level k+j, of the children of level k+1+j's entries.
     """
@@ -214,13 +287,12 @@ def build_texel_space(fragments: Sequence[Fragments], layout: TextureLayout, sam
     count = 0
     for p, grids in enumerate(need):
         rows, cols = np.nonzero(grids[0])
-        ids = np.full(grids[0].shape, -1, np.int32)     # int32: a 4096² page of 1x1 tiles is 64 MB, not 128
-        ids[rows, cols] = np.arange(count, count + len(rows))
+        tile_map.append(TileGrid.from_entries(grids[0].shape, rows, cols, np.arange(count, count + len(rows))))
         count += len(rows)
         tile_page.append(np.full(len(rows), p, np.int64))
         tile_row.append(rows.astype(np.int64))
         tile_col.append(cols.astype(np.int64))
-        tile_map.append(ids)
+        grids[0] = None                                  # the page's bool grid is no longer needed
     num_tiles = count
     # Coarse levels k+1, k+2, ...: entries numbered within their level; children index the
     # level below (level k has one entry per tile, in tile order, so tile ids index it).
@@ -234,8 +306,7 @@ def build_texel_space(fragments: Sequence[Fragments], layout: TextureLayout, sam
                 maps.append(None)
                 continue
             rows, cols = np.nonzero(grids[j])
-            ids = np.full(grids[j].shape, -1, np.int32)
-            ids[rows, cols] = np.arange(count, count + len(rows))
+            ids = TileGrid.from_entries(grids[j].shape, rows, cols, np.arange(count, count + len(rows)))
             count += len(rows)
             below = prev_maps[p]
             kids.append(np.stack([below[2 * rows + dy, 2 * cols + dx] for dy in (0, 1) for dx in (0, 1)], axis=1))
@@ -316,9 +387,7 @@ def space_from_tile_set(arrays) -> TexelSpace:
     tile_page, tile_row, tile_col = (np.asarray(arrays[k], np.int64) for k in ("tile_page", "tile_row", "tile_col"))
     tile_map = []
     for p, size in enumerate(page_sizes):
-        grid = np.full((size // tile, size // tile), -1, np.int32)
         ids = np.nonzero(tile_page == p)[0]
-        grid[tile_row[ids], tile_col[ids]] = ids
-        tile_map.append(grid)
+        tile_map.append(TileGrid.from_entries((size // tile, size // tile), tile_row[ids], tile_col[ids], ids))
     return TexelSpace(layout=layout, tile_page=tile_page, tile_row=tile_row, tile_col=tile_col,
                       tile_map=tuple(tile_map), coarse_maps=tuple(() for _ in page_sizes), children=())

@@ -66,7 +66,9 @@ def coverage(space: TexelSpace) -> list[np.ndarray]:
     """Per page, (S, S) bool: the texel is a parameter (lies in a compact tile)."""
     masks = []
     for page in range(space.layout.num_pages):
-        grid = space.tile_map[page] >= 0
+        grid = np.zeros(space.tile_map[page].shape, bool)
+        sel = space.tile_page == page
+        grid[space.tile_row[sel], space.tile_col[sel]] = True
         masks.append(np.repeat(np.repeat(grid, space.tile, axis=0), space.tile, axis=1))
     return masks
 
