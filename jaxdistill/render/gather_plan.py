@@ -110,12 +110,6 @@ class TileGrid:
         order = np.argsort(keys, kind="stable")
         return cls(shape=shape, keys=keys[order], ids=ids[order])
 
-    @classmethod
-    def from_mask(cls, mask: np.ndarray, start: int) -> "TileGrid":
-        """Ids start, start + 1, ... over the True cells of `mask` in row-major order."""
-        rows, cols = np.nonzero(mask)
-        return cls.from_entries(mask.shape, rows, cols, np.arange(start, start + len(rows)))
-
     @property
     def sparse(self) -> bool:
         return self.table is None
@@ -125,12 +119,11 @@ class TileGrid:
         return int(self.table.nbytes if self.table is not None else self.keys.nbytes + self.ids.nbytes)
 
     def __getitem__(self, index) -> np.ndarray:
-        rows, cols = (np.asarray(a, np.int64) for a in index)
+        rows, cols = np.broadcast_arrays(*(np.asarray(a, np.int64) for a in index))
+        if rows.size and (rows.min() < 0 or cols.min() < 0 or rows.max() >= self.shape[0] or cols.max() >= self.shape[1]):
+            raise IndexError(f"a cell outside the {self.shape[0]} x {self.shape[1]} grid")   # held either way
         if self.table is not None:
             return self.table[rows, cols]
-        if rows.size and (rows.min() < 0 or cols.min() < 0 or rows.max() >= self.shape[0] or cols.max() >= self.shape[1]):
-            raise IndexError(f"a cell outside the {self.shape[0]} x {self.shape[1]} grid")
-        rows, cols = np.broadcast_arrays(rows, cols)
         if not len(self.keys):
             return np.full(rows.shape, -1, np.int32)
         wanted = rows * self.shape[1] + cols
