@@ -34,7 +34,7 @@ import numpy as np
 from jaxdistill.engine.config import DistillConfig, validate
 from jaxdistill.engine.problem import build_problem
 from jaxdistill.evaluate import ground_truth as evaluation, scoring
-from jaxdistill.export import anchor as anchor_lib, photo_light
+from jaxdistill.export import anchor as anchor_lib
 from jaxdistill.io.checkpoint import CheckpointStore
 
 METRICS = ("albedo_psnr", "albedo_si_psnr", "albedo_ssim", "irradiance_si_psnr")
@@ -80,12 +80,11 @@ def rescore(run: Path) -> dict:
         renders = evaluation.render_views(np.clip(texels, -1.0, 1.0), ctx.plan, ctx.cameras, problem.channels)
         hits = list(np.asarray(ctx.plan.hit).reshape(-1, ctx.plan.height, ctx.plan.width))
         gains = anchor_lib.anchor_gains(renders, baseline.views, hits, problem.channels.maps)
-        traced, record = photo_light.traced_albedo_gain(problem.scene, renders, hits, seed=config.seed)
+        traced, record = anchor_lib.traced_light(problem.scene, renders, hits, texels, problem.channels,
+                                                 seed=config.seed)
         traced = {} if traced is None else anchor_lib.traced_gains(traced, problem.channels.maps)
         row = {"run": "/".join(run.parts[-4:]), "gains": {m: g.tolist() for m, g in gains.items()},
                "traced_gains": {m: g.tolist() for m, g in traced.items()}, "trace": record}
-        if traced:
-            record["albedo_above_one"] = anchor_lib.albedo_above_one(texels, traced["albedo"], problem.channels)
         trusted = bool(traced) and anchor_lib.trace_trusted(record)
         row["trusted"] = trusted
         for name, mode_gains in anchor_rows(gains, traced, trusted):

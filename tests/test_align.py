@@ -252,7 +252,9 @@ def test_anchor_auto_with_the_rgbx_prior_takes_the_photos_light_only_where_it_ca
     ldr = dataclasses.replace(rgbx, scene=dataclasses.replace(rgbx.scene, views=tuple(
         dataclasses.replace(v, photo=v.photo.with_suffix(".png")) for v in rgbx.scene.views)))
     assert anchor_mode(config, ldr) == "estimates"                      # LDR: their lights are clipped
-    assert trace_trusted({"escaped_unseen": ESCAPED_WARNING}) and not trace_trusted({"escaped_unseen": 0.01})
+    assert trace_trusted({"escaped_unseen": ESCAPED_WARNING, "albedo_above_one": 0.1})
+    assert not trace_trusted({"escaped_unseen": 0.01, "albedo_above_one": 0.0})
+    assert not trace_trusted({"escaped_unseen": 0.0, "albedo_above_one": 0.11})
     # the tiny room's ceiling is in no photo: an untrusted trace hands over to the estimates
     ctx = evaluation_context(config, problem)
     texels = np.full((problem.space.num_texels, 3), -0.6, np.float32)

@@ -172,14 +172,24 @@ def albedo_above_one(texels: np.ndarray, gain: np.ndarray, channels: MapChannels
     return float(np.mean(np.any(albedo * np.asarray(gain, np.float32) > 1.0, axis=1))) if len(albedo) else 0.0
 
 
+def traced_light(scene: Scene, renders, hits, texels: np.ndarray, channels: MapChannels, *,
+                 seed: int = 0) -> tuple[np.ndarray | None, dict]:
+    """`traced_albedo_gain` of the run's renders, its record also holding `albedo_above_one` of the
+    gain when there is one: everything `trace_trusted` reads."""
+    gain, record = traced_albedo_gain(scene, renders, hits, seed=seed)
+    if gain is not None:
+        record["albedo_above_one"] = albedo_above_one(texels, gain, channels)
+    return gain, record
+
+
 def trace_trusted(record: dict) -> bool:
-    """Whether a trace (`traced_albedo_gain`'s record) can be trusted: at most ESCAPED_WARNING of
+    """Whether a trace (`traced_light`'s record of a gain) can be trusted: at most ESCAPED_WARNING of
     its rays left the mesh with no radiance to take, i.e. the photos show a background (pixels
     that hit nothing, whose mean every escaping ray takes, whatever its direction) or almost no
     ray escapes (a closed room); and its gain puts at most ABOVE_ONE_LIMIT of the albedo texels
     above 1 (more means light the photos do not show: a ceiling light no view looks at). It does
     not see a directional sun (README "the overall scale")."""
-    return record["escaped_unseen"] <= ESCAPED_WARNING and record.get("albedo_above_one", 0.0) <= ABOVE_ONE_LIMIT
+    return record["escaped_unseen"] <= ESCAPED_WARNING and record["albedo_above_one"] <= ABOVE_ONE_LIMIT
 
 
 def anchor_to_photos(config: DistillConfig, problem: Problem, texels: np.ndarray, ctx: EvalContext, *,
@@ -197,9 +207,7 @@ def anchor_to_photos(config: DistillConfig, problem: Problem, texels: np.ndarray
     renders = evaluation.render_views(np.clip(texels, -1.0, 1.0), ctx.plan, ctx.cameras, problem.channels,
                                       lazy=problem.views_on_disk)
     hits = np.asarray(ctx.plan.hit).reshape(-1, ctx.plan.height, ctx.plan.width)
-    gain, record = traced_albedo_gain(problem.scene, renders, list(hits), seed=config.seed)
-    if gain is not None:
-        record["albedo_above_one"] = albedo_above_one(texels, gain, problem.channels)
+    gain, record = traced_light(problem.scene, renders, list(hits), texels, problem.channels, seed=config.seed)
     if trusted_only and (gain is None or not trace_trusted(record)):
         logging.info("--anchor=auto: the photos' traced light is not used (%s): anchoring to the estimates",
                      "too few points with a known light" if gain is None else

@@ -87,9 +87,10 @@ class TileGrid:
     """An int32 grid of compact ids, -1 where there is no entry, indexed like the dense array:
     `grid[rows, cols]` with integer arrays of any shape (out of range is an IndexError).
 
-    Held densely where that is small (`holds_dense`); otherwise as the entries' sorted flat keys (row * cols + col, int64) and ids (int32),
-    looked up by binary search, so memory grows with the entries and not with the page: a 4096²
-    page of 1 x 1 tiles (bilinear) is 64 MB as a dense grid, 12 bytes per tile read as keys."""
+    Held densely where that is small (`holds_dense`); otherwise as the entries' sorted flat keys
+    (row * cols + col, int64) and ids (int32), looked up by binary search, so memory grows with
+    the entries and not with the page: a 4096² page of 1 x 1 tiles (bilinear) is 64 MB as a dense
+    grid, 12 bytes per tile read as keys."""
 
     shape: tuple
     table: np.ndarray | None = None       # (rows, cols) int32, or None when sparse
