@@ -66,7 +66,9 @@ def parse_args(argv=None):
     p.add_argument("--size", choices=("given", "tiny"), default="given", help="tiny: make a tiny random folder")
     p.add_argument("--render_sizes", default="256,512", help="longer sides of the renders (multiples of 8)")
     p.add_argument("--map_counts", default="1,5", help="maps per step: 1 = albedo, 5 = all five")
-    p.add_argument("--dtypes", default="float32,bfloat16", help="activation dtypes of our prior")
+    p.add_argument("--dtypes", default="float32,bfloat16",
+                   help="activation dtypes of our prior; bfloat16_cudnn: bfloat16 with cuDNN's fused attention "
+                        "(NVIDIA GPUs only) instead of the chunked XLA attention")
     p.add_argument("--frameworks", default="jax,torch")
     p.add_argument("--views_per_step", type=int, default=1, help="views per step (the thesis: 1)")
     p.add_argument("--max_texture_size", type=int, default=1024)
@@ -192,7 +194,7 @@ def jax_worker(args, folder: str, dtype_name: str) -> list[dict]:
 
     from jaxdistill.engine import loop
     from jaxdistill.engine.step import render_maps, sample_timesteps, weighted_square_error
-    from jaxdistill.models import convert
+    from jaxdistill.models import convert, layers
     from jaxdistill.models import prior as rgbx
     from jaxdistill.engine.priors import make_rgbx_prior
     from jaxdistill.render.gather_plan import GatherPlan
@@ -200,8 +202,10 @@ def jax_worker(args, folder: str, dtype_name: str) -> list[dict]:
     device_name = jax.devices()[0].device_kind
     peak_tflops = bf16_peak_tflops(device_name, args.peak_tflops) if jax.default_backend() == "gpu" else None
     t0 = time.perf_counter()
-    dtype = {"float32": jnp.float32, "bfloat16": jnp.bfloat16}[dtype_name]
-    model = rgbx.load_prior(convert.load_rgbx(folder, dtype=dtype, cache_dir=args.convert_cache))
+    base_dtype, _, attention = dtype_name.partition("_")
+    dtype = {"float32": jnp.float32, "bfloat16": jnp.bfloat16}[base_dtype]
+    chunk = {"": None, "cudnn": layers.FUSED_CUDNN}[attention]
+    model = rgbx.load_prior(convert.load_rgbx(folder, dtype=dtype, cache_dir=args.convert_cache, chunk_size=chunk))
     load_s = time.perf_counter() - t0
     rows = []
     num_cases = len(args.render_sizes) * len(args.map_counts)
@@ -532,9 +536,7 @@ def print_device_table(summary: dict, file=sys.stdout) -> None:
     print("\nper case: step s, device peak GiB, compile s, UNet TFLOP/s (share of the bf16 peak), "
           f"projected {THESIS_STEPS} steps x {len(ALL_MAPS)} maps (min)", file=file)
     for e in summary["table"]:
-        for name in ("jax_float32", "jax_bfloat16", "torch_float32"):
-            if f"{name}_s" not in e:
-                continue
+        for name in [k[:-len("_thesis_run_min")] for k in e if k.endswith("_thesis_run_min")]:
             share = e.get(f"{name}_unet_fraction_of_bf16_peak")
             print(f"{e['render'][1]}x{e['render'][0]:<5d} {e['maps']:4d} {name:14s} {e[f'{name}_s']:8.3f} "
                   f"{fmt(e.get(f'{name}_device_peak_gb'), '.1f'):>6s} {fmt(e.get(f'{name}_compile_s'), '.0f'):>5s} "

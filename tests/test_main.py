@@ -253,7 +253,10 @@ def test_bad_flags_are_named_before_any_compute():
         assert flag in text
     for args, message in ((["--reuse_steps=0"], "--reuse_steps: must be >= 1, got 0"),
                           (["--reuse_steps=2", "--prior=views"], "--reuse_steps: the views prior's targets never change"),
-                          (["--estimate_steps=0"], "--estimate_steps: must be >= 1, got 0")):
+                          (["--estimate_steps=0"], "--estimate_steps: must be >= 1, got 0"),
+                          (["--prior_attention=cudnn"], "--prior_attention: cudnn needs --prior_dtype=bfloat16"),
+                          (["--prior_attention=cudnn", "--prior_dtype=bfloat16"],   # the suite runs on a CPU
+                           "--prior_attention: cudnn runs only on an NVIDIA GPU and JAX's backend here is cpu")):
         fv = flags.FlagValues()
         config_lib.define_flags(fv)
         fv([sys.argv[0], "--scene=x", "--out_dir=y", *args])

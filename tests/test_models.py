@@ -100,6 +100,22 @@ def test_chunked_attention_equals_full_attention():
     assert_close(full, ref, rtol=1e-5, floor=1e-5)
 
 
+def test_fused_cudnn_attention_is_refused_where_cudnn_cannot_run(rgbx_dir):
+    """FUSED_CUDNN needs bf16/fp16, head size a multiple of 8 up to 128, no mask: anything else is
+    refused by name (it is never silently computed another way); only the UNet gets it, since the
+    VAE's single head is as wide as its last block. (The fused kernel itself runs only on an
+    NVIDIA GPU: scripts/bench_gpu_unet.sh checks it against the chunked attention there.)"""
+    q = np.zeros((1, 8, 16), np.float32)
+    with pytest.raises(ValueError, match="float16/bfloat16"):
+        layers.dot_product_attention(q, q, q, 2, chunk_size=layers.FUSED_CUDNN)
+    wide = jnp.zeros((1, 8, 512), jnp.bfloat16)
+    with pytest.raises(ValueError, match="head size 512"):
+        layers.dot_product_attention(wide, wide, wide, 1, chunk_size=layers.FUSED_CUDNN)
+    nets = convert.build_networks(rgbx_dir, dtype=jnp.bfloat16, chunk_size=layers.FUSED_CUDNN)
+    assert nets.unet.chunk_size == layers.FUSED_CUDNN
+    assert nets.vae.chunk_size == layers.DEFAULT_ATTENTION_CHUNK
+
+
 def test_vae_chunked_mid_attention_matches(rgbx_dir, loaded):
     """The VAE with query chunks of 4 tokens (64 latent tokens here) equals the unchunked one."""
     chunked = convert.build_networks(rgbx_dir, chunk_size=4).vae

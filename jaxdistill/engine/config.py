@@ -32,6 +32,7 @@ T_WEIGHTINGS = ("none", "sds")
 LATENT_MODES = ("mode", "sample")
 LR_SCHEDULES = ("constant", "cosine")
 PRIOR_DTYPES = ("float32", "bfloat16")
+PRIOR_ATTENTION = ("chunked", "cudnn")
 RGBX_DIR_ENV = "JAXDISTILL_RGBX_DIR"
 
 # Flags that may change when a run is resumed; every other flag must match the checkpoint.
@@ -57,6 +58,7 @@ class DistillConfig:
     rgbx_dir: str | None = None
     convert_cache: str | None = None
     prior_dtype: str = "float32"
+    prior_attention: str = "chunked"
     steps: int = 300
     lr: float = 0.01
     lr_schedule: str = "constant"
@@ -138,6 +140,9 @@ def define_flags(fv: flags.FlagValues = flags.FLAGS, *, main_module: bool = Fals
     flags.DEFINE_string("convert_cache", None, "cache folder for converted RGB<->X weights", **where)
     flags.DEFINE_enum("prior_dtype", d.prior_dtype, PRIOR_DTYPES, "activation dtype of the frozen networks "
                       "(texels, loss and optimizer are always float32)", **where)
+    flags.DEFINE_enum("prior_attention", d.prior_attention, PRIOR_ATTENTION, "the UNet's attention: chunked "
+                      "(XLA, any device) or cudnn (cuDNN's fused kernel: an NVIDIA GPU and --prior_dtype=bfloat16; "
+                      "1.09-1.12x a step on an H200, docs/benchmarks.md section 9)", **where)
     flags.DEFINE_integer("steps", d.steps, "optimisation steps", **where)
     flags.DEFINE_float("lr", d.lr, "AdamW learning rate", **where)
     flags.DEFINE_enum("lr_schedule", d.lr_schedule, LR_SCHEDULES, "constant (thesis) or cosine decay to 0 over "
@@ -357,6 +362,15 @@ def validate(config: DistillConfig) -> DistillConfig:
         bad("loss_space", "latent needs the rgbx prior (the views prior has no VAE); use --loss_space=image")
     if c.prior == "rgbx" and c.render_size and c.render_size % 8:
         bad("render_size", f"must be a multiple of 8 for the rgbx prior's VAE, got {c.render_size}")
+    if c.prior_attention == "cudnn" and c.prior_dtype != "bfloat16":
+        bad("prior_attention", f"cudnn needs --prior_dtype=bfloat16 (cuDNN's fused attention has no float32 kernel), "
+            f"got --prior_dtype={c.prior_dtype}")
+    if c.prior_attention == "cudnn" and c.prior != "views":
+        import jax
+
+        if jax.default_backend() != "gpu":
+            bad("prior_attention", f"cudnn runs only on an NVIDIA GPU and JAX's backend here is "
+                f"{jax.default_backend()}; use --prior_attention=chunked")
     if c.w_t < 0 or c.w_i < 0:
         bad("w_t/--w_i", f"guidance weights must be >= 0, got {c.w_t} and {c.w_i}")
     import_option_problems(c, p)

@@ -255,12 +255,13 @@ def _views_prior(scene, channels, height, width, folder: ViewFolder | None):
 def _rgbx_prior(config: DistillConfig, choice: PriorChoice, scene, channels, height, width):
     import jax.numpy as jnp
 
-    from jaxdistill.models import convert
+    from jaxdistill.models import convert, layers
     from jaxdistill.models import prior as rgbx
     from jaxdistill.engine.priors import make_rgbx_prior
 
     dtype = {"float32": jnp.float32, "bfloat16": jnp.bfloat16}[config.prior_dtype]
-    loaded = convert.load_rgbx(choice.folder, dtype=dtype, cache_dir=config.convert_cache)
+    chunk = layers.FUSED_CUDNN if config.prior_attention == "cudnn" else None     # validated in config
+    loaded = convert.load_rgbx(choice.folder, dtype=dtype, cache_dir=config.convert_cache, chunk_size=chunk)
     model = rgbx.load_prior(loaded)
     logging.info("RGB<->X loaded from %s in %.1f s", choice.folder, sum(loaded.seconds.values()))
     photos = (resize(imageio.read_photo_srgb(v.photo, v.exposure), height, width) for v in scene.views)

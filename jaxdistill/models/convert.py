@@ -34,6 +34,7 @@ from jaxdistill.errors import InputError
 from jaxdistill.models.clip import CLIPTextConfig, CLIPTextTransformer
 from jaxdistill.models.unet import UNet2DCondition, UNetConfig
 from jaxdistill.models.vae import AutoencoderKL, VAEConfig
+from jaxdistill.models.layers import DEFAULT_ATTENTION_CHUNK, FUSED_CUDNN
 
 log = logging.getLogger(__name__)
 
@@ -313,16 +314,21 @@ def check_rgbx_folder(folder: str | Path, flag: str = "--rgbx_dir", require_rgbx
 def build_networks(folder: str | Path, dtype: Any = jnp.float32, precision: str = "default",
                    chunk_size: int | None = None, require_rgbx: bool = True,
                    flag: str = "--rgbx_dir") -> RgbxNetworks:
-    """Flax modules configured from the folder's config.json files (no weights read)."""
+    """Flax modules configured from the folder's config.json files (no weights read).
+    `chunk_size`: the attention's query chunk (`layers.dot_product_attention`); `layers.FUSED_CUDNN`
+    gives the UNet cuDNN's fused attention (GPU, bfloat16/float16) and leaves the VAE chunked."""
     folder = check_folder(folder)
     unet_cfg = _unet_config(folder, require_rgbx, flag)
     opts = dict(dtype=dtype, precision=precision)
     if chunk_size is not None:
         opts["chunk_size"] = chunk_size
+    # cuDNN's fused attention takes heads of at most 128 channels: the VAE's one attention head is as
+    # wide as its last block (512 in RGB<->X), so with FUSED_CUDNN the VAE keeps the chunked attention
+    vae_opts = {**opts, "chunk_size": DEFAULT_ATTENTION_CHUNK} if chunk_size == FUSED_CUDNN else opts
     text_opts = dict(dtype=dtype, precision=precision)
     return RgbxNetworks(
         unet=UNet2DCondition(unet_cfg, **opts),
-        vae=AutoencoderKL(VAEConfig.from_json(folder / "vae" / "config.json"), **opts),
+        vae=AutoencoderKL(VAEConfig.from_json(folder / "vae" / "config.json"), **vae_opts),
         text_encoder=CLIPTextTransformer(CLIPTextConfig.from_json(folder / "text_encoder" / "config.json"),
                                          **text_opts),
     )

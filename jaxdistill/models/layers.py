@@ -22,6 +22,7 @@ Dtype = Any
 # head) is computed in query chunks, so the VAE's mid-block attention at 512² (4096
 # tokens) or 1024² (16384 tokens) never holds the full score matrix at once.
 DEFAULT_ATTENTION_CHUNK = 1024
+FUSED_CUDNN = 0          # chunk size that means: one fused cuDNN attention call (GPU, bf16/fp16)
 
 
 def precision_of(name: str) -> jax.lax.Precision | None:
@@ -106,6 +107,9 @@ def dot_product_attention(q, k, v, num_heads: int, mask=None, chunk_size: int = 
     `mask` (Nq, Nk) bool, True = attend (used for CLIP's causal mask, never chunked).
     Without a mask, when Nq·Nk exceeds `chunk_size`², queries are processed in chunks of
     `chunk_size` with `lax.map`, so peak memory is chunk_size·Nk scores per head.
+    `chunk_size=FUSED_CUDNN` (0) hands the whole attention to cuDNN's fused (flash) kernel through
+    `jax.nn.dot_product_attention(implementation="cudnn")`: NVIDIA GPUs only, float16/bfloat16
+    activations, head size a multiple of 8 up to 128, no mask; anything else is refused here.
     """
     batch, num_q, channels = q.shape
     head_dim = channels // num_heads
@@ -113,6 +117,13 @@ def dot_product_attention(q, k, v, num_heads: int, mask=None, chunk_size: int = 
     q = q.reshape(batch, num_q, num_heads, head_dim)
     k = k.reshape(batch, k.shape[1], num_heads, head_dim)
     v = v.reshape(batch, v.shape[1], num_heads, head_dim)
+    if chunk_size == FUSED_CUDNN:
+        if mask is not None or q.dtype not in (jnp.float16, jnp.bfloat16) or head_dim % 8 or head_dim > 128:
+            raise ValueError(f"cuDNN's fused attention needs float16/bfloat16 activations, a head size that is a "
+                             f"multiple of 8 up to 128 and no mask; got {q.dtype}, head size {head_dim}, "
+                             f"mask {mask is not None}: use a positive chunk size")
+        return jax.nn.dot_product_attention(q, k, v, scale=scale, implementation="cudnn").reshape(
+            batch, num_q, channels)
     if mask is not None:
         out = _scores_softmax_values(q, k, v, scale, precision, mask)
     elif num_q * k.shape[1] <= chunk_size * chunk_size or num_q <= chunk_size:
