@@ -39,13 +39,14 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 SMOKE_VIEWS = 9        # every 5.9th of the bedroom's 48 views, view_012 (the browser check's view) among them
-SMOKE_STEPS = 10       # half of smoke.cfg's 20: what the viewer shows of a run does not depend on its length
+SMOKE_STEPS = 4        # a fifth of smoke.cfg's 20, logged and evaluated every 2: what the viewer shows of a run
+                       # does not depend on its length (each step at the tests' XLA level 0 takes about 4 s)
 
 
 @pytest.fixture(scope="module")
 def smoke_run(tmp_path_factory):
     """The out_dir of `python -m jaxdistill.main --flagfile=configs/smoke.cfg --estimate_steps=2
-    --max_views=9 --steps=10`: the model's per-view estimates (the baseline the viewer shows) in 2 DDIM steps
+    --max_views=9 --steps=4 --log_every=2 --eval_every=2`: the model's per-view estimates (the baseline the viewer shows) in 2 DDIM steps
     instead of the demo's 50, and 9 of the bedroom's 48 views, evenly spread round the room (a
     fifth of the fragments, plans, estimates and evidence); what the viewer shows of them depends
     neither on how they were sampled (tests/test_model_estimates.py checks them against
@@ -54,7 +55,7 @@ def smoke_run(tmp_path_factory):
     fv = flags.FlagValues()
     config_lib.define_flags(fv)
     fv([sys.argv[0], f"--flagfile={REPO / 'configs' / 'smoke.cfg'}", f"--out_dir={out}", "--estimate_steps=2",
-        f"--max_views={SMOKE_VIEWS}", f"--steps={SMOKE_STEPS}"])
+        f"--max_views={SMOKE_VIEWS}", f"--steps={SMOKE_STEPS}", "--log_every=2", "--eval_every=2"])
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("JAXDISTILL_CACHE", str(tmp_path_factory.mktemp("view_cache")))
         pipeline.run(config_lib.config_from_flags(fv), progress=False)

@@ -58,6 +58,7 @@ def train_vae(args, photos, maps):
     pool = np.concatenate([photos] + [maps[m] for m in MAPS])        # (6N, H, W, 3)
     tx = adamw(args.vae_lr, args.vae_steps)
 
+    @jax.jit      # one program, not one eager dispatch (and compile) per initialiser
     def init_state():
         params = vae.init(jax.random.key(args.seed), jnp.zeros((1,) + pool.shape[1:]))
         return {"params": params, "opt": tx.init(params)}
@@ -166,8 +167,9 @@ def train_unet(args, latents, contexts, scaling, init_params=None):
     tx = adamw(args.unet_lr, args.unet_steps)
 
     def init_state():
-        params = unet.init(*init_args) if init_params is None else jax.tree.map(jnp.asarray, init_params)
-        return {"params": params, "ema": params, "opt": tx.init(params)}
+        # jitted: one program, not one eager dispatch (and compile) per initialiser
+        params = jax.jit(unet.init)(*init_args) if init_params is None else jax.tree.map(jnp.asarray, init_params)
+        return {"params": params, "ema": params, "opt": jax.jit(tx.init)(params)}
     ctx = jnp.asarray(contexts)
 
     def loss_fn(params, x0, cond, which, key):
