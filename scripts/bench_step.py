@@ -31,7 +31,9 @@ On a GPU (`scripts/bench_gpu.sh` runs the thesis's setting there): `--torch_devi
 recipe on the card (its clocks read after a synchronise), each row reports the device's peak
 memory, and the UNet's FLOP/s is given as a share of the card's dense bf16 peak. FLOPs are XLA's
 count of each program before optimisation: after it, a GPU program's convolutions and matrix
-products are cuDNN/cuBLAS calls that the count leaves out. A failed worker is reported and the
+products are cuDNN/cuBLAS calls that the count leaves out (and a `bfloat16_cudnn` row's fused
+attention is a custom call it never counts: take the UNet's FLOPs from the chunked row, or from
+the program lowered for the CPU, as docs/benchmarks.md §9b does). A failed worker is reported and the
 others still run; every row is also logged as it is measured (`ROW {...}` on stderr).
 The weights are random: the figures are timings; the images are meaningless.
 The last line with --json is a JSON object whose "headline" states the ratio.

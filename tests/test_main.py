@@ -12,6 +12,7 @@ import tempfile
 import time
 from pathlib import Path
 
+import jax
 import numpy as np
 import pytest
 import trimesh
@@ -255,8 +256,8 @@ def test_bad_flags_are_named_before_any_compute():
                           (["--reuse_steps=2", "--prior=views"], "--reuse_steps: the views prior's targets never change"),
                           (["--estimate_steps=0"], "--estimate_steps: must be >= 1, got 0"),
                           (["--prior_attention=cudnn"], "--prior_attention: cudnn needs --prior_dtype=bfloat16"),
-                          (["--prior_attention=cudnn", "--prior_dtype=bfloat16"],   # the suite runs on a CPU
-                           "--prior_attention: cudnn runs only on an NVIDIA GPU and JAX's backend here is cpu")):
+                          (["--prior_attention=cudnn", "--prior_dtype=bfloat16", "--prior=views"],
+                           "--prior_attention: the views prior runs no network")):
         fv = flags.FlagValues()
         config_lib.define_flags(fv)
         fv([sys.argv[0], "--scene=x", "--out_dir=y", *args])
@@ -318,6 +319,17 @@ def test_auto_prior_uses_rgbx_weights_end_to_end(tiny_scene, run_rgbx_dir, tmp_p
         (views_run / "metrics.json").read_text())["baseline_per_view_estimates"]["albedo_psnr"]
     assert doc["traces"] == 1 and all(np.isfinite(doc["history"]["loss"]))
     assert (out / "maps" / "albedo" / "room_wall_x0.exr").is_file()
+
+
+@pytest.mark.skipif(jax.default_backend() == "gpu", reason="checks the refusal on a machine without a GPU")
+def test_fused_attention_is_refused_before_compute_without_an_nvidia_gpu(tiny_scene, run_rgbx_dir, tmp_path):
+    """--prior_attention=cudnn is checked against the run's device with the other flag problems,
+    after jax.distributed would have joined (so not in `validate`), and before any set-up."""
+    config = tiny_config(tiny_scene, tmp_path / "out", prior="rgbx", rgbx_dir=str(run_rgbx_dir), steps=1,
+                         prior_dtype="bfloat16", prior_attention="cudnn")
+    with pytest.raises(InputError, match="--prior_attention: cudnn needs an NVIDIA GPU .* this run's device is cpu"):
+        pipeline.run(config, progress=False)
+    assert not (tmp_path / "out").exists()
 
 
 def test_a_run_that_reuses_x_pred_resumes_mid_cycle_to_the_same_losses(tiny_scene, run_rgbx_dir, tmp_path):

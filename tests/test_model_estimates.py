@@ -3,6 +3,9 @@ per-view estimates that an rgbx run is scored against (batched, cached)."""
 
 from __future__ import annotations
 
+import hashlib
+import json
+
 import numpy as np
 import pytest
 
@@ -11,7 +14,7 @@ from jaxdistill.io import images as imageio
 from jaxdistill.models import estimates as model_estimates
 from jaxdistill.engine.config import DistillConfig
 from jaxdistill.errors import InputError
-from jaxdistill.models import convert, shipped
+from jaxdistill.models import convert, layers, shipped
 from jaxdistill.models import prior as rgbx
 from jaxdistill.engine.problem import choose_prior
 from jaxdistill.scene.model import read_scene
@@ -105,7 +108,9 @@ def test_concurrent_runs_sharing_the_cache_never_mix_their_folders(tmp_path, mon
     photo = tmp_path / "view_0.png"
     photo.write_bytes(b"not read by the fake")
     photos = [("view_0", photo, 0.0)]
-    model = types.SimpleNamespace(loaded=types.SimpleNamespace(folder=weights))
+    unet = types.SimpleNamespace(chunk_size=layers.DEFAULT_ATTENTION_CHUNK)         # what the cache key reads
+    networks = types.SimpleNamespace(unet=unet)
+    model = types.SimpleNamespace(loaded=types.SimpleNamespace(folder=weights, networks=networks))
     cache = tmp_path / "cache"
     calls = []
 
@@ -131,3 +136,23 @@ def test_concurrent_runs_sharing_the_cache_never_mix_their_folders(tmp_path, mon
         "maps": ["albedo", "roughness"], "by": "this run"}
     assert calls == [("albedo",), ("albedo", "roughness")]
     assert sorted(p.name for p in cache.iterdir()) == [folder.name]
+
+
+def test_cache_key_names_the_fused_attention_only_when_it_is_used(tmp_path):
+    """Estimates made with cuDNN's fused attention differ from the chunked ones by bf16 rounding, so
+    they get their own key; the chunked key is the one made before that option existed."""
+    weights = tmp_path / "weights"
+    weights.mkdir()
+    (weights / "model_index.json").write_text("{}")
+    photo = tmp_path / "view_0.png"
+    photo.write_bytes(b"x")
+    args = (weights, [("view_0", photo, 0.0)], 24, 32, 4, 3, "bfloat16")
+    chunked = model_estimates.cache_key(*args)
+    assert model_estimates.cache_key(*args, "chunked") == chunked != model_estimates.cache_key(*args, "cudnn")
+    settings = {"v": 1, "size": [24, 32], "steps": 4, "seed": 3, "dtype": "bfloat16"}      # the key's first bytes
+    h = hashlib.sha256(json.dumps(settings).encode())
+    st = (weights / "model_index.json").stat()
+    h.update(f"model_index.json:{st.st_size}:{st.st_mtime_ns}".encode())
+    st = photo.stat()
+    h.update(f"view_0:{photo.resolve()}:{st.st_size}:{st.st_mtime_ns}:0.0".encode())
+    assert chunked == h.hexdigest()[:20]

@@ -106,11 +106,15 @@ def test_fused_cudnn_attention_is_refused_where_cudnn_cannot_run(rgbx_dir):
     VAE's single head is as wide as its last block. (The fused kernel itself runs only on an
     NVIDIA GPU: scripts/bench_gpu_unet.sh checks it against the chunked attention there.)"""
     q = np.zeros((1, 8, 16), np.float32)
-    with pytest.raises(ValueError, match="float16/bfloat16"):
+    with pytest.raises(ValueError, match="got float32"):
         layers.dot_product_attention(q, q, q, 2, chunk_size=layers.FUSED_CUDNN)
-    wide = jnp.zeros((1, 8, 512), jnp.bfloat16)
-    with pytest.raises(ValueError, match="head size 512"):
-        layers.dot_product_attention(wide, wide, wide, 1, chunk_size=layers.FUSED_CUDNN)
+    for channels, heads, problem in ((512, 1, "head size 512"), (24, 2, "head size 12")):
+        x = jnp.zeros((1, 8, channels), jnp.bfloat16)
+        with pytest.raises(ValueError, match=problem):
+            layers.dot_product_attention(x, x, x, heads, chunk_size=layers.FUSED_CUDNN)
+    x = jnp.zeros((1, 8, 16), jnp.bfloat16)
+    with pytest.raises(ValueError, match="mask True"):
+        layers.dot_product_attention(x, x, x, 2, mask=np.tril(np.ones((8, 8), bool)), chunk_size=layers.FUSED_CUDNN)
     nets = convert.build_networks(rgbx_dir, dtype=jnp.bfloat16, chunk_size=layers.FUSED_CUDNN)
     assert nets.unet.chunk_size == layers.FUSED_CUDNN
     assert nets.vae.chunk_size == layers.DEFAULT_ATTENTION_CHUNK

@@ -40,7 +40,7 @@ RGBX_DIR_ENV = "JAXDISTILL_RGBX_DIR"
 RESUMABLE_FLAGS = ("steps", "resume", "ckpt_every", "keep_checkpoints", "out_dir", "log_every", "eval_every", "renders",
                    "contact_views", "rgbx_dir", "convert_cache", "allow_outside_paths", "anchor", "estimate_steps",
                    "max_unwrap_faces", "unwrap_time_limit", "coordinator_address", "num_processes", "process_id",
-                   "view_data")
+                   "view_data", "prior_attention")      # the attention only changes bf16 rounding
 # Flags handed to the dataset loaders for --scene=FORMAT:PATH (`ImportOptions` fields, the import
 # command's flags of the same names).
 IMPORT_FLAGS = ("mesh", "exposure", "uv", "max_views", "max_page_size", "max_unwrap_faces", "unwrap_time_limit")
@@ -142,7 +142,7 @@ def define_flags(fv: flags.FlagValues = flags.FLAGS, *, main_module: bool = Fals
                       "(texels, loss and optimizer are always float32)", **where)
     flags.DEFINE_enum("prior_attention", d.prior_attention, PRIOR_ATTENTION, "the UNet's attention: chunked "
                       "(XLA, any device) or cudnn (cuDNN's fused kernel: an NVIDIA GPU and --prior_dtype=bfloat16; "
-                      "1.09-1.12x a step on an H200, docs/benchmarks.md section 9)", **where)
+                      "1.09-1.12x a step on an H200, docs/benchmarks.md section 9b)", **where)
     flags.DEFINE_integer("steps", d.steps, "optimisation steps", **where)
     flags.DEFINE_float("lr", d.lr, "AdamW learning rate", **where)
     flags.DEFINE_enum("lr_schedule", d.lr_schedule, LR_SCHEDULES, "constant (thesis) or cosine decay to 0 over "
@@ -365,12 +365,11 @@ def validate(config: DistillConfig) -> DistillConfig:
     if c.prior_attention == "cudnn" and c.prior_dtype != "bfloat16":
         bad("prior_attention", f"cudnn needs --prior_dtype=bfloat16 (cuDNN's fused attention has no float32 kernel), "
             f"got --prior_dtype={c.prior_dtype}")
-    if c.prior_attention == "cudnn" and c.prior != "views":
-        import jax
-
-        if jax.default_backend() != "gpu":
-            bad("prior_attention", f"cudnn runs only on an NVIDIA GPU and JAX's backend here is "
-                f"{jax.default_backend()}; use --prior_attention=chunked")
+    if c.prior_attention == "cudnn" and c.prior == "views":
+        bad("prior_attention", "the views prior runs no network, so cudnn would change nothing; use "
+            "--prior_attention=chunked (or --prior=rgbx)")
+    # the backend is checked in loop.check_before_compute: asking JAX for it here would start its
+    # backends before jax.distributed.initialize, which then refuses to run
     if c.w_t < 0 or c.w_i < 0:
         bad("w_t/--w_i", f"guidance weights must be >= 0, got {c.w_t} and {c.w_i}")
     import_option_problems(c, p)

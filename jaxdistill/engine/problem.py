@@ -261,7 +261,13 @@ def _rgbx_prior(config: DistillConfig, choice: PriorChoice, scene, channels, hei
 
     dtype = {"float32": jnp.float32, "bfloat16": jnp.bfloat16}[config.prior_dtype]
     chunk = layers.FUSED_CUDNN if config.prior_attention == "cudnn" else None     # validated in config
-    loaded = convert.load_rgbx(choice.folder, dtype=dtype, cache_dir=config.convert_cache, chunk_size=chunk)
+    try:
+        loaded = convert.load_rgbx(choice.folder, dtype=dtype, cache_dir=config.convert_cache, chunk_size=chunk)
+    except ValueError as err:              # a UNet whose heads cuDNN's fused attention cannot take
+        if chunk is None or "cuDNN" not in str(err):
+            raise
+        raise InputError.single("flags", "--prior_attention", f"{choice.folder}'s UNet: {err}; use "
+                                "--prior_attention=chunked") from None
     model = rgbx.load_prior(loaded)
     logging.info("RGB<->X loaded from %s in %.1f s", choice.folder, sum(loaded.seconds.values()))
     photos = (resize(imageio.read_photo_srgb(v.photo, v.exposure), height, width) for v in scene.views)

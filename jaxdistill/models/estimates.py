@@ -25,6 +25,7 @@ from tqdm.auto import tqdm
 
 from jaxdistill.io import images as imageio
 from jaxdistill.models import prior as rgbx
+from jaxdistill.models.layers import FUSED_CUDNN
 from jaxdistill.render.fragments import default_cache_dir
 from jaxdistill.io.view_images import read_target, resize
 from jaxdistill.io.view_rows import LazyViews
@@ -34,11 +35,14 @@ BATCH = 16                   # views per sampling call
 
 
 def cache_key(model_folder: Path, photos: Sequence[tuple[str, Path, float]], height: int, width: int, steps: int,
-              seed: int, dtype: str) -> str:
+              seed: int, dtype: str, attention: str = "chunked") -> str:
     """A digest of what determines the estimates: the weights files (name, size, mtime), each
-    photo (name, path, size, mtime, exposure), the size and the sampling settings."""
-    h = hashlib.sha256(json.dumps({"v": 1, "size": [height, width], "steps": steps, "seed": seed,
-                                   "dtype": dtype}).encode())
+    photo (name, path, size, mtime, exposure), the size and the sampling settings (the UNet's
+    attention only when it is cuDNN's fused one, so keys made before that option stay valid)."""
+    settings = {"v": 1, "size": [height, width], "steps": steps, "seed": seed, "dtype": dtype}
+    if attention != "chunked":
+        settings["attention"] = attention
+    h = hashlib.sha256(json.dumps(settings).encode())
     for p in sorted(Path(model_folder).rglob("*")):
         if p.is_file() and p.suffix in (".safetensors", ".json", ".txt"):
             st = p.stat()
@@ -91,7 +95,8 @@ def cached_estimates(model: rgbx.RgbxPrior, photos: Sequence[tuple[str, Path, fl
                      cache_dir: Path | None = None, progress: bool = True) -> Path:
     """The folder of the model's estimates (see `estimate_views`), computed only when the cache
     (`cache_dir`, default `default_cache_dir()/estimates`) lacks them."""
-    key = cache_key(model.loaded.folder, photos, height, width, steps, seed, dtype)
+    fused = model.loaded.networks.unet.chunk_size == FUSED_CUDNN
+    key = cache_key(model.loaded.folder, photos, height, width, steps, seed, dtype, "cudnn" if fused else "chunked")
     folder = Path(cache_dir or default_cache_dir() / "estimates") / key
     done = folder / "estimate.json"
     if _covers(done, maps):
