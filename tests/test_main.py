@@ -322,11 +322,13 @@ def test_auto_prior_uses_rgbx_weights_end_to_end(tiny_scene, run_rgbx_dir, tmp_p
 
 
 @pytest.mark.skipif(jax.default_backend() == "gpu", reason="checks the refusal on a machine without a GPU")
-def test_fused_attention_is_refused_before_compute_without_an_nvidia_gpu(tiny_scene, run_rgbx_dir, tmp_path):
+def test_fused_attention_is_refused_before_compute_without_an_nvidia_gpu(tiny_scene, run_rgbx_dir, tmp_path,
+                                                                        monkeypatch):
     """--prior_attention=cudnn is checked against the run's device with the other flag problems,
     after jax.distributed would have joined (so not in `validate`), and before any set-up."""
     config = tiny_config(tiny_scene, tmp_path / "out", prior="rgbx", rgbx_dir=str(run_rgbx_dir), steps=1,
                          prior_dtype="bfloat16", prior_attention="cudnn")
+    monkeypatch.setattr(pipeline, "build_problem", lambda *a, **k: pytest.fail("set-up ran before the refusal"))
     with pytest.raises(InputError, match="--prior_attention: cudnn needs an NVIDIA GPU .* this run's device is cpu"):
         pipeline.run(config, progress=False)
     assert not (tmp_path / "out").exists()

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -118,6 +119,23 @@ def test_fused_cudnn_attention_is_refused_where_cudnn_cannot_run(rgbx_dir):
     nets = convert.build_networks(rgbx_dir, dtype=jnp.bfloat16, chunk_size=layers.FUSED_CUDNN)
     assert nets.unet.chunk_size == layers.FUSED_CUDNN
     assert nets.vae.chunk_size == layers.DEFAULT_ATTENTION_CHUNK
+
+
+def test_fused_attention_problems_are_read_from_the_unet_config(tmp_path):
+    """The main job refuses --prior_attention=cudnn before any set-up when a UNet's heads do not
+    fit cuDNN (`convert.fused_attention_problems`, called by `loop.check_before_compute` on a GPU):
+    head sizes from block_out_channels / heads, for the attention blocks and the mid block only."""
+    shipped = json.loads((Path(convert.__file__).parent / "rgbx_rooms" / "unet" / "config.json").read_text())
+    real = {**shipped, "block_out_channels": [320, 640, 1280, 1280], "attention_head_dim": [5, 10, 20, 20]}
+    cases = (({}, []),                                              # the shipped model: heads of 16
+             ({"attention_head_dim": [32, 4, 4, 4]}, ["down_block_types[0]: 32 heads of 1 channels"]),
+             ({"attention_head_dim": [2, 4, 4, 64]}, ["the mid block: 64 heads of 1 channels"]),   # block 3: no attention
+             (real, []))                                            # RGB<->X's own: heads of 64
+    for i, (change, expected) in enumerate(cases):
+        folder = tmp_path / str(i)
+        (folder / "unet").mkdir(parents=True)
+        (folder / "unet" / "config.json").write_text(json.dumps({**shipped, **change}))
+        assert convert.fused_attention_problems(folder) == expected, change
 
 
 def test_vae_chunked_mid_attention_matches(rgbx_dir, loaded):

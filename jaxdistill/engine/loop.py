@@ -152,12 +152,19 @@ def check_before_compute(config: DistillConfig, out: Path, choice) -> int | None
         if choice.kind != "rgbx":
             raise InputError.single("flags", "--prior_attention", "cudnn is the UNet's attention, but the views prior "
                                     f"was chosen ({choice.reason}); use --prior_attention=chunked or give --rgbx_dir")
-        device = devices[0]
+        from jaxdistill.models import convert
+
+        device = jax.local_devices()[0]
         kind, capability = getattr(device, "device_kind", device.platform), getattr(device, "compute_capability", None)
         if device.platform != "gpu" or "NVIDIA" not in kind.upper() or (capability and float(capability) < 8.0):
             raise InputError.single("flags", "--prior_attention", "cudnn needs an NVIDIA GPU of compute capability 8.0 "
-                                    f"or newer (Ampere, Hopper) and this run's device is {kind}"
+                                    f"or newer (Ampere and later) and this run's device is {kind}"
                                     f"{f' ({capability})' if capability else ''}; use --prior_attention=chunked")
+        heads = convert.fused_attention_problems(choice.folder)
+        if heads:
+            raise InputError.single("flags", "--prior_attention", f"cuDNN's fused attention takes heads of 8 to 128 "
+                                    f"channels in steps of 8, and {choice.folder}'s UNet has {'; '.join(heads)}; "
+                                    "use --prior_attention=chunked")
     if choice.kind == "views" and config.loss_space == "latent":
         raise InputError.single("flags", "--loss_space", "latent needs the rgbx prior, but the views prior was "
                                 f"chosen ({choice.reason}); use --loss_space=image or give --rgbx_dir")

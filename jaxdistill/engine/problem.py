@@ -260,14 +260,9 @@ def _rgbx_prior(config: DistillConfig, choice: PriorChoice, scene, channels, hei
     from jaxdistill.engine.priors import make_rgbx_prior
 
     dtype = {"float32": jnp.float32, "bfloat16": jnp.bfloat16}[config.prior_dtype]
-    chunk = layers.FUSED_CUDNN if config.prior_attention == "cudnn" else None     # validated in config
-    try:
-        loaded = convert.load_rgbx(choice.folder, dtype=dtype, cache_dir=config.convert_cache, chunk_size=chunk)
-    except ValueError as err:              # a UNet whose heads cuDNN's fused attention cannot take
-        if chunk is None or "cuDNN" not in str(err):
-            raise
-        raise InputError.single("flags", "--prior_attention", f"{choice.folder}'s UNet: {err}; use "
-                                "--prior_attention=chunked") from None
+    # cudnn: checked in loop.check_before_compute (dtype, prior, device, the UNet's head sizes)
+    chunk = layers.FUSED_CUDNN if config.prior_attention == "cudnn" else None
+    loaded = convert.load_rgbx(choice.folder, dtype=dtype, cache_dir=config.convert_cache, chunk_size=chunk)
     model = rgbx.load_prior(loaded)
     logging.info("RGB<->X loaded from %s in %.1f s", choice.folder, sum(loaded.seconds.values()))
     photos = (resize(imageio.read_photo_srgb(v.photo, v.exposure), height, width) for v in scene.views)

@@ -311,6 +311,20 @@ def check_rgbx_folder(folder: str | Path, flag: str = "--rgbx_dir", require_rgbx
     return folder
 
 
+def fused_attention_problems(folder: str | Path) -> list[str]:
+    """Why cuDNN's fused attention (`layers.FUSED_CUDNN`) cannot run this folder's UNet, from its
+    config alone: each attention whose head size is not a multiple of 8 up to 128 (none: it can)."""
+    cfg = UNetConfig.from_json(Path(folder).expanduser() / "unet" / "config.json")
+    blocks = [(f"down_block_types[{i}]", i) for i, kind in enumerate(cfg.down_block_types) if "CrossAttn" in kind]
+    blocks.append(("the mid block", len(cfg.block_out_channels) - 1))
+    problems = []
+    for where, i in blocks:
+        size = cfg.block_out_channels[i] // cfg.num_heads[i]
+        if size % 8 or size > 128:
+            problems.append(f"{where}: {cfg.num_heads[i]} heads of {size} channels")
+    return problems
+
+
 def build_networks(folder: str | Path, dtype: Any = jnp.float32, precision: str = "default",
                    chunk_size: int | None = None, require_rgbx: bool = True,
                    flag: str = "--rgbx_dir") -> RgbxNetworks:
