@@ -177,6 +177,24 @@ def test_a_checkpoint_from_before_added_flags_resumes_when_they_keep_their_old_b
     assert done["resumed_from"] == 2 and done["steps"] == 3
 
 
+# The flags a resume compares as they are, with no default for checkpoints that lack them. A flag
+# added to DistillConfig must be resumable (config.RESUMABLE_FLAGS) or have the value that
+# reproduces older runs in loop.ADDED_FLAG_DEFAULTS, or every checkpoint written before it would
+# refuse to resume (as --prior_attention nearly did).
+FIRST_RECORDED_FLAGS = frozenset((
+    "scene", "maps", "prior", "prior_dtype", "lr", "lr_schedule", "weight_decay", "t_min", "t_max", "anneal",
+    "t_weighting", "w_t", "w_i", "loss_space", "latent", "visibility_weighting", "p_keep", "render_size",
+    "texture_size", "max_texture_size", "sampler", "views_per_step", "seed"))
+
+
+def test_every_flag_added_since_the_first_checkpoints_keeps_them_resumable():
+    fields = {f.name for f in dataclasses.fields(DistillConfig)}
+    unplaced = fields - FIRST_RECORDED_FLAGS - set(config_lib.RESUMABLE_FLAGS) - set(loop.ADDED_FLAG_DEFAULTS)
+    assert not unplaced, (f"{sorted(unplaced)}: add each to config.RESUMABLE_FLAGS, or to loop.ADDED_FLAG_DEFAULTS "
+                          "with the value older checkpoints ran with")
+    assert FIRST_RECORDED_FLAGS <= fields
+
+
 def test_sigterm_saves_a_checkpoint_and_the_run_resumes_to_the_same_result(tiny_scene, tmp_path, monkeypatch):
     reference = tmp_path / "reference"
     pipeline.run(tiny_config(tiny_scene, reference, steps=6, renders=False), progress=False)
