@@ -34,7 +34,7 @@ from jaxdistill.errors import InputError
 from jaxdistill.models.clip import CLIPTextConfig, CLIPTextTransformer
 from jaxdistill.models.unet import UNet2DCondition, UNetConfig
 from jaxdistill.models.vae import AutoencoderKL, VAEConfig
-from jaxdistill.models.layers import DEFAULT_ATTENTION_CHUNK, FUSED_CUDNN
+from jaxdistill.models.layers import DEFAULT_ATTENTION_CHUNK, FUSED_CUDNN, fused_head_fits
 
 log = logging.getLogger(__name__)
 
@@ -320,7 +320,7 @@ def fused_attention_problems(folder: str | Path) -> list[str]:
     problems = []
     for where, i in blocks:
         size = cfg.block_out_channels[i] // cfg.num_heads[i]
-        if size % 8 or size > 128:
+        if not fused_head_fits(size):
             problems.append(f"{where}: {cfg.num_heads[i]} heads of {size} channels")
     return problems
 

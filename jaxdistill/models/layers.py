@@ -25,6 +25,11 @@ DEFAULT_ATTENTION_CHUNK = 1024
 FUSED_CUDNN = 0          # chunk size that means: one fused cuDNN attention call (GPU, bf16/fp16)
 
 
+def fused_head_fits(head_dim: int) -> bool:
+    """Whether cuDNN's fused attention takes heads of `head_dim` channels (a multiple of 8, at most 128)."""
+    return head_dim % 8 == 0 and 0 < head_dim <= 128
+
+
 def precision_of(name: str) -> jax.lax.Precision | None:
     """`"default"` → None (the backend's choice, TF32 on recent GPUs), `"highest"` → full fp32."""
     if name == "default":
@@ -118,7 +123,7 @@ def dot_product_attention(q, k, v, num_heads: int, mask=None, chunk_size: int = 
     k = k.reshape(batch, k.shape[1], num_heads, head_dim)
     v = v.reshape(batch, v.shape[1], num_heads, head_dim)
     if chunk_size == FUSED_CUDNN:
-        if mask is not None or q.dtype not in (jnp.float16, jnp.bfloat16) or head_dim % 8 or head_dim > 128:
+        if mask is not None or q.dtype not in (jnp.float16, jnp.bfloat16) or not fused_head_fits(head_dim):
             raise ValueError(f"cuDNN's fused attention needs float16/bfloat16 activations, a head size that is a "
                              f"multiple of 8 up to 128 and no mask; got {q.dtype}, head size {head_dim}, "
                              f"mask {mask is not None}: use a positive chunk size")
