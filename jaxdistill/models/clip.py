@@ -116,8 +116,8 @@ class _Embeddings(nn.Module):
     @nn.compact
     def __call__(self, ids):
         c = self.config
-        tokens = nn.Embed(c.vocab_size, c.hidden_size, name="token_embedding")(ids)
-        positions = nn.Embed(c.max_position_embeddings, c.hidden_size, name="position_embedding")(
+        tokens = layers.Embed(c.vocab_size, c.hidden_size, name="token_embedding")(ids)
+        positions = layers.Embed(c.max_position_embeddings, c.hidden_size, name="position_embedding")(
             jnp.arange(ids.shape[1]))
         return tokens + positions[None]
 

@@ -14,6 +14,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+from flax import errors as flax_errors
 from flax import linen as nn
 
 Dtype = Any
@@ -46,7 +47,39 @@ def _standardise(x, axes, epsilon):
     return (x - mean) * jax.lax.rsqrt(var + epsilon)
 
 
-class GroupNorm(nn.Module):
+class ParamsByShape:
+    """Mixin for a Flax module whose parameters are read by name and checked by shape.
+
+    `nn.Module.param` checks a parameter that exists by tracing its initialiser with `jax.eval_shape`
+    on every apply: milliseconds a parameter, which is most of the time it takes to trace a network
+    of hundreds of them (the UNet's step, the sampler). Here the stored shape is compared with the
+    shape asked for (the initialiser's first argument, as in every Flax initialiser) instead.
+    A new parameter is initialised as `nn.Module.param` does: from the same "params" RNG stream at
+    the same point, so `init` gives the same values.
+    """
+
+    def param(self, name, init_fn, *init_args, unbox=True, **init_kwargs):
+        shape = tuple(init_args[0])
+        value = self.variable("params", name, lambda: init_fn(self.make_rng("params"), *init_args, **init_kwargs),
+                              unbox=unbox).value
+        if tuple(jnp.shape(value)) != shape:
+            raise flax_errors.ScopeParamShapeError(name, self.scope.path_text, tuple(jnp.shape(value)), shape)
+        return value
+
+
+class Dense(ParamsByShape, nn.Dense):
+    """`nn.Dense` with its parameters read by shape (`ParamsByShape`)."""
+
+
+class Conv(ParamsByShape, nn.Conv):
+    """`nn.Conv` with its parameters read by shape (`ParamsByShape`)."""
+
+
+class Embed(ParamsByShape, nn.Embed):
+    """`nn.Embed` with its parameters read by shape (`ParamsByShape`)."""
+
+
+class GroupNorm(ParamsByShape, nn.Module):
     """GroupNorm over the channel axis (last), statistics in float32 (two-pass variance)."""
 
     num_groups: int
@@ -64,7 +97,7 @@ class GroupNorm(nn.Module):
         return (normed * scale + bias).astype(self.dtype)
 
 
-class LayerNorm(nn.Module):
+class LayerNorm(ParamsByShape, nn.Module):
     """LayerNorm over the last axis, statistics in float32."""
 
     epsilon: float = 1e-5
@@ -78,18 +111,18 @@ class LayerNorm(nn.Module):
         return (_standardise(x.astype(jnp.float32), (-1,), self.epsilon) * scale + bias).astype(self.dtype)
 
 
-def dense(features: int, name: str | None, dtype: Dtype, precision: str, use_bias: bool = True) -> nn.Dense:
+def dense(features: int, name: str | None, dtype: Dtype, precision: str, use_bias: bool = True) -> Dense:
     """A linear layer with float32 parameters computing in `dtype`."""
-    return nn.Dense(features, use_bias=use_bias, dtype=dtype, param_dtype=jnp.float32,
+    return Dense(features, use_bias=use_bias, dtype=dtype, param_dtype=jnp.float32,
                     precision=precision_of(precision), name=name)
 
 
 def conv(features: int, kernel: int, name: str | None, dtype: Dtype, precision: str, stride: int = 1,
-         padding: Any = "SAME_TORCH") -> nn.Conv:
+         padding: Any = "SAME_TORCH") -> Conv:
     """A 2-D convolution, PyTorch padding `kernel // 2` unless `padding` is given."""
     if padding == "SAME_TORCH":
         padding = ((kernel // 2, kernel // 2),) * 2
-    return nn.Conv(features, (kernel, kernel), strides=(stride, stride), padding=padding, dtype=dtype,
+    return Conv(features, (kernel, kernel), strides=(stride, stride), padding=padding, dtype=dtype,
                    param_dtype=jnp.float32, precision=precision_of(precision), name=name)
 
 
