@@ -125,15 +125,15 @@ def init_prompts(init, tokenizer):
     """(text params, (6, 77, D) last hidden states of the five prompts then "") of an `--init` model."""
     ids = prompt_ids(tokenizer)
     params = init.params["text_encoder"]
-    return params, np.asarray(init.networks.text_encoder.apply(params, ids))
+    return params, np.asarray(jax.jit(init.networks.text_encoder.apply)(params, ids))
 
 
 def text_encoder_and_prompts(seed: int, tokenizer, text: dict = recipe.TEXT):
     """(frozen CLIP params, (6, 77, D) last hidden states of the five prompts then "")."""
     encoder = CLIPTextTransformer(CLIPTextConfig.from_dict(dict(text, vocab_size=len(tokenizer.backend.get_vocab()))))
     ids = prompt_ids(tokenizer)
-    params = encoder.init(jax.random.key(seed + 7), ids)
-    return params, np.asarray(encoder.apply(params, ids))
+    params = jax.jit(encoder.init)(jax.random.key(seed + 7), ids)       # jitted: one program each, not op by op
+    return params, np.asarray(jax.jit(encoder.apply)(params, ids))
 
 
 def timesteps(key, batch: int, num_train_timesteps: int, high_fraction: float = 0.0, high_from: int = 900):
