@@ -35,7 +35,7 @@ from jaxdistill.scene import cameras
 # `pytest --durations=30` lists them), slowest first. They are collected first, so that `pytest -n 2 --dist
 # loadfile` (the README's test command) starts them at once and the quick modules fill in around
 # them, instead of one of them running alone at the end.
-SLOW_MODULES = ("test_train_rgbx.py", "test_view.py", "test_prepare_scene.py", "test_smoke_outputs.py", "test_main.py",
+SLOW_MODULES = ("test_train_rgbx.py", "test_view.py", "test_prepare_scene.py", "test_main.py",
                 "test_photo.py", "test_walkthrough.py")
 
 

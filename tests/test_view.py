@@ -1,15 +1,20 @@
-"""The browser viewer (`jaxdistill view OUT_DIR`) on the smoke run's output, in headless Chromium.
+"""The smoke run through the `jaxdistill` command, once per module (configs/smoke.cfg on 9 of the
+bedroom's views, about 2 minutes on 2 cores, its caches in a temporary folder), and what is made
+of its output: the browser viewer (`jaxdistill view OUT_DIR`) in headless Chromium, the Khronos
+glTF-Validator on its scene.glb, its glTF cameras against scene.json, its console summary.
 
-The smoke config runs once per module (about 2 minutes on 2 cores, its caches in a temporary
-folder); the browser test needs Debian's chromium (scripts/install_chromium.sh) and is skipped
-with that reason where it is missing. WebGL runs on SwiftShader.
+The browser test needs Debian's chromium (scripts/install_chromium.sh), the validator Node.js
+(scripts/install_test_tools.sh); each is skipped with that reason where it is missing. WebGL runs
+on SwiftShader.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import socket
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -17,13 +22,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
-from absl import flags
 
 pytest.importorskip("viser", reason="the viewer needs the view extra: pip install -e \".[view]\"")
 
 from jaxdistill.io import checkpoint, images as imageio
-from jaxdistill import pipeline
-from jaxdistill.engine import config as config_lib, loop
 from jaxdistill.evaluate import ground_truth as evaluation
 from jaxdistill.export import pages as page_files, run_dir as run_files
 from jaxdistill.models import estimates as model_estimates
@@ -33,9 +35,14 @@ from jaxdistill.render.fragments import compute_fragments  # noqa: E402
 from jaxdistill.render.sampler import expand, sample_pages  # noqa: E402
 from jaxdistill.viewer import display  # noqa: E402
 from jaxdistill.viewer.run import RunDir  # noqa: E402
+from jaxdistill.scene.cameras import from_opencv  # noqa: E402
+from jaxdistill.scenes import scene_path  # noqa: E402
 from browser import Browser, chromium_path  # noqa: E402
+from test_export import gltf_projection, read_glb  # noqa: E402
+from tolerance import assert_close  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
+VALIDATOR = Path(os.environ.get("JAXDISTILL_TOOLS", REPO / ".tools")) / "node" / "node_modules"
 
 
 SMOKE_VIEWS = 9        # every 5.9th of the bedroom's 48 views, view_012 (the browser check's view) among them
@@ -44,22 +51,28 @@ SMOKE_STEPS = 4        # a fifth of smoke.cfg's 20, logged and evaluated every 2
 
 
 @pytest.fixture(scope="module")
-def smoke_run(tmp_path_factory):
-    """The out_dir of `python -m jaxdistill.main --flagfile=configs/smoke.cfg --estimate_steps=2
-    --max_views=9 --steps=4 --log_every=2 --eval_every=2`: the model's per-view estimates (the baseline the viewer shows) in 2 DDIM steps
-    instead of the demo's 50, and 9 of the bedroom's 48 views, evenly spread round the room (a
-    fifth of the fragments, plans, estimates and evidence); what the viewer shows of them depends
+def smoke_command(tmp_path_factory):
+    """(out_dir, console output) of `python -m jaxdistill distill --flagfile=configs/smoke.cfg
+    --estimate_steps=2 --max_views=9 --steps=4 --log_every=2 --eval_every=2`: the model's per-view
+    estimates (the baseline the viewer shows) in 2 DDIM steps instead of the demo's 50, and 9 of
+    the bedroom's 48 views, evenly spread round the room (a fifth of the fragments, plans,
+    estimates and evidence); what the viewer, the glTF and the console show of them depends
     neither on how they were sampled (tests/test_model_estimates.py checks them against
-    `jaxdistill.estimate`) nor on how many views there are."""
+    `jaxdistill.estimate`) nor on how many views there are or how long the run is."""
     out = tmp_path_factory.mktemp("view") / "smoke"
-    fv = flags.FlagValues()
-    config_lib.define_flags(fv)
-    fv([sys.argv[0], f"--flagfile={REPO / 'configs' / 'smoke.cfg'}", f"--out_dir={out}", "--estimate_steps=2",
-        f"--max_views={SMOKE_VIEWS}", f"--steps={SMOKE_STEPS}", "--log_every=2", "--eval_every=2"])
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("JAXDISTILL_CACHE", str(tmp_path_factory.mktemp("view_cache")))
-        pipeline.run(config_lib.config_from_flags(fv), progress=False)
-        yield out
+    env = {**os.environ, "JAXDISTILL_CACHE": str(tmp_path_factory.mktemp("view_cache"))}
+    run = subprocess.run([sys.executable, "-m", "jaxdistill", "distill", "--flagfile=configs/smoke.cfg",
+                          "--estimate_steps=2", f"--max_views={SMOKE_VIEWS}", f"--steps={SMOKE_STEPS}", "--log_every=2",
+                          "--eval_every=2", f"--out_dir={out}"], cwd=REPO, env=env, capture_output=True, text=True,
+                         timeout=900)
+    assert run.returncode == 0, run.stderr[-4000:]
+    return out, run.stdout + run.stderr
+
+
+@pytest.fixture(scope="module")
+def smoke_run(smoke_command):
+    """The smoke run's out_dir."""
+    return smoke_command[0]
 
 
 def camera_reported(client) -> bool:
@@ -326,7 +339,6 @@ def test_the_browser_shows_the_textured_mesh_the_views_and_a_view_comparison(smo
 
 
 def test_the_main_jobs_view_flag_refuses_a_busy_port_before_any_compute(tmp_path):
-    import subprocess
 
     with socket.socket() as busy:
         busy.bind(("127.0.0.1", 0))
@@ -369,7 +381,6 @@ def test_the_follower_serves_once_the_run_has_written_its_texel_space(smoke_run,
 
 def test_python_m_jaxdistill_view_prints_the_url_serves_it_and_stops_on_ctrl_c(smoke_run, tmp_path):
     import signal
-    import subprocess
     import urllib.request
 
     port = free_port()
@@ -394,3 +405,68 @@ def test_python_m_jaxdistill_view_prints_the_url_serves_it_and_stops_on_ctrl_c(s
             process.kill()
             process.wait()
         log.close()
+
+
+# ----------------------------------------------------------------------------- the command's other outputs
+
+
+def test_gltf_validator_reports_no_error_and_no_warning(smoke_command):
+    if shutil.which("node") is None:
+        pytest.skip("node is not installed: the Khronos glTF-Validator (npm gltf-validator) needs Node.js")
+    assert (VALIDATOR / "gltf-validator").is_dir(), (
+        f"gltf-validator is not installed in {VALIDATOR}: run `bash scripts/install_test_tools.sh` "
+        "(the README's test command does)")
+    out, _ = smoke_command
+    run = subprocess.run(["node", str(REPO / "scripts" / "validate_gltf.js"), str(VALIDATOR), str(out / "scene.glb")],
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    report = json.loads(run.stdout)
+    issues = [m for m in report["issues"]["messages"] if m["severity"] <= 1]
+    assert report["issues"]["numErrors"] == 0 and report["issues"]["numWarnings"] == 0, issues[:10]
+    assert report["info"]["totalTriangleCount"] == 498
+
+
+def test_gltf_cameras_are_the_views_of_scene_json(smoke_command):
+    out, _ = smoke_command
+    doc, _ = read_glb(out / "scene.glb")
+    scene = json.loads((scene_path("bedroom") / "scene.json").read_text())
+    nodes = {n["name"]: n for n in doc["nodes"] if "camera" in n}
+    picks = np.linspace(0, len(scene["views"]) - 1, SMOKE_VIEWS).round().astype(int)     # --max_views' choice
+    used = [scene["views"][i] for i in picks]
+    assert len(nodes) == SMOKE_VIEWS and sorted(nodes) == sorted(v["name"] for v in used)
+    points = np.random.default_rng(1).uniform([0.5, 0.2, 0.5], [3.5, 2.3, 3.0], (50, 3))   # inside the room
+    for view in used:
+        camera = from_opencv(view["K"], view["c2w"], width=view["width"], height=view["height"])
+        expected, depth = camera.project(points)
+        front = depth > 0
+        pixels, cam = gltf_projection(doc, nodes[view["name"]])
+        assert cam["name"] == view["name"]
+        assert_close(pixels(points[front]), expected[front], rtol=1e-6)
+
+
+def test_console_ends_with_a_summary_and_shows_eval_psnr_while_running(smoke_command):
+    out, console = smoke_command
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert "albedo_psnr=" in console                                     # the progress bar, --eval_every=2
+    table = console[console.index("metric "):]
+    row = next(line for line in table.splitlines() if line.startswith("albedo PSNR (dB)"))
+    ours, estimates = (float(x) for x in row.split()[3:5])
+    assert ours == pytest.approx(metrics["ours"]["albedo_psnr"], rel=1e-3)
+    assert estimates == pytest.approx(metrics["baseline_per_view_estimates"]["albedo_psnr"], rel=1e-3)
+    assert f"outputs in {out}" in table and "wall time" in table
+
+
+def test_metrics_report_seams_for_ours_and_the_estimates(smoke_command):
+    out, _ = smoke_command
+    metrics = json.loads((out / "metrics.json").read_text())
+    for block in ("ours", "baseline_per_view_estimates"):
+        for m in ("albedo", "normal", "roughness", "metallic"):
+            values = metrics[block]
+            assert values[f"{m}_seam_energy"] >= 0 and values[f"{m}_seam_energy_gt"] > 0
+            assert values[f"{m}_seam_excess"] == pytest.approx(
+                values[f"{m}_seam_energy"] - values[f"{m}_seam_energy_gt"], rel=1e-9, abs=1e-12)
+            if values[f"{m}_seam_ratio"] is not None:
+                assert values[f"{m}_seam_ratio"] == pytest.approx(
+                    values[f"{m}_seam_energy"] / values[f"{m}_seam_energy_gt"], rel=1e-9)
+    checkpoints = [p for p in (out / "checkpoints").iterdir() if p.name.isdigit()]
+    assert len(checkpoints) == 1                                          # smoke saves only at the end
