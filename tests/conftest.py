@@ -35,8 +35,16 @@ from jaxdistill.scene import cameras
 # `pytest --durations=30` lists them), slowest first. They are collected first, so that `pytest -n 2 --dist
 # loadfile` (the README's test command) starts them at once and the quick modules fill in around
 # them, instead of one of them running alone at the end.
-SLOW_MODULES = ("test_train_rgbx.py", "test_view.py", "test_prepare_scene.py", "test_main.py",
-                "test_photo.py", "test_walkthrough.py")
+SLOW_MODULES = ("test_train_rgbx.py", "test_view.py", "test_main.py", "test_prepare_scene.py", "test_walkthrough.py",
+                "test_prior.py", "test_models.py", "test_shipped_model.py", "test_speed_vs_error.py", "test_distill.py")
+
+
+def pytest_configure(config):
+    # pytest-xdist's loadfile schedules files in the order collected only without its "loadscope
+    # reorder" (on by default since 3.x: files with more tests first), which put modules of a few
+    # slow tests last, one of them then running alone while the other worker had finished
+    if hasattr(config.option, "loadscopereorder"):
+        config.option.loadscopereorder = False
 
 
 def pytest_sessionfinish(session, exitstatus):

@@ -25,6 +25,7 @@ from jaxdistill.engine.config import DistillConfig
 from jaxdistill.errors import InputError
 from jaxdistill.engine.problem import Problem
 from jaxdistill.export import run_dir
+from jaxdistill.models import estimates as model_estimates
 from tiny_scene import write_tiny_scene
 
 REPO = Path(__file__).resolve().parents[1]
@@ -331,8 +332,9 @@ def test_auto_prior_uses_rgbx_weights_end_to_end(tiny_scene, run_rgbx_dir, tmp_p
     assert doc["prior"]["kind"] == "rgbx" and "JAXDISTILL_RGBX_DIR" in doc["prior"]["reason"]
     assert doc["prior"]["model"] == {"name": "rgb-to-x", "source": "user", "folder": str(run_rgbx_dir)}
     # scored against the model's own per-view estimates (4 DDIM steps: what is sampled is not the point here), not
-    # the scene's targets
+    # the scene's targets; a run samples them in the demo's 50 unless told
     assert doc["baseline_source"].startswith("the model's own per-view estimates (4 DDIM steps")
+    assert DistillConfig.estimate_steps == model_estimates.ESTIMATE_STEPS == 50
     assert doc["anchor"]["to"] == doc["baseline_source"] and list(doc["anchor"]["gains"]) == ["albedo"]  # auto
     assert doc["baseline_per_view_estimates"]["albedo_psnr"] != json.loads(
         (views_run / "metrics.json").read_text())["baseline_per_view_estimates"]["albedo_psnr"]

@@ -15,8 +15,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from flax import errors as flax_errors
-from flax import linen as nn
 
 torch = pytest.importorskip("torch")
 diffusers = pytest.importorskip("diffusers")
@@ -86,41 +84,6 @@ def test_bfloat16_activations_stay_close(rgbx_dir, loaded, torch_models):
     ours = jax.jit(bf16.unet.apply)(loaded.params["unet"], nhwc(sample), 500, context)
     assert ours.dtype == jnp.float32
     assert 1e-4 < rel_err(nchw(ours), ref.numpy()) < 0.05
-
-
-@pytest.mark.parametrize("ours,flax_own,inputs", [
-    (layers.Dense(6), nn.Dense(6), np.arange(2 * 5, dtype=np.float32).reshape(2, 5) / 7),
-    (layers.Conv(4, (3, 3), strides=(2, 2), padding=((1, 1), (1, 1))),
-     nn.Conv(4, (3, 3), strides=(2, 2), padding=((1, 1), (1, 1))),
-     np.sin(np.arange(2 * 7 * 6 * 3, dtype=np.float32)).reshape(2, 7, 6, 3)),
-    (layers.Embed(9, 5), nn.Embed(9, 5), np.array([[0, 3, 8], [8, 8, 1]], np.int32)),
-], ids=["dense", "conv", "embed"])
-def test_params_by_shape_are_flax_own_layers_without_tracing_the_initialiser(ours, flax_own, inputs):
-    """The layers the networks are built of init to Flax's own values (same RNG stream) and apply
-    to its outputs, bit for bit; a stored parameter is read without calling its initialiser (Flax's
-    own check traces it on every apply); a parameter of the wrong shape is named."""
-    key = jax.random.key(7)
-    params = ours.init(key, inputs)
-    reference = flax_own.init(key, inputs)
-    assert jax.tree.structure(params) == jax.tree.structure(reference)
-    assert all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(reference)))
-    assert np.array_equal(ours.apply(params, inputs), flax_own.apply(reference, inputs))
-    calls = []
-
-    def counting_init(init):
-        return lambda *args: calls.append(args[1]) or init(*args)
-
-    first = "embedding_init" if isinstance(ours, nn.Embed) else "kernel_init"
-    counted = {m: m.clone(**{first: counting_init(getattr(m, first))}) for m in (ours, flax_own)}
-    counted[ours].apply(params, inputs)
-    assert calls == []
-    counted[flax_own].apply(reference, inputs)
-    assert len(calls) == 1                                   # Flax's check: one trace of the initialiser
-    name = "embedding" if isinstance(ours, nn.Embed) else "kernel"
-    wrong = jax.tree.map(lambda x: x, params)
-    wrong["params"][name] = np.zeros(params["params"][name].shape[:-1] + (1,), np.float32)
-    with pytest.raises(flax_errors.ScopeParamShapeError, match=name):
-        ours.apply(wrong, inputs)
 
 
 def test_chunked_attention_equals_full_attention():

@@ -489,11 +489,13 @@ def test_prepared_scene_runs_in_the_main_job_with_evaluation(source, tmp_path, m
                 "irradiance_si_psnr"):
         assert np.isfinite(doc["ours"][key]), (key, log)
     assert doc["history"]["eval_step"] == [1, 2] and np.isfinite(doc["history"]["albedo_psnr"]).all()
-    if source == "room":     # the README's command: SDS with the default prior, the shipped model unless weights are given
+    # the README's command: SDS with the default prior, the shipped model unless weights are given
+    if source == "room":
         assert doc["prior"]["kind"] == "rgbx" and doc["prior"]["model"]["source"] == "shipped", doc["prior"]
         assert doc["baseline_source"].startswith("the model's own per-view estimates (4 DDIM steps")
     else:
         assert doc["prior"]["kind"] == "views", doc["prior"]
+        assert doc["baseline_source"] == "the scene's per-view target images", doc["baseline_source"]
     # Independently: the albedo PSNR over each view's mask from the written renders (8-bit sRGB PNGs)
     psnrs = []
     for view in scene.views:

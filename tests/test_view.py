@@ -10,6 +10,7 @@ on SwiftShader.
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import shutil
@@ -22,8 +23,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
-
-pytest.importorskip("viser", reason="the viewer needs the view extra: pip install -e \".[view]\"")
 
 from jaxdistill.io import checkpoint, images as imageio
 from jaxdistill.evaluate import ground_truth as evaluation
@@ -42,6 +41,9 @@ from test_export import gltf_projection, read_glb  # noqa: E402
 from tolerance import assert_close  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
+# the viewer's tests need the view extra; the command's other outputs (glTF, console) do not
+needs_viser = pytest.mark.skipif(importlib.util.find_spec("viser") is None,
+                                 reason="the viewer needs the view extra: pip install -e \".[view]\"")
 VALIDATOR = Path(os.environ.get("JAXDISTILL_TOOLS", REPO / ".tools")) / "node" / "node_modules"
 
 
@@ -58,15 +60,17 @@ def smoke_command(tmp_path_factory):
     the bedroom's 48 views, evenly spread round the room (a fifth of the fragments, plans,
     estimates and evidence); what the viewer, the glTF and the console show of them depends
     neither on how they were sampled (tests/test_model_estimates.py checks them against
-    `jaxdistill.estimate`) nor on how many views there are or how long the run is."""
+    `jaxdistill.estimate`) nor on how many views there are or how long the run is.
+    The run's cache folder stays $JAXDISTILL_CACHE for the module's tests, which read its ray casts."""
     out = tmp_path_factory.mktemp("view") / "smoke"
-    env = {**os.environ, "JAXDISTILL_CACHE": str(tmp_path_factory.mktemp("view_cache"))}
-    run = subprocess.run([sys.executable, "-m", "jaxdistill", "distill", "--flagfile=configs/smoke.cfg",
-                          "--estimate_steps=2", f"--max_views={SMOKE_VIEWS}", f"--steps={SMOKE_STEPS}", "--log_every=2",
-                          "--eval_every=2", f"--out_dir={out}"], cwd=REPO, env=env, capture_output=True, text=True,
-                         timeout=900)
-    assert run.returncode == 0, run.stderr[-4000:]
-    return out, run.stdout + run.stderr
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("JAXDISTILL_CACHE", str(tmp_path_factory.mktemp("view_cache")))
+        run = subprocess.run([sys.executable, "-m", "jaxdistill", "distill", "--flagfile=configs/smoke.cfg",
+                              "--estimate_steps=2", f"--max_views={SMOKE_VIEWS}", f"--steps={SMOKE_STEPS}",
+                              "--log_every=2", "--eval_every=2", f"--out_dir={out}"], cwd=REPO, capture_output=True,
+                             text=True, timeout=900)
+        assert run.returncode == 0, run.stderr[-4000:]
+        yield out, run.stdout + run.stderr
 
 
 @pytest.fixture(scope="module")
@@ -92,6 +96,7 @@ def free_port() -> int:
 # ----------------------------------------------------------------------------- pure parts
 
 
+@needs_viser
 def test_rotation_to_wxyz_matches_viser():
     from viser.transforms import SO3
 
@@ -106,6 +111,7 @@ def test_rotation_to_wxyz_matches_viser():
     np.testing.assert_allclose(display.rotation_to_wxyz(np.diag([1.0, -1.0, -1.0])), [0, 1, 0, 0], atol=1e-12)
 
 
+@needs_viser
 def test_unlit_glb_marks_every_material_and_keeps_geometry_and_textures():
     box = trimesh.creation.box()
     faces = np.asarray(box.faces)
@@ -131,6 +137,7 @@ def test_unlit_glb_marks_every_material_and_keeps_geometry_and_textures():
 BROWSER_GREYS = [0, 3, 16, 34, 56, 81, 105, 129, 150, 169, 184, 197, 207, 215, 221, 226]
 
 
+@needs_viser
 def test_tone_mapping_model_matches_the_browser_and_its_inverse_gives_the_colours_back():
     greys = np.repeat(np.linspace(0.0, 1.0, 16)[:, None], 3, axis=1)
     shown = imageio.linear_to_srgb(display.tone_mapped(imageio.srgb_to_linear(greys)))[:, 0] * 255
@@ -142,6 +149,7 @@ def test_tone_mapping_model_matches_the_browser_and_its_inverse_gives_the_colour
     assert display.untone_mapped(np.ones(3)).max() == display.TONE_HEADROOM       # white: as bright as it gets
 
 
+@needs_viser
 def test_comparison_grid_places_cells_and_greys_missing_ones():
     red, blue = np.zeros((30, 40, 3)), np.zeros((30, 40, 3))
     red[..., 0], blue[..., 2] = 1.0, 1.0
@@ -151,6 +159,7 @@ def test_comparison_grid_places_cells_and_greys_missing_ones():
     assert (grid[17:, 22:] == [0, 0, 1]).all() and (grid[15:17] == 1.0).all()
 
 
+@needs_viser
 def test_cli_names_a_missing_out_dir_a_folder_that_is_no_run_and_a_busy_port(tmp_path, capsys):
     assert view.main([str(tmp_path / "nowhere"), f"--port={free_port()}"]) == 2
     assert "nowhere: OUT_DIR: no such folder; give the --out_dir of a run" in capsys.readouterr().err
@@ -168,6 +177,7 @@ def test_cli_names_a_missing_out_dir_a_folder_that_is_no_run_and_a_busy_port(tmp
 # ----------------------------------------------------------------------------- the smoke run's outputs
 
 
+@needs_viser
 def test_smoke_run_writes_evidence_and_a_texel_space_that_reproduces_its_maps(smoke_run):
     live = run_files.read_texel_space(smoke_run)
     assert live.config["scene"] == "bedroom" and list(live.channels.maps) == live.config["maps"]
@@ -195,6 +205,7 @@ def test_smoke_run_writes_evidence_and_a_texel_space_that_reproduces_its_maps(sm
     assert np.nanmax(every) > 0.01                      # the views' estimates really disagree somewhere
 
 
+@needs_viser
 def test_a_running_out_dir_shows_its_newest_checkpoint_and_refreshes(smoke_run, tmp_path):
     running = tmp_path / "running"
     shutil.copytree(smoke_run, running, ignore=shutil.ignore_patterns("metrics.json", "evidence"))
@@ -210,6 +221,7 @@ def test_a_running_out_dir_shows_its_newest_checkpoint_and_refreshes(smoke_run, 
     assert run.version() != before and run.snapshot().finished
 
 
+@needs_viser
 def test_a_views_comparison_and_metrics_are_those_of_that_view(smoke_run):
     """The per-view panel's GT, estimate and metrics for view k equal what the run's evaluation
     (all views' fragments at once) has for view k."""
@@ -249,6 +261,7 @@ def blocks(image: np.ndarray, size: int) -> np.ndarray:
     return image[:h, :w].reshape(h // size, size, w // size, size).mean(axis=(1, 3))
 
 
+@needs_viser
 @pytest.mark.skipif(chromium_path() is None, reason="Debian's chromium is not installed (bash scripts/install_chromium.sh)")
 def test_the_browser_shows_the_textured_mesh_the_views_and_a_view_comparison(smoke_run):
     started = time.monotonic()
@@ -338,8 +351,8 @@ def test_the_browser_shows_the_textured_mesh_the_views_and_a_view_comparison(smo
         viewer.close()
 
 
+@needs_viser
 def test_the_main_jobs_view_flag_refuses_a_busy_port_before_any_compute(tmp_path):
-
     with socket.socket() as busy:
         busy.bind(("127.0.0.1", 0))
         busy.listen()
@@ -350,6 +363,7 @@ def test_the_main_jobs_view_flag_refuses_a_busy_port_before_any_compute(tmp_path
     assert not (tmp_path / "r").exists()                 # nothing computed, nothing written
 
 
+@needs_viser
 def test_the_follower_serves_once_the_run_has_written_its_texel_space(smoke_run, tmp_path):
     import urllib.request
 
@@ -379,6 +393,7 @@ def test_the_follower_serves_once_the_run_has_written_its_texel_space(smoke_run,
         follower.stop()
 
 
+@needs_viser
 def test_python_m_jaxdistill_view_prints_the_url_serves_it_and_stops_on_ctrl_c(smoke_run, tmp_path):
     import signal
     import urllib.request

@@ -1,4 +1,4 @@
-"""Building blocks shared by the UNet and the VAE (Flax linen, NHWC).
+"""Building blocks shared by the UNet, the VAE and the text encoder (Flax linen, NHWC).
 
 Module and parameter names mirror the PyTorch (diffusers) modules with the list
 index folded into the name (`resnets.0` → `resnets_0`), so `convert.py` maps
@@ -15,6 +15,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 from flax import errors as flax_errors
+from flax.core import meta as flax_meta
 from flax import linen as nn
 
 Dtype = Any
@@ -48,22 +49,23 @@ def _standardise(x, axes, epsilon):
 
 
 class ParamsByShape:
-    """Mixin for a Flax module whose parameters are read by name and checked by shape.
+    """Mixin for a Flax module whose stored parameters are read by name and checked by shape.
 
     `nn.Module.param` checks a parameter that exists by tracing its initialiser with `jax.eval_shape`
     on every apply: milliseconds a parameter, which is most of the time it takes to trace a network
-    of hundreds of them (the UNet's step, the sampler). Here the stored shape is compared with the
-    shape asked for (the initialiser's first argument, as in every Flax initialiser) instead.
-    A new parameter is initialised as `nn.Module.param` does: from the same "params" RNG stream at
-    the same point, so `init` gives the same values.
+    of hundreds of them (the UNet's step, the sampler). Here a stored parameter's shape is compared
+    with the shape asked for (the first of `init_args`, the initialiser's argument after the key, as
+    in every Flax initialiser) instead. Everything else (`init`, a missing parameter, arguments
+    that are not a shape) goes through `nn.Module.param` itself: the same values and errors.
     """
 
     def param(self, name, init_fn, *init_args, unbox=True, **init_kwargs):
-        shape = tuple(init_args[0])
-        value = self.variable("params", name, lambda: init_fn(self.make_rng("params"), *init_args, **init_kwargs),
-                              unbox=unbox).value
-        if tuple(jnp.shape(value)) != shape:
-            raise flax_errors.ScopeParamShapeError(name, self.scope.path_text, tuple(jnp.shape(value)), shape)
+        if not (init_args and isinstance(init_args[0], (tuple, list)) and self.has_variable("params", name)):
+            return super().param(name, init_fn, *init_args, unbox=unbox, **init_kwargs)
+        value = self.variable("params", name, unbox=unbox).value
+        found, asked = tuple(jnp.shape(flax_meta.unbox(value))), tuple(init_args[0])
+        if found != asked:
+            raise flax_errors.ScopeParamShapeError(name, self.scope.path_text, found, asked)
         return value
 
 
@@ -114,7 +116,7 @@ class LayerNorm(ParamsByShape, nn.Module):
 def dense(features: int, name: str | None, dtype: Dtype, precision: str, use_bias: bool = True) -> Dense:
     """A linear layer with float32 parameters computing in `dtype`."""
     return Dense(features, use_bias=use_bias, dtype=dtype, param_dtype=jnp.float32,
-                    precision=precision_of(precision), name=name)
+                 precision=precision_of(precision), name=name)
 
 
 def conv(features: int, kernel: int, name: str | None, dtype: Dtype, precision: str, stride: int = 1,
@@ -123,7 +125,7 @@ def conv(features: int, kernel: int, name: str | None, dtype: Dtype, precision: 
     if padding == "SAME_TORCH":
         padding = ((kernel // 2, kernel // 2),) * 2
     return Conv(features, (kernel, kernel), strides=(stride, stride), padding=padding, dtype=dtype,
-                   param_dtype=jnp.float32, precision=precision_of(precision), name=name)
+                param_dtype=jnp.float32, precision=precision_of(precision), name=name)
 
 
 def _scores_softmax_values(q, k, v, scale, precision, mask=None):
