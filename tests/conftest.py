@@ -40,10 +40,11 @@ SLOW_MODULES = ("test_train_rgbx.py", "test_view.py", "test_main.py", "test_prep
 
 
 def pytest_configure(config):
-    # pytest-xdist's loadfile schedules files in the order collected only without its "loadscope
-    # reorder" (on by default since 3.x: files with more tests first), which put modules of a few
-    # slow tests last, one of them then running alone while the other worker had finished
-    if hasattr(config.option, "loadscopereorder"):
+    # pytest-xdist's loadfile keeps the order collected only with --no-loadscope-reorder (3.8; by
+    # default, and always before 3.8, it puts the files with more tests first, which had put modules
+    # of a few slow tests, such as the training tests, in the second half of the queue). Off here
+    # unless --loadscope-reorder is given.
+    if hasattr(config.option, "loadscopereorder") and "--loadscope-reorder" not in config.invocation_params.args:
         config.option.loadscopereorder = False
 
 

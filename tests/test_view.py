@@ -3,9 +3,9 @@ bedroom's views, about 2 minutes on 2 cores, its caches in a temporary folder), 
 of its output: the browser viewer (`jaxdistill view OUT_DIR`) in headless Chromium, the Khronos
 glTF-Validator on its scene.glb, its glTF cameras against scene.json, its console summary.
 
-The browser test needs Debian's chromium (scripts/install_chromium.sh), the validator Node.js
-(scripts/install_test_tools.sh); each is skipped with that reason where it is missing. WebGL runs
-on SwiftShader.
+The tests that serve the viewer need viser (the view extra), the browser test Debian's chromium
+(scripts/install_chromium.sh), the validator Node.js (scripts/install_test_tools.sh); each is
+skipped with that reason where it is missing. WebGL runs on SwiftShader.
 """
 
 from __future__ import annotations
@@ -41,7 +41,7 @@ from test_export import gltf_projection, read_glb  # noqa: E402
 from tolerance import assert_close  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
-# the viewer's tests need the view extra; the command's other outputs (glTF, console) do not
+# the tests that serve the viewer or use viser need the view extra (pip install -e ".[view]")
 needs_viser = pytest.mark.skipif(importlib.util.find_spec("viser") is None,
                                  reason="the viewer needs the view extra: pip install -e \".[view]\"")
 VALIDATOR = Path(os.environ.get("JAXDISTILL_TOOLS", REPO / ".tools")) / "node" / "node_modules"
@@ -111,7 +111,6 @@ def test_rotation_to_wxyz_matches_viser():
     np.testing.assert_allclose(display.rotation_to_wxyz(np.diag([1.0, -1.0, -1.0])), [0, 1, 0, 0], atol=1e-12)
 
 
-@needs_viser
 def test_unlit_glb_marks_every_material_and_keeps_geometry_and_textures():
     box = trimesh.creation.box()
     faces = np.asarray(box.faces)
@@ -137,7 +136,6 @@ def test_unlit_glb_marks_every_material_and_keeps_geometry_and_textures():
 BROWSER_GREYS = [0, 3, 16, 34, 56, 81, 105, 129, 150, 169, 184, 197, 207, 215, 221, 226]
 
 
-@needs_viser
 def test_tone_mapping_model_matches_the_browser_and_its_inverse_gives_the_colours_back():
     greys = np.repeat(np.linspace(0.0, 1.0, 16)[:, None], 3, axis=1)
     shown = imageio.linear_to_srgb(display.tone_mapped(imageio.srgb_to_linear(greys)))[:, 0] * 255
@@ -149,7 +147,6 @@ def test_tone_mapping_model_matches_the_browser_and_its_inverse_gives_the_colour
     assert display.untone_mapped(np.ones(3)).max() == display.TONE_HEADROOM       # white: as bright as it gets
 
 
-@needs_viser
 def test_comparison_grid_places_cells_and_greys_missing_ones():
     red, blue = np.zeros((30, 40, 3)), np.zeros((30, 40, 3))
     red[..., 0], blue[..., 2] = 1.0, 1.0
@@ -177,7 +174,6 @@ def test_cli_names_a_missing_out_dir_a_folder_that_is_no_run_and_a_busy_port(tmp
 # ----------------------------------------------------------------------------- the smoke run's outputs
 
 
-@needs_viser
 def test_smoke_run_writes_evidence_and_a_texel_space_that_reproduces_its_maps(smoke_run):
     live = run_files.read_texel_space(smoke_run)
     assert live.config["scene"] == "bedroom" and list(live.channels.maps) == live.config["maps"]
@@ -205,7 +201,6 @@ def test_smoke_run_writes_evidence_and_a_texel_space_that_reproduces_its_maps(sm
     assert np.nanmax(every) > 0.01                      # the views' estimates really disagree somewhere
 
 
-@needs_viser
 def test_a_running_out_dir_shows_its_newest_checkpoint_and_refreshes(smoke_run, tmp_path):
     running = tmp_path / "running"
     shutil.copytree(smoke_run, running, ignore=shutil.ignore_patterns("metrics.json", "evidence"))
@@ -221,7 +216,6 @@ def test_a_running_out_dir_shows_its_newest_checkpoint_and_refreshes(smoke_run, 
     assert run.version() != before and run.snapshot().finished
 
 
-@needs_viser
 def test_a_views_comparison_and_metrics_are_those_of_that_view(smoke_run):
     """The per-view panel's GT, estimate and metrics for view k equal what the run's evaluation
     (all views' fragments at once) has for view k."""

@@ -52,11 +52,13 @@ class ParamsByShape:
     """Mixin for a Flax module whose stored parameters are read by name and checked by shape.
 
     `nn.Module.param` checks a parameter that exists by tracing its initialiser with `jax.eval_shape`
-    on every apply: milliseconds a parameter, which is most of the time it takes to trace a network
-    of hundreds of them (the UNet's step, the sampler). Here a stored parameter's shape is compared
-    with the shape asked for (the first of `init_args`, the initialiser's argument after the key, as
-    in every Flax initialiser) instead. Everything else (`init`, a missing parameter, arguments
-    that are not a shape) goes through `nn.Module.param` itself: the same values and errors.
+    each time an apply is traced: milliseconds a parameter, which is most of the time it takes to
+    trace a network of hundreds of them (the UNet's step, the sampler). Here a stored parameter's
+    shape (an array's; not checked leaf by leaf for a pytree-valued parameter, which these layers
+    do not have) is compared with the shape asked for (the first of `init_args`, the initialiser's
+    argument after the key, as in every Flax initialiser) instead. Everything else (`init`, a
+    missing parameter, arguments that are not a shape) goes through `nn.Module.param` itself: the
+    same values and errors.
     """
 
     def param(self, name, init_fn, *init_args, unbox=True, **init_kwargs):
