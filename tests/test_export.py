@@ -95,6 +95,11 @@ def test_write_maps_errors(tmp_path):
         page_files.write_maps(tmp_path, {"depth": pages["roughness"]}, ["wall", "lamp"], [0, 1])
     with pytest.raises(ValueError, match="2 pages, but object_page uses 1"):
         page_files.write_maps(tmp_path, pages, ["wall", "lamp"], [0, 0])
+    # a page that cannot be written (pages are written two at a time) stops the call with its error
+    (tmp_path / "out" / "maps" / "normal").mkdir(parents=True)
+    (tmp_path / "out" / "maps" / "normal" / "lamp.png").mkdir()        # a folder where the PNG goes
+    with pytest.raises(OSError, match="lamp.png"):
+        page_files.write_maps(tmp_path / "out", pages, ["wall", "lamp"], [0, 1])
 
 
 # ----------------------------------------------------------------------------- tangent space

@@ -17,6 +17,7 @@ on page 0 ("atlas" layout).
 from __future__ import annotations
 
 import re
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Mapping, Sequence
 
@@ -129,15 +130,20 @@ def write_maps(out_dir, pages: Mapping[str, Sequence[np.ndarray]], object_names:
     pages = check_pages(pages, object_page)
     stems = page_names(object_names, object_page)
     root = Path(out_dir) / "maps"
-    written = []
-    for name in [m for m in MAP_NAMES if m in pages]:
-        for p, page in enumerate(pages[name]):
-            exr, png = page_file(root, name, stems, p, ".exr"), page_file(root, name, stems, p, ".png")
-            imageio.write_image(exr, page)
-            pixels, encode = png_pixels(name, page)
-            imageio.write_image(png, pixels, encode_srgb=encode)
-            written += [exr, png]
-    return written
+    jobs = [(name, page, page_file(root, name, stems, p, ".exr"), page_file(root, name, stems, p, ".png"))
+            for name in [m for m in MAP_NAMES if m in pages] for p, page in enumerate(pages[name])]
+
+    def write(job):
+        name, page, exr, png = job
+        imageio.write_image(exr, page)
+        pixels, encode = png_pixels(name, page)
+        imageio.write_image(png, pixels, encode_srgb=encode)
+
+    # two pages at a time: OpenImageIO encodes PNGs in the calling thread, outside the GIL (its EXR
+    # writes are threaded already); the bedroom's 150 pages 11.8 s -> 7.3 s on 2 cores
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        list(pool.map(write, jobs))                 # re-raises a page's error
+    return [path for _, _, exr, png in jobs for path in (exr, png)]
 
 
 def to_uint8(x: np.ndarray) -> np.ndarray:
