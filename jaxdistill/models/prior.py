@@ -136,7 +136,7 @@ def text_embeddings(loaded: LoadedRgbx, tokenizer: ClipTokenizer, prompts: dict[
     """CLIP last hidden states of each prompt and of the empty prompt (one encoder pass)."""
     names = list(prompts)
     ids = tokenizer.encode([prompts[n] for n in names] + [""])
-    hidden = _encode_text(loaded.networks.text_encoder, loaded.params["text_encoder"], jnp.asarray(ids))
+    hidden = encode_text(loaded.networks.text_encoder, loaded.params["text_encoder"], jnp.asarray(ids))
     empty = hidden[-1:]
     return {n: TextEmbedding(hidden[i:i + 1], empty) for i, n in enumerate(names)}
 
@@ -158,7 +158,8 @@ def _sample(networks, config, num_steps, guidance, params, image_latent, text_em
 
 
 @functools.partial(jax.jit, static_argnames=("text_encoder",))
-def _encode_text(text_encoder, params, ids):
+def encode_text(text_encoder, params, ids):
+    """CLIP last hidden states (B, 77, D) of token ids (B, 77), one jitted program."""
     return text_encoder.apply(params, ids)
 
 

@@ -36,7 +36,7 @@ from tqdm import tqdm
 
 from jaxdistill.models import scheduler as sched
 from jaxdistill.models.clip import CLIPTextConfig, CLIPTextTransformer
-from jaxdistill.models.prior import MAP_PROMPTS
+from jaxdistill.models.prior import MAP_PROMPTS, encode_text
 from jaxdistill.models.tokenizer import load_tokenizer
 from jaxdistill.models.training import recipe
 from jaxdistill.models.training.export_model import check_export, export
@@ -125,15 +125,15 @@ def init_prompts(init, tokenizer):
     """(text params, (6, 77, D) last hidden states of the five prompts then "") of an `--init` model."""
     ids = prompt_ids(tokenizer)
     params = init.params["text_encoder"]
-    return params, np.asarray(jax.jit(init.networks.text_encoder.apply)(params, ids))
+    return params, np.asarray(encode_text(init.networks.text_encoder, params, ids))
 
 
 def text_encoder_and_prompts(seed: int, tokenizer, text: dict = recipe.TEXT):
     """(frozen CLIP params, (6, 77, D) last hidden states of the five prompts then "")."""
     encoder = CLIPTextTransformer(CLIPTextConfig.from_dict(dict(text, vocab_size=len(tokenizer.backend.get_vocab()))))
     ids = prompt_ids(tokenizer)
-    params = jax.jit(encoder.init)(jax.random.key(seed + 7), ids)       # jitted: one program each, not op by op
-    return params, np.asarray(jax.jit(encoder.apply)(params, ids))
+    params = jax.jit(encoder.init)(jax.random.key(seed + 7), ids)       # jitted: one program, not op by op
+    return params, np.asarray(encode_text(encoder, params, ids))
 
 
 def timesteps(key, batch: int, num_train_timesteps: int, high_fraction: float = 0.0, high_from: int = 900):
