@@ -2,7 +2,7 @@
 
     python scripts/bench_scale.py [--views=50,150] [--sizes=876x584] [--faces_per_side=300] \\
         [--steps=5] [--prior=views] [--max_texture_size=4096] [--view_data=auto] [--work=out/bench_scale] \
-        [--json=FILE]
+        [--flagfile=configs/bedroom.cfg] [--json=FILE]
 
 For every resolution × view count, one after the other:
 1. the capture-sized synthetic room (`scripts/make_capture_scene.py`'s scene, reused when it is
@@ -44,8 +44,13 @@ def parse_args(argv=None):
                    help="the main job's --view_data: per-view arrays in memory or in files")
     p.add_argument("--max_texture_size", type=int, default=4096)
     p.add_argument("--work", default="out/bench_scale", help="scenes, caches, runs and logs")
+    p.add_argument("--flagfile", default=None,
+                   help="the main job's settings (e.g. configs/bedroom.cfg for SDS as the default run does it); "
+                        "the scene, steps, views per step, prior, page cap and --view_data above override it")
     p.add_argument("--json", default=None)
     args = p.parse_args(argv)
+    if args.flagfile and not Path(args.flagfile).is_file():
+        p.error(f"--flagfile: {args.flagfile} is not a file")
     try:
         args.views = [int(v) for v in args.views.split(",")]
         args.sizes = [tuple(int(x) for x in s.lower().split("x")) for s in args.sizes.split(",")]
@@ -72,6 +77,15 @@ def folder_bytes(folder: Path) -> int:
     return sum(p.stat().st_size for p in folder.rglob("*") if p.is_file())
 
 
+def main_command(args, scene: Path, out: Path, views: int) -> list[str]:
+    """The main job's command for one case: `--flagfile`'s settings first, so the flags after it win."""
+    settings = [f"--flagfile={Path(args.flagfile).resolve()}"] if args.flagfile else []
+    return [sys.executable, "-m", "jaxdistill.main", *settings, f"--scene={scene}", f"--prior={args.prior}",
+            f"--steps={args.steps}", f"--views_per_step={min(args.views_per_step, views)}",
+            f"--max_texture_size={args.max_texture_size}", f"--out_dir={out}", "--renders=false",
+            f"--view_data={args.view_data}"]
+
+
 def one_case(args, work: Path, width: int, height: int, views: int) -> dict:
     tag = f"{width}x{height}_{views}v_{args.faces_per_side}f"
     scene = work / f"scene_{tag}"
@@ -86,10 +100,7 @@ def one_case(args, work: Path, width: int, height: int, views: int) -> dict:
     cache, out = work / f"cache_{tag}", work / f"run_{tag}"
     for folder in (cache, out):
         shutil.rmtree(folder, ignore_errors=True)
-    cmd = [sys.executable, "-m", "jaxdistill.main", f"--scene={scene}", f"--prior={args.prior}",
-           f"--steps={args.steps}", f"--views_per_step={min(args.views_per_step, views)}",
-           f"--max_texture_size={args.max_texture_size}", f"--out_dir={out}", "--renders=false",
-           f"--view_data={args.view_data}"]
+    cmd = main_command(args, scene, out, views)
     run = run_child(cmd, work / f"run_{tag}.log", env={**os.environ, "JAXDISTILL_CACHE": str(cache)})
     row.update(run=run, cache_gb=folder_bytes(cache) / 2 ** 30 if cache.exists() else 0.0)
     if run["exit"]:

@@ -1,5 +1,5 @@
-"""`scripts/bench_scale.py`'s own parts: its size arguments are parsed or refused by name, and a
-child's accounting (exit status, wall, peak RSS, last log line) comes from the child itself."""
+"""`scripts/bench_scale.py`'s own parts: its size arguments are parsed or refused by name, a
+flagfile's settings come before its own, and a child's accounting (exit status, wall, peak RSS, last log line) comes from the child itself."""
 
 from __future__ import annotations
 
@@ -28,6 +28,16 @@ def test_sizes_and_views_are_parsed_or_refused(bench, capsys):
         with pytest.raises(SystemExit):
             bench.parse_args([bad])
         assert "--views" in capsys.readouterr().err
+
+
+def test_a_flagfile_comes_first_so_the_scale_settings_win(bench, tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        bench.parse_args([f"--flagfile={tmp_path / 'missing.cfg'}"])
+    assert "--flagfile: " in capsys.readouterr().err
+    args = bench.parse_args([f"--flagfile={REPO / 'configs' / 'bedroom.cfg'}", "--prior=auto", "--steps=20"])
+    cmd = bench.main_command(args, Path("scene"), Path("out"), 50)
+    assert cmd[3] == f"--flagfile={(REPO / 'configs' / 'bedroom.cfg').resolve()}"
+    assert cmd.index("--steps=20") > 3 and "--prior=auto" in cmd and "--scene=scene" in cmd
 
 
 def test_a_childs_accounting_is_its_own(bench, tmp_path):

@@ -31,7 +31,7 @@ from jaxdistill.scene.maps import INITIAL_VALUE, MapChannels, file_to_model
 from jaxdistill.render import fragments as fr
 from jaxdistill.render.gather_plan import TAPS, TexelSpace, build_gather_plans, build_texel_space
 from jaxdistill.render.layout import make_layout
-from jaxdistill.render.visibility import (check_coverage, hit_fractions, pixel_weights, texel_evidence,
+from jaxdistill.render.visibility import (check_coverage, hit_fractions, pixel_weights, read_dtypes, texel_evidence,
                                          view_counts)
 from jaxdistill.scene.model import Scene
 from jaxdistill.scene.paths import resolve_scene_path  # noqa: F401  (--scene as a path; scripts use it from here)
@@ -380,6 +380,8 @@ def _build_problem(config: DistillConfig, *, cache_dir=None, check_scene=None) -
         alphas = prior_frozen.pop("alphas_cumprod")
     timings["prior_setup_s"] = time.perf_counter() - t0
     frozen = {"chain": plan.chain, "prior": prior_frozen, "alphas_cumprod": alphas}
+    if view_folder is not None:
+        _check_evidence_space(view_folder, counts, space.num_texels)
     rotations = np.stack([rgbx_camera_rotation(c.c2w) for c in cameras]).astype(np.float32)
     return Problem(scene=scene, channels=channels, choice=choice, prior=prior, frozen=frozen, space=space,
                    fragments=frags, native_fragments=native_frags, height=height, width=width,
@@ -415,10 +417,20 @@ def _view_data_folder(config: DistillConfig, scene: Scene, choice: PriorChoice, 
     what = f"the per-view arrays of {views} views (--view_data={config.view_data})"
     # the ray casts still to be cached go to the same disk: both must fit
     casts = fr.uncached_bytes(scene.mesh, _cameras_cast(config, scene, render), cache_dir)
+    folder.planned = nbytes                  # what `check_pending` counts as still to come (not the ray casts)
     folder.check_space(nbytes + casts, what + (f" and the ray casts not cached yet ({casts / 2 ** 30:.2f} GB)"
                                                if casts else ""))
     logging.info("%s: %.2f GB on disk in %s, read a batch at a time", what, nbytes / 2 ** 30, folder.root)
     return folder
+
+
+def _check_evidence_space(folder: ViewFolder, counts: np.ndarray, num_texels: int) -> None:
+    """Before the loop: after it, the evidence writes every view's reads to `folder`, a texel id and
+    a weight for each texel the view's plan reads (`visibility.view_reads`): as many as the views
+    counted per texel (`counts`, the same test of the same plans), so their size is known now."""
+    reads = int(counts.sum(dtype=np.int64)) * sum(np.dtype(d).itemsize for d in read_dtypes(num_texels))
+    folder.check_pending(reads, f"the evidence's per-view texel reads ({reads / 2 ** 30:.2f} GB, written after "
+                         "the loop)")
 
 
 def _cameras_cast(config: DistillConfig, scene: Scene, render: tuple[int, int]) -> list[Camera]:
