@@ -44,6 +44,41 @@ def test_the_shipped_folder_is_small_and_documented(folder):
     assert shipped.model_info(folder)["source"] == "shipped"
 
 
+def test_parameter_shapes_are_read_from_a_file_keyed_by_the_networks(folder, tmp_path, monkeypatch):
+    """`convert.abstract_params` traces the three inits once per machine: a new process reads the
+    shapes from $JAXDISTILL_CACHE/param_shapes, a file whose name follows the networks'
+    configuration (and sources, JAX and Flax); a damaged file is traced again and replaced."""
+    monkeypatch.setenv("JAXDISTILL_CACHE", str(tmp_path))
+    networks = convert.build_networks(folder)
+    traced = convert._trace_params(networks)
+
+    def same(tree):
+        return jax.tree.structure(tree) == jax.tree.structure(traced) and all(
+            (a.shape, a.dtype) == (b.shape, b.dtype) for a, b in zip(jax.tree.leaves(tree), jax.tree.leaves(traced)))
+
+    path = convert._shapes_file(networks, False)
+    assert path.parent == tmp_path / "param_shapes"
+    convert._abstract_params.cache_clear()                 # as a new process
+    assert same(convert.abstract_params(networks)) and path.is_file()
+
+    def poisoned(_):
+        raise AssertionError("traced although the shapes were in the file")
+
+    with monkeypatch.context() as m:
+        m.setattr(convert, "_trace_params", poisoned)
+        convert._abstract_params.cache_clear()
+        assert same(convert.abstract_params(networks))
+    assert len({path, convert._shapes_file(networks, True), convert._shapes_file(convert.build_networks(
+        folder, dtype=jnp.bfloat16), False)}) == 3
+    with monkeypatch.context() as m:
+        m.setattr(convert, "_NETWORK_SOURCES", convert._NETWORK_SOURCES[:-1])
+        assert convert._shapes_file(networks, False) != path
+    path.write_text('{"unet": [')
+    convert._abstract_params.cache_clear()
+    assert same(convert.abstract_params(networks)) and same(convert._read_shapes(path))
+    convert._abstract_params.cache_clear()
+
+
 def test_diffusers_and_transformers_agree_with_ours_on_the_shipped_folder(folder, loaded):
     torch = pytest.importorskip("torch")
     diffusers = pytest.importorskip("diffusers")

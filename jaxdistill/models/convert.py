@@ -31,6 +31,7 @@ import numpy as np
 from flax import traverse_util
 
 from jaxdistill.errors import InputError
+from jaxdistill.io.cache import default_cache_dir
 from jaxdistill.models.clip import CLIPTextConfig, CLIPTextTransformer
 from jaxdistill.models.unet import UNet2DCondition, UNetConfig
 from jaxdistill.models.vae import AutoencoderKL, VAEConfig
@@ -351,13 +352,65 @@ def build_networks(folder: str | Path, dtype: Any = jnp.float32, precision: str 
 def abstract_params(networks: RgbxNetworks) -> dict[str, dict]:
     """Shapes of every parameter (`jax.eval_shape` of each init, no memory allocated). Tracing
     the three inits takes seconds; a process that loads the same networks again (an experiment's
-    rows, a test's runs) gets them from a cache keyed by the modules' configuration."""
+    rows, a test's runs) gets them from a cache keyed by the modules' configuration, and a new
+    process from a file in the cache folder (`$JAXDISTILL_CACHE/param_shapes`) keyed by that
+    configuration, the networks' source files and the JAX and Flax versions."""
     cached = _abstract_params(networks, bool(jax.config.jax_enable_x64))
     return jax.tree.map(lambda x: x, cached)         # a fresh tree: callers own what they get
 
 
+_NETWORK_SOURCES = ("unet.py", "vae.py", "clip.py", "layers.py")      # what the inits' shapes follow from
+
+
+def _shapes_file(networks: RgbxNetworks, x64: bool) -> Path:
+    import flax
+
+    h = hashlib.sha256(f"{networks!r}|x64={x64}|jax={jax.__version__}|flax={flax.__version__}".encode())
+    for name in _NETWORK_SOURCES:
+        h.update((Path(__file__).parent / name).read_bytes())
+    return default_cache_dir() / "param_shapes" / f"{h.hexdigest()[:24]}.json"
+
+
+def _read_shapes(path: Path) -> dict | None:
+    """The tree `_write_shapes` wrote, or None when the file is missing or unreadable."""
+    def leaf(x):
+        return jax.ShapeDtypeStruct(tuple(x[0]), jnp.dtype(x[1])) if isinstance(x, list) else \
+            {k: leaf(v) for k, v in x.items()}
+
+    try:
+        return leaf(json.loads(path.read_text()))
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError, TypeError, KeyError, IndexError) as err:
+        log.info("parameter shapes in %s unreadable (%s): traced again", path, err)
+        return None
+
+
+def _write_shapes(path: Path, shapes: dict) -> None:
+    def plain(x):
+        return [list(x.shape), str(x.dtype)] if isinstance(x, jax.ShapeDtypeStruct) else \
+            {k: plain(v) for k, v in x.items()}
+
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
+        tmp.write_text(json.dumps(plain(shapes)))
+        os.replace(tmp, path)                        # whole or not at all, with processes writing at once
+    except OSError as err:                           # a read-only cache costs the tracing, nothing else
+        log.info("parameter shapes not cached in %s (%s)", path.parent, err)
+
+
 @functools.lru_cache(maxsize=8)
 def _abstract_params(networks: RgbxNetworks, x64: bool) -> dict[str, dict]:
+    path = _shapes_file(networks, x64)
+    shapes = _read_shapes(path)
+    if shapes is None:
+        shapes = _trace_params(networks)
+        _write_shapes(path, shapes)
+    return shapes
+
+
+def _trace_params(networks: RgbxNetworks) -> dict[str, dict]:
     key = jax.random.key(0)
     u, v, t = networks.unet, networks.vae, networks.text_encoder
     f = v.config.downsampling_factor

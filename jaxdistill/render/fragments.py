@@ -22,6 +22,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from jaxdistill.errors import InputError
+from jaxdistill.io.cache import default_cache_dir  # noqa: F401  (fr.default_cache_dir: callers read it from here)
 from jaxdistill.scene.cameras import Camera
 from jaxdistill.scene.model import Mesh
 
@@ -204,14 +205,6 @@ def derive_fragments(mesh: Mesh, camera: Camera, triangle: np.ndarray, barycentr
     object_id[hit] = mesh.face_object[tri]
     return Fragments(triangle=triangle.astype(np.int32), barycentric=bary, depth=depth, uv=uv, uv_grad=uv_grad,
                      object_id=object_id)
-
-
-def default_cache_dir() -> Path:
-    """$JAXDISTILL_CACHE, else $XDG_CACHE_HOME/jaxdistill, else ~/.cache/jaxdistill."""
-    if "JAXDISTILL_CACHE" in os.environ:
-        return Path(os.environ["JAXDISTILL_CACHE"])
-    base = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache"))
-    return base / "jaxdistill"
 
 
 CACHE_BYTES_PER_PIXEL = 4 + 2 * 4 + 8    # a cached ray cast: triangle int32, barycentric 2 x float32, distance float64
