@@ -22,6 +22,7 @@ continues a model this script exported (its VAE, latent scaling, text encoder an
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import shutil
 import sys
@@ -53,14 +54,17 @@ DESCRIPTION = "Trains our small RGB<->X-family prior on `make_rgbx_data.py` shar
 # ----------------------------------------------------------------------------- stage 1: VAE
 
 
-def train_vae(args, photos, maps):
-    vae = AutoencoderKL(VAEConfig.from_dict(recipe.VAE))
-    pool = np.concatenate([photos] + [maps[m] for m in MAPS])        # (6N, H, W, 3)
-    tx = adamw(args.vae_lr, args.vae_steps)
+@functools.lru_cache(maxsize=4)
+def vae_program(vae_json: str, lr: float, steps: int, kl_weight: float):
+    """(vae, init_state(key, sample), step(state, batch)) of the VAE stage, jitted once per process
+    for a configuration (`recipe.VAE` as JSON and the flags the step reads): a run that resumes
+    in the same process (the training tests') traces and compiles nothing again."""
+    vae = AutoencoderKL(VAEConfig.from_dict(json.loads(vae_json)))
+    tx = adamw(lr, steps)
 
     @jax.jit      # one program, not one eager dispatch (and compile) per initialiser
-    def init_state():
-        params = vae.init(jax.random.key(args.seed), jnp.zeros((1,) + pool.shape[1:]))
+    def init_state(key, sample):
+        params = vae.init(key, sample)
         return {"params": params, "opt": tx.init(params)}
 
     def loss_fn(params, images, key):
@@ -69,7 +73,7 @@ def train_vae(args, photos, maps):
         recon = vae.apply(params, z, method="decode")
         kl = 0.5 * jnp.mean(jnp.sum(mean ** 2 + jnp.exp(logvar) - 1.0 - logvar, axis=-1))
         err = recon - images
-        return jnp.mean(jnp.abs(err)) + jnp.mean(err ** 2) + args.kl_weight * kl
+        return jnp.mean(jnp.abs(err)) + jnp.mean(err ** 2) + kl_weight * kl
 
     @jax.jit
     def step(state, batch):
@@ -78,11 +82,20 @@ def train_vae(args, photos, maps):
         updates, opt = tx.update(grads, state["opt"], state["params"])
         return {"params": optax.apply_updates(state["params"], updates), "opt": opt}, loss
 
+    return vae, init_state, step
+
+
+def train_vae(args, photos, maps):
+    vae, init_state, step = vae_program(json.dumps(recipe.VAE, sort_keys=True), args.vae_lr, args.vae_steps,
+                                        args.kl_weight)
+    pool = np.concatenate([photos] + [maps[m] for m in MAPS])        # (6N, H, W, 3)
+
     def batch(step):
         rng = np.random.default_rng([args.seed, 1, step])
         return jnp.asarray(pool[rng.integers(len(pool), size=args.vae_batch)]), jax.random.fold_in(jax.random.key(args.seed), step)
 
-    state = run_stage("vae", args.work, init_state, step, batch, args.vae_steps, args.ckpt_every, {"stage": "vae", **recipe.VAE},
+    init = functools.partial(init_state, jax.random.key(args.seed), jnp.zeros((1,) + pool.shape[1:]))
+    state = run_stage("vae", args.work, init, step, batch, args.vae_steps, args.ckpt_every, {"stage": "vae", **recipe.VAE},
                       args.budget)
     return vae, state["params"]
 
@@ -148,12 +161,49 @@ def timesteps(key, batch: int, num_train_timesteps: int, high_fraction: float = 
     return t
 
 
-def train_unet(args, latents, contexts, scaling, init_params=None):
-    unet = UNet2DCondition(UNetConfig.from_dict(recipe.UNET))
+@functools.lru_cache(maxsize=4)
+def unet_program(unet_json: str, lr: float, steps: int, ema: float, p_drop: float, t_high_fraction: float,
+                 t_high_from: int):
+    """(unet, init_params(key, sample, t, context), init_opt(params), step(state, batch, contexts))
+    of the UNet stage, jitted once per process for a configuration (`recipe.UNET` as JSON and the
+    flags the step reads), as `vae_program`."""
+    unet = UNet2DCondition(UNetConfig.from_dict(json.loads(unet_json)))
     config = sched.SchedulerConfig(**{k: recipe.SCHEDULER[k] for k in ("beta_start", "beta_end", "beta_schedule",
                                                                 "num_train_timesteps", "prediction_type",
                                                                 "rescale_betas_zero_snr")})
     alpha_bar = sched.alphas_cumprod(config)
+    tx = adamw(lr, steps)
+
+    def loss_fn(params, x0, cond, which, key, ctx):
+        k_t, k_eps, k_img, k_txt = jax.random.split(key, 4)
+        b = x0.shape[0]
+        t = timesteps(k_t, b, config.num_train_timesteps, t_high_fraction, t_high_from)
+        eps = jax.random.normal(k_eps, x0.shape)
+        ab = alpha_bar[t]
+        z_t = sched.add_noise(x0, eps, ab)
+        v = sched.v_from_x0_eps(x0, eps, ab)
+        cond = jnp.where((jax.random.uniform(k_img, (b,)) < p_drop)[:, None, None, None], 0.0, cond)
+        which = jnp.where(jax.random.uniform(k_txt, (b,)) < p_drop, len(MAPS), which)
+        pred = unet.apply(params, jnp.concatenate([z_t, cond], -1), t, ctx[which])
+        return jnp.mean((pred - v) ** 2)
+
+    @jax.jit
+    def step(state, batch, ctx):
+        x0, cond, which, key = batch
+        loss, grads = jax.value_and_grad(loss_fn)(state["params"], x0, cond, which, key, ctx)
+        updates, opt = tx.update(grads, state["opt"], state["params"])
+        params = optax.apply_updates(state["params"], updates)
+        ema_params = jax.tree.map(lambda e, p: ema * e + (1 - ema) * p, state["ema"], params)
+        return {"params": params, "ema": ema_params, "opt": opt}, loss
+
+    # jitted: one program, not one eager dispatch (and compile) per initialiser
+    return unet, jax.jit(unet.init), jax.jit(tx.init), step
+
+
+def train_unet(args, latents, contexts, scaling, init_params=None):
+    unet, init_unet, init_opt, unet_step = unet_program(
+        json.dumps(recipe.UNET, sort_keys=True), args.unet_lr, args.unet_steps, args.ema, args.p_drop,
+        args.t_high_fraction, args.t_high_from)
     photo = latents["photo"] * scaling
     targets = np.stack([latents[m] * scaling for m in MAPS], 1)   # (N, 5, h, w, 4)
     n, h, w = photo.shape[:3]
@@ -164,35 +214,14 @@ def train_unet(args, latents, contexts, scaling, init_params=None):
                 a.shape != b.shape for a, b in zip(jax.tree.leaves(init_params), jax.tree.leaves(shapes))):
             raise SystemExit(f"--init: its UNet is not this script's UNet ({recipe.UNET['block_out_channels']} blocks, "
                              f"{h}x{w} latents); give a folder this script exported")
-    tx = adamw(args.unet_lr, args.unet_steps)
 
     def init_state():
-        # jitted: one program, not one eager dispatch (and compile) per initialiser
-        params = jax.jit(unet.init)(*init_args) if init_params is None else jax.tree.map(jnp.asarray, init_params)
-        return {"params": params, "ema": params, "opt": jax.jit(tx.init)(params)}
+        params = init_unet(*init_args) if init_params is None else jax.tree.map(jnp.asarray, init_params)
+        return {"params": params, "ema": params, "opt": init_opt(params)}
     ctx = jnp.asarray(contexts)
 
-    def loss_fn(params, x0, cond, which, key):
-        k_t, k_eps, k_img, k_txt = jax.random.split(key, 4)
-        b = x0.shape[0]
-        t = timesteps(k_t, b, config.num_train_timesteps, args.t_high_fraction, args.t_high_from)
-        eps = jax.random.normal(k_eps, x0.shape)
-        ab = alpha_bar[t]
-        z_t = sched.add_noise(x0, eps, ab)
-        v = sched.v_from_x0_eps(x0, eps, ab)
-        cond = jnp.where((jax.random.uniform(k_img, (b,)) < args.p_drop)[:, None, None, None], 0.0, cond)
-        which = jnp.where(jax.random.uniform(k_txt, (b,)) < args.p_drop, len(MAPS), which)
-        pred = unet.apply(params, jnp.concatenate([z_t, cond], -1), t, ctx[which])
-        return jnp.mean((pred - v) ** 2)
-
-    @jax.jit
     def step(state, batch):
-        x0, cond, which, key = batch
-        loss, grads = jax.value_and_grad(loss_fn)(state["params"], x0, cond, which, key)
-        updates, opt = tx.update(grads, state["opt"], state["params"])
-        params = optax.apply_updates(state["params"], updates)
-        ema = jax.tree.map(lambda e, p: args.ema * e + (1 - args.ema) * p, state["ema"], params)
-        return {"params": params, "ema": ema, "opt": opt}, loss
+        return unet_step(state, batch, ctx)
 
     def batch(step):
         rng = np.random.default_rng([args.seed, 3, step])
