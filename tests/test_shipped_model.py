@@ -46,9 +46,22 @@ def test_the_shipped_folder_is_small_and_documented(folder):
 
 def test_parameter_shapes_are_read_from_a_file_keyed_by_the_networks(folder, tmp_path, monkeypatch):
     """`convert.abstract_params` traces the three inits once per machine: a new process reads the
-    shapes from $JAXDISTILL_CACHE/param_shapes, a file whose name follows the networks'
-    configuration (and sources, JAX and Flax); a damaged file is traced again and replaced."""
+    shapes from a file whose name follows the networks' configuration (and sources, JAX and
+    Flax), beside JAX's compilation cache or else in $JAXDISTILL_CACHE/param_shapes; a damaged file
+    is traced again and replaced."""
     monkeypatch.setenv("JAXDISTILL_CACHE", str(tmp_path))
+    previous = jax.config.jax_compilation_cache_dir
+    try:
+        jax.config.update("jax_compilation_cache_dir", str(tmp_path / "xla"))
+        assert convert.shapes_folder() == tmp_path / "xla" / "jaxdistill-param-shapes"
+        jax.config.update("jax_compilation_cache_dir", None)
+        assert convert.shapes_folder() == tmp_path / "param_shapes"
+        _shapes_are_read_from_their_file(folder, tmp_path, monkeypatch)
+    finally:
+        jax.config.update("jax_compilation_cache_dir", previous)
+
+
+def _shapes_are_read_from_their_file(folder, tmp_path, monkeypatch):
     networks = convert.build_networks(folder)
     traced = convert._trace_params(networks)
 

@@ -353,13 +353,21 @@ def abstract_params(networks: RgbxNetworks) -> dict[str, dict]:
     """Shapes of every parameter (`jax.eval_shape` of each init, no memory allocated). Tracing
     the three inits takes seconds; a process that loads the same networks again (an experiment's
     rows, a test's runs) gets them from a cache keyed by the modules' configuration, and a new
-    process from a file in the cache folder (`$JAXDISTILL_CACHE/param_shapes`) keyed by that
-    configuration, the networks' source files and the JAX and Flax versions."""
+    process from a file keyed by that configuration, the networks' source files and the JAX and
+    Flax versions (`shapes_folder`)."""
     cached = _abstract_params(networks, bool(jax.config.jax_enable_x64))
     return jax.tree.map(lambda x: x, cached)         # a fresh tree: callers own what they get
 
 
 _NETWORK_SOURCES = ("unet.py", "vae.py", "clip.py", "layers.py")      # what the inits' shapes follow from
+
+
+def shapes_folder() -> Path:
+    """Where the parameter shapes' files are: beside JAX's persistent compilation cache when one
+    is set (`jax_compilation_cache_dir`; like its programs, they follow from the code alone, and a
+    run that reads its programs from there reads its shapes too), else `$JAXDISTILL_CACHE/param_shapes`."""
+    compiled = jax.config.jax_compilation_cache_dir
+    return Path(compiled) / "jaxdistill-param-shapes" if compiled else default_cache_dir() / "param_shapes"
 
 
 def _shapes_file(networks: RgbxNetworks, x64: bool) -> Path:
@@ -368,7 +376,7 @@ def _shapes_file(networks: RgbxNetworks, x64: bool) -> Path:
     h = hashlib.sha256(f"{networks!r}|x64={x64}|jax={jax.__version__}|flax={flax.__version__}".encode())
     for name in _NETWORK_SOURCES:
         h.update((Path(__file__).parent / name).read_bytes())
-    return default_cache_dir() / "param_shapes" / f"{h.hexdigest()[:24]}.json"
+    return shapes_folder() / f"{h.hexdigest()[:24]}.json"
 
 
 def _read_shapes(path: Path) -> dict | None:
