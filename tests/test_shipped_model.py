@@ -63,16 +63,15 @@ def test_parameter_shapes_are_read_from_a_file_keyed_by_the_networks(folder, tmp
 
 def _shapes_are_read_from_their_file(folder, tmp_path, monkeypatch):
     networks = convert.build_networks(folder)
-    traced = convert._trace_params(networks)
+    path = convert._shapes_file(networks, False)
+    assert path.parent == tmp_path / "param_shapes" and not path.exists()
+    convert._abstract_params.cache_clear()                 # as a new process
+    traced = convert.abstract_params(networks)             # traced (no file yet), and written
+    assert path.is_file()
 
     def same(tree):
         return jax.tree.structure(tree) == jax.tree.structure(traced) and all(
             (a.shape, a.dtype) == (b.shape, b.dtype) for a, b in zip(jax.tree.leaves(tree), jax.tree.leaves(traced)))
-
-    path = convert._shapes_file(networks, False)
-    assert path.parent == tmp_path / "param_shapes"
-    convert._abstract_params.cache_clear()                 # as a new process
-    assert same(convert.abstract_params(networks)) and path.is_file()
 
     def poisoned(_):
         raise AssertionError("traced although the shapes were in the file")
