@@ -38,7 +38,8 @@ def parse_args(argv=None):
     p.add_argument("--sizes", default="876x584", help="WxH resolutions, comma-separated")
     p.add_argument("--faces_per_side", type=int, default=300, help="wall subdivisions; 300 gives 1.13M faces")
     p.add_argument("--steps", type=int, default=5, help="distillation steps per run (the first compiles)")
-    p.add_argument("--prior", default="views", choices=("views", "auto"), help="views: the targets; auto: SDS")
+    p.add_argument("--prior", default=None, choices=("views", "auto"),
+                   help="views: the targets; auto: SDS (default: views, or --flagfile's prior)")
     p.add_argument("--views_per_step", type=int, default=8)
     p.add_argument("--view_data", default="auto", choices=("auto", "memory", "disk"),
                    help="the main job's --view_data: per-view arrays in memory or in files")
@@ -46,7 +47,7 @@ def parse_args(argv=None):
     p.add_argument("--work", default="out/bench_scale", help="scenes, caches, runs and logs")
     p.add_argument("--flagfile", default=None,
                    help="the main job's settings (e.g. configs/bedroom.cfg for SDS as the default run does it); "
-                        "the scene, steps, views per step, prior, page cap and --view_data above override it")
+                        "the scene, steps, views per step, page cap, --view_data and a --prior given above override it")
     p.add_argument("--json", default=None)
     args = p.parse_args(argv)
     if args.flagfile and not Path(args.flagfile).is_file():
@@ -80,7 +81,8 @@ def folder_bytes(folder: Path) -> int:
 def main_command(args, scene: Path, out: Path, views: int) -> list[str]:
     """The main job's command for one case: `--flagfile`'s settings first, so the flags after it win."""
     settings = [f"--flagfile={Path(args.flagfile).resolve()}"] if args.flagfile else []
-    return [sys.executable, "-m", "jaxdistill.main", *settings, f"--scene={scene}", f"--prior={args.prior}",
+    prior = [f"--prior={args.prior}"] if args.prior else [] if args.flagfile else ["--prior=views"]
+    return [sys.executable, "-m", "jaxdistill.main", *settings, f"--scene={scene}", *prior,
             f"--steps={args.steps}", f"--views_per_step={min(args.views_per_step, views)}",
             f"--max_texture_size={args.max_texture_size}", f"--out_dir={out}", "--renders=false",
             f"--view_data={args.view_data}"]

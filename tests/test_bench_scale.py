@@ -34,10 +34,14 @@ def test_a_flagfile_comes_first_so_the_scale_settings_win(bench, tmp_path, capsy
     with pytest.raises(SystemExit):
         bench.parse_args([f"--flagfile={tmp_path / 'missing.cfg'}"])
     assert "--flagfile: " in capsys.readouterr().err
-    args = bench.parse_args([f"--flagfile={REPO / 'configs' / 'bedroom.cfg'}", "--prior=auto", "--steps=20"])
+    args = bench.parse_args([f"--flagfile={REPO / 'configs' / 'bedroom.cfg'}", "--steps=20"])
     cmd = bench.main_command(args, Path("scene"), Path("out"), 50)
     assert cmd[3] == f"--flagfile={(REPO / 'configs' / 'bedroom.cfg').resolve()}"
-    assert cmd.index("--steps=20") > 3 and "--prior=auto" in cmd and "--scene=scene" in cmd
+    assert cmd.index("--steps=20") > 3 and "--scene=scene" in cmd
+    assert not any(c.startswith("--prior") for c in cmd)                  # the flagfile's prior (auto)
+    assert "--prior=views" in bench.main_command(bench.parse_args([]), Path("s"), Path("o"), 5)
+    given = bench.parse_args([f"--flagfile={REPO / 'configs' / 'bedroom.cfg'}", "--prior=views"])
+    assert "--prior=views" in bench.main_command(given, Path("s"), Path("o"), 5)         # given: it wins
 
 
 def test_a_childs_accounting_is_its_own(bench, tmp_path):

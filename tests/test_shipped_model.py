@@ -85,6 +85,9 @@ def _shapes_are_read_from_their_file(folder, tmp_path, monkeypatch):
     with monkeypatch.context() as m:
         m.setattr(convert, "_NETWORK_SOURCES", convert._NETWORK_SOURCES[:-1])
         assert convert._shapes_file(networks, False) != path
+    for damaged in ('{"unet": null}', '[[1], "float32"]', '{"unet": {}, "vae": {}}'):       # parse, but wrong
+        path.write_text(damaged)
+        assert convert._read_shapes(path) is None
     path.write_text('{"unet": [')
     convert._abstract_params.cache_clear()
     assert same(convert.abstract_params(networks)) and same(convert._read_shapes(path))

@@ -134,37 +134,41 @@ def test_the_set_up_checks_the_files_and_the_ray_casts_together_before_any_cast(
     assert fr.uncached_bytes(views.mesh, cameras, False) == 0
 
 
-def test_the_set_up_checks_the_evidence_reads_by_their_exact_size_before_the_loop(tmp_path, monkeypatch):
-    """The evidence's per-view reads are written after the loop; their bytes (from the plans'
-    view counts) are checked at the end of the set-up, with the set-up's files not written yet,
-    and are exactly what the evidence then writes."""
+def test_the_evidence_reads_are_checked_by_their_exact_size_before_the_loop(tmp_path, monkeypatch):
+    """The evidence's per-view reads are written after the loop. Their bytes (from the plans' view
+    counts) are checked once the evaluation context is built and the fragments' files closed, as
+    the main job does: the size checked is the size of the file the evidence then writes, and a
+    disk that cannot hold it is refused naming the folder."""
+    from jaxdistill.engine.problem import check_evidence_space
+    from jaxdistill.evaluate import scoring
     from jaxdistill.render.visibility import read_dtypes, view_reads
-    from jaxdistill.evaluate.scoring import training_plan
 
     scene = write_tiny_scene(tmp_path / "scene", views=3)
     config = config_lib.validate(DistillConfig(scene=str(scene), out_dir=str(tmp_path / "out"), steps=2,
                                                views_per_step=2, prior="views", view_data="disk", render_size=16))
-    checks, real = [], ViewFolder.check_space
-    monkeypatch.setattr(ViewFolder, "check_space", lambda self, nbytes, what: (checks.append((what, nbytes, self.nbytes)),
-                                                                                real(self, nbytes, what)))
     problem = build_problem(config, cache_dir=tmp_path / "cache")
-    (first, planned, _), (last, pending, written) = checks
-    assert first.startswith("the per-view arrays of 3 views") and last.startswith("the evidence's per-view texel reads")
-    assert "written after the loop" in last and written > 0
+    scoring.evaluation_context(config, problem)
+    fragments = problem.fragments.arrays["triangle"]
+    assert isinstance(fragments, ViewRows)
+    problem = problem.without_fragments()
+    with pytest.raises(ValueError, match="closed"):                 # their disk space is free now
+        fragments[0]
+    checks, real = [], ViewFolder.check_space
+    monkeypatch.setattr(ViewFolder, "check_space", lambda self, nbytes, what: (checks.append((what, nbytes)),
+                                                                                real(self, nbytes, what)))
+    check_evidence_space(problem)
+    ((what, nbytes),) = checks
+    assert what == "the evidence's per-view texel reads of 3 views (written after the loop)"
     store = problem.view_folder.ragged("evidence_reads", read_dtypes(problem.space.num_texels))
-    view_reads(training_plan(problem), problem.space.num_texels, store)
-    assert store.nbytes > 0
-    # the evaluation's fragments and plans at the photos' own size come after the set-up's check
-    assert pending == store.nbytes + max(0, problem.view_folder.planned - written)
+    view_reads(scoring.training_plan(problem), problem.space.num_texels, store)
+    assert nbytes == store.nbytes > 0
 
     usage = namedtuple("usage", "total used free")
-    checks.clear()                         # room for the set-up and the ray casts, not for the reads
-    monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(1 << 40, 0, view_rows.DISK_HEADROOM + 10 if checks
-                                                                  and "evidence" in checks[-1][0] else 1 << 40))
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(1 << 40, 0, view_rows.DISK_HEADROOM + nbytes - 1))
     with pytest.raises(InputError) as err:
-        build_problem(config, cache_dir=tmp_path / "cache2")
-    message = str(err.value)
-    assert "the evidence's per-view texel reads" in message and str(tmp_path / "cache2" / "view_rows") in message
+        check_evidence_space(problem)
+    assert "the evidence's per-view texel reads of 3 views" in str(err.value)
+    assert str(tmp_path / "cache" / "view_rows") in str(err.value)
 
 
 @pytest.fixture(scope="module")

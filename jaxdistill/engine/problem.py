@@ -36,7 +36,7 @@ from jaxdistill.render.visibility import (check_coverage, hit_fractions, pixel_w
 from jaxdistill.scene.model import Scene
 from jaxdistill.scene.paths import resolve_scene_path  # noqa: F401  (--scene as a path; scripts use it from here)
 from jaxdistill.io.view_images import read_mask, read_photo_linear, read_target, resize
-from jaxdistill.io.view_rows import ViewFolder, placement, view_array
+from jaxdistill.io.view_rows import ViewFolder, ViewRows, placement, view_array
 
 def rgbx_hint() -> str:
     """How to obtain the RGB<->X weights, and their licence."""
@@ -199,7 +199,12 @@ class Problem:
     def without_fragments(self) -> "Problem":
         """This problem without its fragments (and native fragments): nothing after the evaluation
         context (`scoring.evaluation_context`) reads them, and they grow with views x pixels
-        (44 bytes a pixel: 1.05 GiB at 50 views of 876x584)."""
+        (44 bytes a pixel: 1.05 GiB at 50 views of 876x584). Their files (--view_data on disk) are
+        closed here, which frees their disk space now; this problem's fragments cannot be read after."""
+        for frags in (self.fragments, self.native_fragments):
+            for array in getattr(frags, "arrays", {}).values():
+                if isinstance(array, ViewRows):
+                    array.close()
         return dataclasses.replace(self, fragments=None, native_fragments=None)
 
     def initial_texels(self) -> np.ndarray:
@@ -380,8 +385,6 @@ def _build_problem(config: DistillConfig, *, cache_dir=None, check_scene=None) -
         alphas = prior_frozen.pop("alphas_cumprod")
     timings["prior_setup_s"] = time.perf_counter() - t0
     frozen = {"chain": plan.chain, "prior": prior_frozen, "alphas_cumprod": alphas}
-    if view_folder is not None:
-        _check_evidence_space(view_folder, counts, space.num_texels)
     rotations = np.stack([rgbx_camera_rotation(c.c2w) for c in cameras]).astype(np.float32)
     return Problem(scene=scene, channels=channels, choice=choice, prior=prior, frozen=frozen, space=space,
                    fragments=frags, native_fragments=native_frags, height=height, width=width,
@@ -417,20 +420,25 @@ def _view_data_folder(config: DistillConfig, scene: Scene, choice: PriorChoice, 
     what = f"the per-view arrays of {views} views (--view_data={config.view_data})"
     # the ray casts still to be cached go to the same disk: both must fit
     casts = fr.uncached_bytes(scene.mesh, _cameras_cast(config, scene, render), cache_dir)
-    folder.planned = nbytes                  # what `check_pending` counts as still to come (not the ray casts)
     folder.check_space(nbytes + casts, what + (f" and the ray casts not cached yet ({casts / 2 ** 30:.2f} GB)"
                                                if casts else ""))
     logging.info("%s: %.2f GB on disk in %s, read a batch at a time", what, nbytes / 2 ** 30, folder.root)
     return folder
 
 
-def _check_evidence_space(folder: ViewFolder, counts: np.ndarray, num_texels: int) -> None:
-    """Before the loop: after it, the evidence writes every view's reads to `folder`, a texel id and
-    a weight for each texel the view's plan reads (`visibility.view_reads`): as many as the views
-    counted per texel (`counts`, the same test of the same plans), so their size is known now."""
-    reads = int(counts.sum(dtype=np.int64)) * sum(np.dtype(d).itemsize for d in read_dtypes(num_texels))
-    folder.check_pending(reads, f"the evidence's per-view texel reads ({reads / 2 ** 30:.2f} GB, written after "
-                         "the loop)")
+def check_evidence_space(problem: Problem) -> None:
+    """With the per-view arrays on disk, an InputError naming the folder when its disk cannot hold
+    what the evidence writes there after the loop: a texel id and a weight for every texel each
+    view's plan reads (`visibility.view_reads`), as many as the plans' view counts per texel add up
+    to (`counts`: the same test of the same plans), so their size is exact before the loop. Call it
+    once the evaluation context is built and the fragments let go (`Problem.without_fragments`),
+    as the main job does: the disk then holds what it will hold when the evidence is written."""
+    if problem.view_folder is None:
+        return
+    reads = int(problem.counts.sum(dtype=np.int64)) * sum(np.dtype(d).itemsize
+                                                            for d in read_dtypes(problem.space.num_texels))
+    problem.view_folder.check_space(reads, f"the evidence's per-view texel reads of {problem.num_views} views "
+                                    "(written after the loop)")
 
 
 def _cameras_cast(config: DistillConfig, scene: Scene, render: tuple[int, int]) -> list[Camera]:

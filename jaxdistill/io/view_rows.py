@@ -210,14 +210,6 @@ class ViewFolder:
         self.root = Path(cache) / "view_rows"
         self._count = 0
         self.nbytes = 0          # of every file opened or written here (on disk while their arrays live)
-        self.planned = 0         # of the set-up's files, as checked before the first was written
-
-    def check_pending(self, nbytes: int, what: str) -> None:
-        """`check_space` for `nbytes` more, written later (the evidence's reads after the loop),
-        together with the set-up's planned files not written yet (the evaluation's plans)."""
-        pending = max(0, self.planned - self.nbytes)
-        self.check_space(nbytes + pending, what + (f" and the set-up's files still to come ({pending / 2 ** 30:.2f} GB)"
-                                                   if pending else ""))
 
     def check_space(self, nbytes: int, what: str) -> None:
         """InputError naming the folder, before anything is written, when `nbytes` would not fit

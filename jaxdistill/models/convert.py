@@ -22,6 +22,7 @@ import json
 import logging
 import os
 import time
+import uuid
 from pathlib import Path
 from typing import Any
 
@@ -359,7 +360,8 @@ def abstract_params(networks: RgbxNetworks) -> dict[str, dict]:
     return jax.tree.map(lambda x: x, cached)         # a fresh tree: callers own what they get
 
 
-_NETWORK_SOURCES = ("unet.py", "vae.py", "clip.py", "layers.py")      # what the inits' shapes follow from
+# what the inits' shapes follow from: the networks, their layers, and this module's `_trace_params`
+_NETWORK_SOURCES = ("unet.py", "vae.py", "clip.py", "layers.py", "convert.py")
 
 
 def shapes_folder() -> Path:
@@ -367,7 +369,8 @@ def shapes_folder() -> Path:
     is set (`jax_compilation_cache_dir`; like its programs, they follow from the code alone, and a
     run that reads its programs from there reads its shapes too), else `$JAXDISTILL_CACHE/param_shapes`."""
     compiled = jax.config.jax_compilation_cache_dir
-    return Path(compiled) / "jaxdistill-param-shapes" if compiled else default_cache_dir() / "param_shapes"
+    local = compiled and "://" not in compiled           # not a bucket (gs://...), which JAX also takes
+    return Path(compiled) / "jaxdistill-param-shapes" if local else default_cache_dir() / "param_shapes"
 
 
 def _shapes_file(networks: RgbxNetworks, x64: bool) -> Path:
@@ -386,10 +389,13 @@ def _read_shapes(path: Path) -> dict | None:
             {k: leaf(v) for k, v in x.items()}
 
     try:
-        return leaf(json.loads(path.read_text()))
+        shapes = leaf(json.loads(path.read_text()))
+        if not isinstance(shapes, dict) or set(shapes) != set(_WEIGHT_STEMS):
+            raise ValueError(f"not the parts {sorted(_WEIGHT_STEMS)}")
+        return shapes
     except FileNotFoundError:
         return None
-    except (OSError, ValueError, TypeError, KeyError, IndexError) as err:
+    except (OSError, ValueError, TypeError, KeyError, IndexError, AttributeError) as err:
         log.info("parameter shapes in %s unreadable (%s): traced again", path, err)
         return None
 
@@ -401,7 +407,7 @@ def _write_shapes(path: Path, shapes: dict) -> None:
 
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
+        tmp = path.with_name(f"{path.name}.{uuid.uuid4().hex}.tmp")     # unique across processes and hosts
         tmp.write_text(json.dumps(plain(shapes)))
         os.replace(tmp, path)                        # whole or not at all, with processes writing at once
     except OSError as err:                           # a read-only cache costs the tracing, nothing else

@@ -162,13 +162,14 @@ def timesteps(key, batch: int, num_train_timesteps: int, high_fraction: float = 
 
 
 @functools.lru_cache(maxsize=4)
-def unet_program(unet_json: str, lr: float, steps: int, ema: float, p_drop: float, t_high_fraction: float,
-                 t_high_from: int):
+def unet_program(unet_json: str, scheduler_json: str, lr: float, steps: int, ema: float, p_drop: float,
+                 t_high_fraction: float, t_high_from: int):
     """(unet, init_params(key, sample, t, context), init_opt(params), step(state, batch, contexts))
-    of the UNet stage, jitted once per process for a configuration (`recipe.UNET` as JSON and the
-    flags the step reads), as `vae_program`."""
+    of the UNet stage, jitted once per process for a configuration (`recipe.UNET` and
+    `recipe.SCHEDULER` as JSON and the flags the step reads), as `vae_program`."""
     unet = UNet2DCondition(UNetConfig.from_dict(json.loads(unet_json)))
-    config = sched.SchedulerConfig(**{k: recipe.SCHEDULER[k] for k in ("beta_start", "beta_end", "beta_schedule",
+    scheduler = json.loads(scheduler_json)
+    config = sched.SchedulerConfig(**{k: scheduler[k] for k in ("beta_start", "beta_end", "beta_schedule",
                                                                 "num_train_timesteps", "prediction_type",
                                                                 "rescale_betas_zero_snr")})
     alpha_bar = sched.alphas_cumprod(config)
@@ -202,8 +203,8 @@ def unet_program(unet_json: str, lr: float, steps: int, ema: float, p_drop: floa
 
 def train_unet(args, latents, contexts, scaling, init_params=None):
     unet, init_unet, init_opt, unet_step = unet_program(
-        json.dumps(recipe.UNET, sort_keys=True), args.unet_lr, args.unet_steps, args.ema, args.p_drop,
-        args.t_high_fraction, args.t_high_from)
+        json.dumps(recipe.UNET, sort_keys=True), json.dumps(recipe.SCHEDULER, sort_keys=True), args.unet_lr,
+        args.unet_steps, args.ema, args.p_drop, args.t_high_fraction, args.t_high_from)
     photo = latents["photo"] * scaling
     targets = np.stack([latents[m] * scaling for m in MAPS], 1)   # (N, 5, h, w, 4)
     n, h, w = photo.shape[:3]
