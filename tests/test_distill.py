@@ -279,6 +279,9 @@ class HalfwayPrior:
     def targets(self, frozen, features, data, t, key):
         return {m: 0.5 * f + 0.1 for m, f in features.items()}
 
+    def target_struct(self, features):
+        return {m: jax.ShapeDtypeStruct(f.shape, jnp.float32) for m, f in features.items()}
+
 
 def test_reuse_steps_takes_k_adamw_steps_towards_one_x_pred(problem):
     """With reuse_steps = 2 the prior's x_pred of steps 0 and 2 are what steps 1 and 3 move towards
@@ -320,6 +323,26 @@ def test_reuse_steps_takes_k_adamw_steps_towards_one_x_pred(problem):
     for ids in schedule:
         fresh, _ = fresh_step(fresh, problem.batch(ids), problem.frozen)
     assert np.abs(np.asarray(fresh.texels) - np.asarray(state.texels)).max() > 1e-3
+
+
+def test_target_struct_is_what_the_prior_pass_returns(rgbx_problems, tiny_scene, run_rgbx_dir, tmp_path):
+    """`Prior.target_struct` (what --reuse_steps keeps between prior passes is shaped by it, and
+    `lax.cond` needs it exact) against the shapes and dtypes of a traced prior pass: both loss
+    spaces, float32 and bfloat16 activations, a colour and a grey map."""
+    problems = dict(rgbx_problems)
+    problems["latent_bf16"] = build_problem(DistillConfig(
+        scene=str(tiny_scene), out_dir="unused", maps=("albedo", "roughness"), prior="rgbx", rgbx_dir=str(run_rgbx_dir),
+        loss_space="latent", prior_dtype="bfloat16"), cache_dir=tmp_path / "cache")
+    for name, problem in problems.items():
+        prior, frozen = problem.prior, problem.frozen["prior"]
+        images = {m: jax.ShapeDtypeStruct((2, problem.height, problem.width, 3 if m == "albedo" else 1), jnp.float32)
+                  for m in ("albedo", "roughness")}
+        features = jax.eval_shape(lambda im: prior.features(frozen, im, jax.random.PRNGKey(0)), images)
+        t = jax.ShapeDtypeStruct((2, 2), jnp.int32)
+        traced = jax.eval_shape(lambda f, t: prior.targets(frozen, f, problem.batch(np.array([0, 1]))["prior"], t,
+                                                           jax.random.PRNGKey(0)), features, t)
+        assert prior.target_struct(features) == traced, name
+        assert jax.tree.map(lambda s: s.shape, traced) == jax.tree.map(lambda s: s.shape, features), name
 
 
 def test_reuse_steps_with_the_rgbx_prior_keeps_t_and_runs_one_prior_pass(rgbx_problems):

@@ -49,6 +49,10 @@ class Prior(Protocol):
     def targets(self, frozen, features: dict, data: dict, t, key) -> dict:
         """x_pred per map (forward only, under stop_gradient)."""
 
+    def target_struct(self, features: dict) -> dict:
+        """Shapes and dtypes of `targets` for `features` (shapes or arrays), without running or
+        tracing the prior: what a step keeps between prior passes (--reuse_steps) is shaped by it."""
+
 
 @dataclasses.dataclass(frozen=True)
 class ViewsPrior:
@@ -74,6 +78,9 @@ class ViewsPrior:
     def targets(self, frozen, features: dict, data: dict, t, key) -> dict:
         del frozen, features, t, key
         return self.channels.split(data["target"])
+
+    def target_struct(self, features: dict) -> dict:
+        return _float32_like(features)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -132,6 +139,12 @@ class RgbxPrior:
             return {name: x0[:, i] for i, name in enumerate(maps)}
         return self.decode(frozen, x0)
 
+    def target_struct(self, features: dict) -> dict:
+        """float32 arrays shaped like `features` (the loss compares them element by element): the
+        decoded maps are cast to float32, and x̂0 is computed in float32 from the UNet's float32
+        output whatever the activations' dtype."""
+        return _float32_like(features)
+
     def denoise(self, frozen, z0, data: dict, t, key):
         """x̂0 (B, M, h, w, 4) from scaled latents z0 (B, M, h, w, 4): noise at t (B, M), then
         one guided UNet pass with each view's photo latent and each map's prompt."""
@@ -154,6 +167,10 @@ class RgbxPrior:
         decoded = jnp.clip(decoded.astype(jnp.float32), -1.0, 1.0).reshape(b, m, *decoded.shape[1:])
         return {name: decoded[:, i, ..., :1] if name in GREY_MAPS else decoded[:, i]
                 for i, name in enumerate(self.channels.maps)}
+
+
+def _float32_like(features: dict) -> dict:
+    return {name: jax.ShapeDtypeStruct(tuple(x.shape), jnp.float32) for name, x in features.items()}
 
 
 def batch_text_embedding(frozen, batch: int) -> TextEmbedding:

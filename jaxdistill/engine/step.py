@@ -308,18 +308,17 @@ def _photo_fn(settings: StepSettings, batch: dict, frozen: dict) -> Callable:
 
 def initial_reused(prior, settings: StepSettings, texels, batch: dict, frozen: dict) -> Any:
     """Zeros shaped like what a step keeps for `reuse_steps` > 1 (x_pred, w(t), t of a batch), or
-    None when every step calls the prior. Shapes only: nothing is computed."""
+    None when every step calls the prior. Shapes only: nothing is computed, and the prior's pass
+    is not traced either (`Prior.target_struct`; only the features are, the renders and, in
+    latent space, their encoding)."""
     if settings.reuse_steps <= 1:
         return None
-
-    def reused(texels):
-        key = jax.random.PRNGKey(0)
-        features = _features_fn(prior, settings, batch, frozen, key)(texels)
-        t = jnp.zeros((batch["pixel_weight"].shape[0], len(settings.channels.maps)), jnp.int32)
-        return {"targets": prior.targets(frozen["prior"], features, batch["prior"], t, key),
-                "sample_weights": jnp.zeros(t.shape, jnp.float32), "t": t}
-
-    return jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), jax.eval_shape(reused, jnp.asarray(texels)))
+    features_of = _features_fn(prior, settings, batch, frozen, jax.random.PRNGKey(0))
+    features = jax.eval_shape(features_of, jax.ShapeDtypeStruct(texels.shape, texels.dtype))
+    t = jax.ShapeDtypeStruct((batch["pixel_weight"].shape[0], len(settings.channels.maps)), jnp.int32)
+    reused = {"targets": prior.target_struct(features), "sample_weights": jax.ShapeDtypeStruct(t.shape, jnp.float32),
+              "t": t}
+    return jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), reused)
 
 
 class TraceCounter:
