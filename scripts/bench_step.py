@@ -3,7 +3,7 @@
     python scripts/make_random_rgbx.py --size=full --out=data/random-rgbx/rgb-to-x    # once, ~1 min, 4.8 GB
     python scripts/bench_step.py --rgbx_dir=data/random-rgbx/rgb-to-x \\
         [--render_sizes=256,512] [--map_counts=1,5] [--dtypes=float32,bfloat16] [--frameworks=jax,torch]
-        [--views_per_step=1] [--repeats=3] [--threads=N] [--json]
+        [--views_per_step=1] [--reuse_steps=1,2] [--repeats=3] [--threads=N] [--json]
         [--torch_device=cuda] [--last_stage=unet] [--stage_cases=last] [--peak_tflops=989.4]
     python scripts/bench_step.py --size=tiny          # a tiny random folder: a quick check of this script
 
@@ -15,7 +15,11 @@ number of maps per step:
   photo latents encoded once at setup, all maps of a view in one network call), and its stages
   jitted one by one on the same inputs: gather-render, VAE encode, UNet (noise + guided x̂0),
   VAE decode, loss + gradient (the transpose of the gather), AdamW. FLOPs per step from XLA's
-  cost analysis and the achieved FLOP/s.
+  cost analysis and the achieved FLOP/s. With `--reuse_steps=1,2` the real step is also timed
+  as the main job runs it with `--reuse_steps=2` (the default config's: the prior's x̂0 of one
+  step reused by the next, Instruct-NeRF2NeRF's iterative dataset update): seconds per step
+  averaged over whole cycles (one step with the prior pass, K - 1 without), a row of its own
+  (`jax_float32_reuse2`) beside the every-step row.
 - **torch** (the thesis's recipe on diffusers, one child process): fp32, the photo re-encoded
   every step, all three classifier-free-guidance branches every step (one UNet call of batch 3),
   one map per pass (the thesis distils each map in its own run, so M maps cost M passes), loss
@@ -73,6 +77,9 @@ def parse_args(argv=None):
                         "(NVIDIA GPUs only) instead of the chunked XLA attention")
     p.add_argument("--frameworks", default="jax,torch")
     p.add_argument("--views_per_step", type=int, default=1, help="views per step (the thesis: 1)")
+    p.add_argument("--reuse_steps", default="1",
+                   help="comma-separated K: our step timed with the prior's x̂0 reused over K steps (1: a prior "
+                        "pass every step, as the recipe; 2: the default config's), seconds per step over whole cycles")
     p.add_argument("--max_texture_size", type=int, default=1024)
     p.add_argument("--repeats", type=int, default=3, help="timed runs after the warm-up")
     p.add_argument("--threads", type=int, default=os.cpu_count(), help="CPU threads for both frameworks")
@@ -98,6 +105,9 @@ def parse_args(argv=None):
     args.map_counts = [int(s) for s in args.map_counts.split(",")]
     args.dtypes = args.dtypes.split(",")
     args.frameworks = args.frameworks.split(",")
+    args.reuse_steps = [int(k) for k in args.reuse_steps.split(",")]
+    if any(k < 1 for k in args.reuse_steps):
+        p.error(f"--reuse_steps: every K must be >= 1, got {args.reuse_steps}")
     for s in args.render_sizes:
         if s % 8:
             p.error(f"--render_sizes: {s} is not a multiple of 8")
@@ -225,27 +235,36 @@ def jax_worker(args, folder: str, dtype_name: str) -> list[dict]:
         batch_host["prior"] = prior.view_data(np.arange(len(ids)))
         problem = dataclasses.replace(problem, prior=prior, frozen=frozen)
 
-        # --- the whole step, set up by the main job's own `setup_step` and run as its loop runs it
-        stepper = loop.setup_step(config, problem, batch_host)
-        settings, optimizer, step, traces = stepper.settings, stepper.optimizer, stepper.step_fn, stepper.traces
-        frozen = jax.device_put(frozen, stepper.replicated)
-        batch = jax.device_put(batch_host, stepper.by_view)
-        state = jax.device_put(stepper.state, stepper.replicated)
-        t0 = time.perf_counter()
-        lowered = step.lower(state, batch, frozen)
-        compiled = lowered.compile()
-        compile_s = time.perf_counter() - t0
-        step_flops = cost_flops(lowered)
-        state, metrics = compiled(state, batch, frozen)          # warm-up
-        jax.block_until_ready(metrics["loss"])
-        step_times = []
-        for _ in range(args.repeats):
+        # --- the whole step, set up by the main job's own `setup_step` and run as its loop runs it;
+        # with x̂0 reuse (K > 1) timed over whole cycles of K steps, the first of each with the prior
+        whole = {}
+        for reuse in args.reuse_steps:
+            stepper = loop.setup_step(dataclasses.replace(config, reuse_steps=reuse), problem, batch_host)
+            settings, optimizer, step, traces = stepper.settings, stepper.optimizer, stepper.step_fn, stepper.traces
+            placed_frozen = jax.device_put(frozen, stepper.replicated)
+            batch = jax.device_put(batch_host, stepper.by_view)
+            state = jax.device_put(stepper.state, stepper.replicated)
             t0 = time.perf_counter()
-            state, metrics = compiled(state, batch, frozen)
+            lowered = step.lower(state, batch, placed_frozen)
+            compiled = lowered.compile()
+            compile_s = time.perf_counter() - t0
+            for _ in range(reuse):                               # warm-up: one whole cycle
+                state, metrics = compiled(state, batch, placed_frozen)
             jax.block_until_ready(metrics["loss"])
-            step_times.append(time.perf_counter() - t0)
-        traces.check(1)
-        finite = int(metrics["finite"])
+            step_times = []
+            for _ in range(args.repeats):
+                t0 = time.perf_counter()
+                for _ in range(reuse):
+                    state, metrics = compiled(state, batch, placed_frozen)
+                jax.block_until_ready(metrics["loss"])
+                step_times.append((time.perf_counter() - t0) / reuse)
+            traces.check(1)
+            whole[reuse] = {"step_times": step_times, "compile_s": compile_s, "finite": int(metrics["finite"]),
+                            "flops": cost_flops(lowered)}
+            del state, compiled, lowered
+        frozen = placed_frozen
+        batch = jax.device_put(batch_host, stepper.by_view)
+        settings = loop.step_settings(config, problem)
 
         # --- the same work, stage by stage (each jitted alone, fed the previous stage's output)
         texels = jnp.asarray(problem.initial_texels())
@@ -292,25 +311,29 @@ def jax_worker(args, folder: str, dtype_name: str) -> list[dict]:
             stage_s[name] = median_of(lambda: jax.block_until_ready(compiled_stage(*inputs)), args.repeats)
             if name == args.last_stage:
                 break
-        median = float(np.median(step_times))
         unet_tflops = (stage_flops["unet"] / stage_s["unet"] / 1e12
                        if stage_flops.get("unet") and stage_s.get("unet") else None)
-        rows.append({
-            "framework": "jax", "dtype": dtype_name, "render": [problem.height, problem.width], "maps": list(maps),
-            "views_per_step": len(ids), "unet_batch_per_step": len(ids) * count,
-            "step_s": median, "step_s_all": step_times, "stages_s": stage_s,
-            "stages_sum_s": float(sum(stage_s.values())), "compile_s": compile_s, "finite": finite,
-            "flops_per_step": step_flops, "stage_flops": stage_flops,
-            "achieved_gflops_per_s": step_flops / median / 1e9 if step_flops else None,
-            "texels": problem.space.num_texels, "load_s": load_s, "photo_latents_s": photo_s,
-            "device": device_name, "device_peak_gb": jax_device_peak_gb(),
-            "unet_tflops_per_s": unet_tflops, "bf16_peak_tflops": peak_tflops,
-            "unet_fraction_of_bf16_peak": unet_tflops / peak_tflops if unet_tflops and peak_tflops else None,
-        })
-        print("ROW " + json.dumps(rows[-1]), file=sys.stderr)          # survives a later case's failure
-        print(f"[jax {dtype_name}] {problem.width}x{problem.height} {count} map(s): {median:.2f} s/step "
-              f"(stages {', '.join(f'{k} {v:.2f}' for k, v in stage_s.items())})", file=sys.stderr)
-        del state, step, compiled, outputs
+        for reuse, timed in whole.items():
+            median = float(np.median(timed["step_times"]))
+            # a reused step runs no prior pass: FLOPs per step are the cycle's over K (the program's
+            # count is of its prior branch, which the cond runs once a cycle)
+            step_flops = timed["flops"] if reuse == 1 else None
+            rows.append({
+                "framework": "jax", "dtype": dtype_name, "reuse_steps": reuse, "render": [problem.height, problem.width],
+                "maps": list(maps), "views_per_step": len(ids), "unet_batch_per_step": len(ids) * count,
+                "step_s": median, "step_s_all": timed["step_times"], "stages_s": stage_s if reuse == 1 else {},
+                "stages_sum_s": float(sum(stage_s.values())) if reuse == 1 else None, "compile_s": timed["compile_s"],
+                "finite": timed["finite"], "flops_per_step": step_flops, "stage_flops": stage_flops,
+                "achieved_gflops_per_s": step_flops / median / 1e9 if step_flops else None,
+                "texels": problem.space.num_texels, "load_s": load_s, "photo_latents_s": photo_s,
+                "device": device_name, "device_peak_gb": jax_device_peak_gb(),
+                "unet_tflops_per_s": unet_tflops, "bf16_peak_tflops": peak_tflops,
+                "unet_fraction_of_bf16_peak": unet_tflops / peak_tflops if unet_tflops and peak_tflops else None,
+            })
+            print("ROW " + json.dumps(rows[-1]), file=sys.stderr)          # survives a later case's failure
+            print(f"[jax {dtype_name}, reuse {reuse}] {problem.width}x{problem.height} {count} map(s): {median:.2f} s/step "
+                  f"(stages {', '.join(f'{k} {v:.2f}' for k, v in stage_s.items())})", file=sys.stderr)
+        del step, outputs
     for row in rows:
         row["peak_rss_gb"] = peak_rss_gb()
     return rows
@@ -453,6 +476,7 @@ def run_child(args, folder: str, worker: str) -> list[dict]:
     cmd = [sys.executable, __file__, f"--worker={worker}", f"--rgbx_dir={folder}",
            f"--render_sizes={','.join(map(str, args.render_sizes))}",
            f"--map_counts={','.join(map(str, args.map_counts))}", f"--views_per_step={args.views_per_step}",
+           f"--reuse_steps={','.join(map(str, args.reuse_steps))}",
            f"--max_texture_size={args.max_texture_size}", f"--repeats={args.repeats}", f"--threads={args.threads}",
            f"--torch_device={args.torch_device}", f"--last_stage={args.last_stage}",
            f"--stage_cases={args.stage_cases}"]
@@ -477,11 +501,17 @@ def fmt(x, spec=".2f") -> str:
     return "-" if x is None else format(x, spec)
 
 
+def row_name(r: dict) -> str:
+    """"torch_float32", "jax_float32", or "jax_float32_reuse2" for our step with x̂0 reused over 2 steps."""
+    reuse = r.get("reuse_steps", 1)
+    return f"{r['framework']}_{r['dtype']}" + (f"_reuse{reuse}" if reuse > 1 else "")
+
+
 def summarise(rows: list[dict]) -> dict:
     """Per (render, maps): JAX steps per dtype, the torch step, and torch / JAX ratios."""
     groups = {}
     for r in rows:
-        groups.setdefault((tuple(r["render"]), len(r["maps"])), {})[f"{r['framework']}_{r['dtype']}"] = r
+        groups.setdefault((tuple(r["render"]), len(r["maps"])), {})[row_name(r)] = r
     table = []
     for (render, count), g in groups.items():
         entry = {"render": list(render), "maps": count}
@@ -497,8 +527,8 @@ def summarise(rows: list[dict]) -> dict:
             ref["flops_estimated_from"] = "jax stage cost analysis (2 encodes, 3 UNet branches, 1 decode)"
             ref["achieved_gflops_per_s"] = ref["flops_per_step"] / ref["step_s"] / 1e9
             entry["work_ratio_torch_over_jax"] = ref["flops_per_step"] / ours["flops_per_step"]
-        for name in ("jax_float32", "jax_bfloat16"):
-            if ref and name in g:
+        for name in g:
+            if ref and name.startswith("jax_"):
                 entry[f"speedup_{name}"] = ref["step_s"] / g[name]["step_s"]
         for name, r in g.items():
             # the thesis's run: 17 000 steps of every map (the recipe: 5 runs of one map each, which its
@@ -519,8 +549,8 @@ def print_tables(rows: list[dict], summary: dict, file=sys.stdout) -> None:
     for r in rows:
         stages = " ".join(f"{fmt(r['stages_s'].get(n)):>12s}" for n in names)
         gflop = r["flops_per_step"] / 1e9 if r.get("flops_per_step") else None
-        print(f"{r['framework']:10s} {r['dtype']:9s} {r['render'][1]}x{r['render'][0]:<5d} {len(r['maps']):4d} "
-              f"{stages} {r['stages_sum_s']:8.2f} {r['step_s']:8.2f} {fmt(gflop, '.0f'):>8s} "
+        print(f"{r['framework']:10s} {row_name(r)[len(r['framework']) + 1:]:9s} {r['render'][1]}x{r['render'][0]:<5d} "
+              f"{len(r['maps']):4d} {stages} {fmt(r['stages_sum_s']):>8s} {r['step_s']:8.2f} {fmt(gflop, '.0f'):>8s} "
               f"{fmt(r.get('achieved_gflops_per_s'), '.1f'):>8s} {r['peak_rss_gb']:7.1f}", file=file)
     print("(torch GFLOP: the recipe's work counted with our XLA stage costs: 2 encodes, 3 UNet branches, 1 decode)",
           file=file)
@@ -531,6 +561,9 @@ def print_tables(rows: list[dict], summary: dict, file=sys.stdout) -> None:
         print(f"{e['render'][1]}x{e['render'][0]:<5d} {e['maps']:4d} {fmt(e.get('jax_float32_s')):>9s} "
               f"{fmt(e.get('jax_bfloat16_s')):>9s} {fmt(e.get('torch_float32_s')):>9s} "
               f"{fmt(e.get('speedup_jax_float32')):>7s} {fmt(e.get('speedup_jax_bfloat16')):>7s}", file=file)
+        for name in sorted(k[len("speedup_"):] for k in e if k.startswith("speedup_jax_") and "_reuse" in k):
+            print(f"{'':14s} {name}: {e[f'{name}_s']:.2f} s/step over whole cycles, {e[f'speedup_{name}']:.2f}x",
+                  file=file)
 
 
 def print_device_table(summary: dict, file=sys.stdout) -> None:
@@ -548,8 +581,7 @@ def print_device_table(summary: dict, file=sys.stdout) -> None:
 
 def headline(summary: dict) -> str:
     parts = [f"{e['render'][1]}x{e['render'][0]} {e['maps']} map(s): "
-             + ", ".join(f"{name[4:]} {e[f'speedup_{name}']:.2f}x" for name in ("jax_float32", "jax_bfloat16")
-                         if f"speedup_{name}" in e)
+             + ", ".join(f"{k[len('speedup_jax_'):]} {v:.2f}x" for k, v in e.items() if k.startswith("speedup_jax_"))
              for e in summary["table"] if any(k.startswith("speedup_") for k in e)]
     if not parts:
         return "no torch/jax pair measured: no ratio"

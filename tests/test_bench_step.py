@@ -65,3 +65,15 @@ def test_summary_gives_speedups_and_the_projected_thesis_run(bench):
     assert table[1]["jax_float32_thesis_run_min"] == pytest.approx(0.02 * 17_000 * 5 / 60)
     assert table[5]["torch_float32_thesis_run_min"] == pytest.approx(0.44 * 17_000 / 60)
     assert "float32 5.50x" in bench.headline(bench.summarise(rows))
+
+
+def test_a_step_with_x0_reuse_is_a_row_of_its_own_against_the_same_recipe(bench):
+    """--reuse_steps=1,2: our step with the prior every step and with x̂0 reused over 2 steps, each
+    against the recipe; the every-step row keeps its name, so earlier JSON reads the same."""
+    rows = [row("jax", "float32", 1, 0.02, reuse_steps=1), row("jax", "float32", 1, 0.012, reuse_steps=2),
+            row("torch", "float32", 1, 0.09)]
+    (entry,) = bench.summarise(rows)["table"]
+    assert entry["speedup_jax_float32"] == pytest.approx(0.09 / 0.02)
+    assert entry["speedup_jax_float32_reuse2"] == pytest.approx(0.09 / 0.012)
+    assert entry["jax_float32_reuse2_s"] == 0.012
+    assert bench.headline(bench.summarise(rows)).endswith("1 map(s): float32 4.50x, float32_reuse2 7.50x")
