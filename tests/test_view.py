@@ -47,17 +47,19 @@ needs_viser = pytest.mark.skipif(importlib.util.find_spec("viser") is None,
 VALIDATOR = Path(os.environ.get("JAXDISTILL_TOOLS", REPO / ".tools")) / "node" / "node_modules"
 
 
-SMOKE_VIEWS = 9        # every 5.9th of the bedroom's 48 views, view_012 (the browser check's view) among them
-SMOKE_STEPS = 4        # a fifth of smoke.cfg's 20, logged and evaluated every 2: what the viewer shows of a run
-                       # does not depend on its length (each step at the tests' XLA level 0 takes about 4 s)
+SMOKE_VIEWS = 5        # every 11.75th of the bedroom's 48 views (0, 12, 24, 35, 47), view_012 (the browser
+                       # check's view) among them; a batch of smoke.cfg's 4 views a step
+SMOKE_STEPS = 2        # a tenth of smoke.cfg's 20, logged and evaluated every step (two checkpoints, two points
+                       # of the PSNR curve): what the viewer shows of a run does not depend on its length (each
+                       # step at the tests' XLA level 0 takes about 4 s)
 
 
 @pytest.fixture(scope="module")
 def smoke_command(tmp_path_factory):
     """(out_dir, console output) of `python -m jaxdistill distill --flagfile=configs/smoke.cfg
-    --estimate_steps=2 --max_views=9 --steps=4 --log_every=2 --eval_every=2`: the model's per-view
-    estimates (the baseline the viewer shows) in 2 DDIM steps instead of the demo's 50, and 9 of
-    the bedroom's 48 views, evenly spread round the room (a fifth of the fragments, plans,
+    --estimate_steps=2 --max_views=5 --steps=2 --log_every=1 --eval_every=1`: the model's per-view
+    estimates (the baseline the viewer shows) in 2 DDIM steps instead of the demo's 50, and 5 of
+    the bedroom's 48 views, evenly spread round the room (a tenth of the fragments, plans,
     estimates and evidence); what the viewer, the glTF and the console show of them depends
     neither on how they were sampled (tests/test_model_estimates.py checks them against
     `jaxdistill.estimate`) nor on how many views there are or how long the run is.
@@ -67,7 +69,7 @@ def smoke_command(tmp_path_factory):
         mp.setenv("JAXDISTILL_CACHE", str(tmp_path_factory.mktemp("view_cache")))
         run = subprocess.run([sys.executable, "-m", "jaxdistill", "distill", "--flagfile=configs/smoke.cfg",
                               "--estimate_steps=2", f"--max_views={SMOKE_VIEWS}", f"--steps={SMOKE_STEPS}",
-                              "--log_every=2", "--eval_every=2", f"--out_dir={out}"], cwd=REPO, capture_output=True,
+                              "--log_every=1", "--eval_every=1", f"--out_dir={out}"], cwd=REPO, capture_output=True,
                              text=True, timeout=900)
         assert run.returncode == 0, run.stderr[-4000:]
         yield out, run.stdout + run.stderr
@@ -222,7 +224,7 @@ def test_a_views_comparison_and_metrics_are_those_of_that_view(smoke_run):
     from jaxdistill.evaluate import metrics
 
     run = RunDir(smoke_run)
-    k = 7
+    k = SMOKE_VIEWS - 2                 # view_035: neither the first nor the last
     images = run.view_images(k, run.snapshot().pages)
     scene = run.scene
     frags = compute_fragments(scene.mesh, [v.camera for v in scene.views], progress=False)
@@ -456,7 +458,7 @@ def test_gltf_cameras_are_the_views_of_scene_json(smoke_command):
 def test_console_ends_with_a_summary_and_shows_eval_psnr_while_running(smoke_command):
     out, console = smoke_command
     metrics = json.loads((out / "metrics.json").read_text())
-    assert "albedo_psnr=" in console                                     # the progress bar, --eval_every=2
+    assert "albedo_psnr=" in console                                     # the progress bar, --eval_every=1
     table = console[console.index("metric "):]
     row = next(line for line in table.splitlines() if line.startswith("albedo PSNR (dB)"))
     ours, estimates = (float(x) for x in row.split()[3:5])
