@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -325,16 +327,20 @@ def test_reuse_steps_takes_k_adamw_steps_towards_one_x_pred(problem):
     assert np.abs(np.asarray(fresh.texels) - np.asarray(state.texels)).max() > 1e-3
 
 
-def test_target_struct_is_what_the_prior_pass_returns(rgbx_problems, tiny_scene, run_rgbx_dir, tmp_path):
+def test_target_struct_is_what_the_prior_pass_returns(rgbx_problems, run_rgbx_dir):
     """`Prior.target_struct` (what --reuse_steps keeps between prior passes is shaped by it, and
     `lax.cond` needs it exact) against the shapes and dtypes of a traced prior pass: both loss
     spaces, float32 and bfloat16 activations, a colour and a grey map."""
-    problems = dict(rgbx_problems)
-    problems["latent_bf16"] = build_problem(DistillConfig(
-        scene=str(tiny_scene), out_dir="unused", maps=("albedo", "roughness"), prior="rgbx", rgbx_dir=str(run_rgbx_dir),
-        loss_space="latent", prior_dtype="bfloat16"), cache_dir=tmp_path / "cache")
-    for name, problem in problems.items():
-        prior, frozen = problem.prior, problem.frozen["prior"]
+    from jaxdistill.models import convert
+
+    # the same networks with bfloat16 activations (the weights stay float32: the same frozen arrays)
+    bf16 = convert.build_networks(run_rgbx_dir, jnp.bfloat16, "default", None, True, "--rgbx_dir")
+    priors = {name: problem.prior for name, problem in rgbx_problems.items()}
+    priors.update({f"{name}_bf16": dataclasses.replace(problem.prior, networks=bf16)
+                   for name, problem in rgbx_problems.items()})
+    for name, prior in priors.items():
+        problem = rgbx_problems[name.split("_")[0]]
+        frozen = problem.frozen["prior"]
         images = {m: jax.ShapeDtypeStruct((2, problem.height, problem.width, 3 if m == "albedo" else 1), jnp.float32)
                   for m in ("albedo", "roughness")}
         features = jax.eval_shape(lambda im: prior.features(frozen, im, jax.random.PRNGKey(0)), images)
