@@ -259,11 +259,15 @@ def jax_worker(args, folder: str, dtype_name: str) -> list[dict]:
                 jax.block_until_ready(metrics["loss"])
                 step_times.append((time.perf_counter() - t0) / reuse)
             traces.check(1)
+            if int(state.step) != reuse * (args.repeats + 1):
+                # a non-finite loss halts the state (the step counter stays): the cycles would not
+                # alternate prior and reused steps, so the figure would mean something else
+                raise SystemExit(f"--reuse_steps={reuse}: the state stopped at step {int(state.step)} of "
+                                 f"{reuse * (args.repeats + 1)} (a non-finite loss); no row")
             whole[reuse] = {"step_times": step_times, "compile_s": compile_s, "finite": int(metrics["finite"]),
                             "flops": cost_flops(lowered)}
             del state, compiled, lowered
         frozen = placed_frozen
-        batch = jax.device_put(batch_host, stepper.by_view)
         settings = loop.step_settings(config, problem)
 
         # --- the same work, stage by stage (each jitted alone, fed the previous stage's output)
@@ -314,6 +318,7 @@ def jax_worker(args, folder: str, dtype_name: str) -> list[dict]:
         unet_tflops = (stage_flops["unet"] / stage_s["unet"] / 1e12
                        if stage_flops.get("unet") and stage_s.get("unet") else None)
         for reuse, timed in whole.items():
+            first = reuse == min(whole)          # the stages (timed once a case) go with the first row
             median = float(np.median(timed["step_times"]))
             # a reused step runs no prior pass: FLOPs per step are the cycle's over K (the program's
             # count is of its prior branch, which the cond runs once a cycle)
@@ -321,8 +326,8 @@ def jax_worker(args, folder: str, dtype_name: str) -> list[dict]:
             rows.append({
                 "framework": "jax", "dtype": dtype_name, "reuse_steps": reuse, "render": [problem.height, problem.width],
                 "maps": list(maps), "views_per_step": len(ids), "unet_batch_per_step": len(ids) * count,
-                "step_s": median, "step_s_all": timed["step_times"], "stages_s": stage_s if reuse == 1 else {},
-                "stages_sum_s": float(sum(stage_s.values())) if reuse == 1 else None, "compile_s": timed["compile_s"],
+                "step_s": median, "step_s_all": timed["step_times"], "stages_s": stage_s if first else {},
+                "stages_sum_s": float(sum(stage_s.values())) if first else None, "compile_s": timed["compile_s"],
                 "finite": timed["finite"], "flops_per_step": step_flops, "stage_flops": stage_flops,
                 "achieved_gflops_per_s": step_flops / median / 1e9 if step_flops else None,
                 "texels": problem.space.num_texels, "load_s": load_s, "photo_latents_s": photo_s,

@@ -95,3 +95,8 @@ def test_a_checkpoint_of_another_layout_is_refused_naming_the_leaf(tmp_path):
     assert str(tmp_path / "w" / "ckpt_toy" / "3") in message and stages.LAYOUT in message
     assert "['opt'][0].mu['dense']['bias'] (3,) float32 there" in message, message       # the first leaf that differs
     assert "['opt'][0].mu['dense']['bias'] (4,) float32 here" in message and "another --work" in message
+
+
+def test_a_typed_prng_key_is_refused_naming_its_leaf():
+    with pytest.raises(ValueError, match=r"\['params'\]\['key'\]: a typed PRNG key cannot be packed"):
+        stages.pack({"params": {"key": jax.random.key(0), "w": jnp.ones(2)}})

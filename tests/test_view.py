@@ -49,9 +49,9 @@ VALIDATOR = Path(os.environ.get("JAXDISTILL_TOOLS", REPO / ".tools")) / "node" /
 
 SMOKE_VIEWS = 5        # every 11.75th of the bedroom's 48 views (0, 12, 24, 35, 47), view_012 (the browser
                        # check's view) among them; a batch of smoke.cfg's 4 views a step
-SMOKE_STEPS = 2        # a tenth of smoke.cfg's 20, logged and evaluated every step (two checkpoints, two points
-                       # of the PSNR curve): what the viewer shows of a run does not depend on its length (each
-                       # step at the tests' XLA level 0 takes about 4 s)
+SMOKE_STEPS = 2        # a tenth of smoke.cfg's 20, logged and evaluated every step (two points of the PSNR
+                       # curve): what the viewer shows of a run does not depend on its length (each step at the
+                       # tests' XLA level 0 takes about 4 s)
 
 
 @pytest.fixture(scope="module")

@@ -8,9 +8,9 @@ optimizer every stage uses. The VAE and UNet stages are `train_prior`'s.
 
 A stage's checkpoint holds its state packed (`pack`): one flat array per dtype, the leaves
 concatenated in tree order, and the leaves' paths, shapes and dtypes in the saved config
-("layout"), checked on resume. Orbax writes and reads an array in a few milliseconds whatever
-its size, so a network's state of hundreds of small arrays (params, EMA, AdamW moments) took
-seconds a checkpoint leaf by leaf. Checkpoints written leaf by leaf still resume.
+("layout"), checked on resume. Orbax spends a few milliseconds on each array it writes or reads
+on top of its size, so a network's state of hundreds of small arrays (params, EMA, AdamW
+moments) took seconds a checkpoint leaf by leaf. Checkpoints written leaf by leaf still resume.
 """
 
 from __future__ import annotations
@@ -86,14 +86,21 @@ def run_stage(name: str, work: Path, init_state: Callable[[], Any], step_fn, bat
 
 
 def layout(state) -> list:
-    """[[leaf path, shape, dtype], ...] of `state` (arrays or shapes) in tree order."""
-    return [[jax.tree_util.keystr(path), list(np.shape(x)), np.dtype(x.dtype).name]
-            for path, x in jax.tree_util.tree_flatten_with_path(state)[0]]
+    """[[leaf path, shape, dtype], ...] of `state` (arrays or shapes) in tree order; ValueError
+    for a typed PRNG key (a stage keeps its keys outside its state: store `key_data` if not)."""
+    out = []
+    for path, x in jax.tree_util.tree_flatten_with_path(state)[0]:
+        if jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key):
+            raise ValueError(f"{jax.tree_util.keystr(path)}: a typed PRNG key cannot be packed into a checkpoint; "
+                             "keep jax.random.key_data(key) in the state instead")
+        out.append([jax.tree_util.keystr(path), list(np.shape(x)), np.dtype(x.dtype).name])
+    return out
 
 
 def pack(state) -> dict[str, np.ndarray]:
     """{dtype name: 1-D host array}: `state`'s leaves of that dtype ravelled and concatenated in
     tree order (`unpack` undoes it; empty leaves hold nothing and come back as zeros of their shape)."""
+    layout(state)                       # refuses typed PRNG keys, naming the leaf
     leaves = [x for x in jax.device_get(jax.tree.leaves(state)) if np.size(x)]     # orbax saves no empty array
     names = sorted({np.dtype(x.dtype).name for x in leaves})
     return {n: np.concatenate([np.ravel(x) for x in leaves if np.dtype(x.dtype).name == n]) for n in names}
