@@ -327,6 +327,17 @@ def test_reuse_steps_takes_k_adamw_steps_towards_one_x_pred(problem):
     assert np.abs(np.asarray(fresh.texels) - np.asarray(state.texels)).max() > 1e-3
 
 
+def test_the_views_priors_target_struct_is_its_targets(problem):
+    """The views prior's targets (the scene's per-view images) shaped as `target_struct` says."""
+    prior = problem.prior
+    batch = problem.batch(np.array([0, 1]))
+    columns = {m: problem.channels.slice(m) for m in problem.channels.maps}
+    images = {m: jax.ShapeDtypeStruct((2, problem.height, problem.width, c.stop - c.start), jnp.float32)
+              for m, c in columns.items()}
+    traced = jax.eval_shape(lambda f: prior.targets(problem.frozen["prior"], f, batch["prior"], None, None), images)
+    assert prior.target_struct(images) == traced
+
+
 def test_target_struct_is_what_the_prior_pass_returns(rgbx_problems, run_rgbx_dir):
     """`Prior.target_struct` (what --reuse_steps keeps between prior passes is shaped by it, and
     `lax.cond` needs it exact) against the shapes and dtypes of a traced prior pass: both loss
