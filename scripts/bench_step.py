@@ -320,8 +320,8 @@ def jax_worker(args, folder: str, dtype_name: str) -> list[dict]:
         for reuse, timed in whole.items():
             first = reuse == min(whole)          # the stages (timed once a case) go with the first row
             median = float(np.median(timed["step_times"]))
-            # a reused step runs no prior pass: FLOPs per step are the cycle's over K (the program's
-            # count is of its prior branch, which the cond runs once a cycle)
+            # XLA counts the program's prior branch, which the cond runs once a cycle: no per-step
+            # FLOP figure for a row with reuse
             step_flops = timed["flops"] if reuse == 1 else None
             rows.append({
                 "framework": "jax", "dtype": dtype_name, "reuse_steps": reuse, "render": [problem.height, problem.width],

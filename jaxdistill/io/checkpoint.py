@@ -83,7 +83,8 @@ class _CommittedNameFormat:
         return meta
 
 
-def _is_typed_key(x) -> bool:
+def is_typed_key(x) -> bool:
+    """Whether `x` (an array or a jax.ShapeDtypeStruct) is a typed PRNG key (dtype key<impl>)."""
     return jax.dtypes.issubdtype(getattr(x, "dtype", None), jax.dtypes.prng_key)
 
 
@@ -182,7 +183,7 @@ class CheckpointStore:
             shutil.rmtree(final)
         self._remove_temporary()
         self.directory.mkdir(parents=True, exist_ok=True)
-        state = jax.tree.map(lambda x: jax.random.key_data(x) if _is_typed_key(x) else x, stored_tree(state))
+        state = jax.tree.map(lambda x: jax.random.key_data(x) if is_typed_key(x) else x, stored_tree(state))
         saved = self._mngr.save(
             step,
             args=ocp.args.Composite(state=ocp.args.StandardSave(state), config=ocp.args.JsonSave(config)),
@@ -233,7 +234,7 @@ class CheckpointStore:
         sharding = jax.sharding.SingleDeviceSharding(device)
 
         def abstract(x):
-            if _is_typed_key(x):
+            if is_typed_key(x):
                 x = jax.eval_shape(jax.random.key_data, x)
             return jax.ShapeDtypeStruct(tuple(x.shape), x.dtype, sharding=sharding)
 
@@ -252,7 +253,7 @@ class CheckpointStore:
         if isinstance(like, dict):
             stored = {k: stored[k] for k in like}
         state = jax.tree.map(
-            lambda x, data: jax.random.wrap_key_data(data, impl=_key_impl(x)) if _is_typed_key(x) else data,
+            lambda x, data: jax.random.wrap_key_data(data, impl=_key_impl(x)) if is_typed_key(x) else data,
             like, stored,
         )
         if dataclasses.is_dataclass(full_like):
@@ -339,7 +340,7 @@ class CheckpointStore:
         where = self._step_dir(step)
         problems = ProblemList()
         for name, x in wanted.items():
-            if _is_typed_key(x):
+            if is_typed_key(x):
                 x = jax.eval_shape(jax.random.key_data, x)
             meta = saved.get(name)
             if meta is None:

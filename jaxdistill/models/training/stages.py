@@ -27,7 +27,7 @@ import optax
 from tqdm import tqdm
 
 from jaxdistill.errors import InputError
-from jaxdistill.io.checkpoint import CheckpointStore, StopSignals
+from jaxdistill.io.checkpoint import CheckpointStore, StopSignals, is_typed_key
 
 LAYOUT = "layout"           # the saved config's key for the packed state's leaves
 
@@ -90,7 +90,7 @@ def layout(state) -> list:
     for a typed PRNG key (a stage keeps its keys outside its state: store `key_data` if not)."""
     out = []
     for path, x in jax.tree_util.tree_flatten_with_path(state)[0]:
-        if jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key):
+        if is_typed_key(x):
             raise ValueError(f"{jax.tree_util.keystr(path)}: a typed PRNG key cannot be packed into a checkpoint; "
                              "keep jax.random.key_data(key) in the state instead")
         out.append([jax.tree_util.keystr(path), list(np.shape(x)), np.dtype(x.dtype).name])
