@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import jax
 import numpy as np
 import pytest
@@ -9,6 +11,7 @@ from flax import errors as flax_errors
 from flax import linen as nn
 
 from jaxdistill.models import layers
+from tolerance import assert_close
 
 
 @pytest.mark.parametrize("ours,flax_own,inputs", [
@@ -63,3 +66,70 @@ def test_norm_layers_read_their_parameters_by_shape():
         wrong = {"params": {**params["params"], "scale": np.ones((1,), np.float32)}}
         with pytest.raises(flax_errors.ScopeParamShapeError, match="scale"):
             module.apply(wrong, x)
+
+
+def _group_norm_numpy(x, scale, bias, groups, epsilon):
+    """GroupNorm as PyTorch defines it, in float64: each sample's group of channels over all positions."""
+    x = np.asarray(x, np.float64)
+    grouped = x.reshape(x.shape[:-1] + (groups, x.shape[-1] // groups))
+    axes = tuple(range(1, grouped.ndim - 2)) + (grouped.ndim - 1,)
+    mean = grouped.mean(axis=axes, keepdims=True)
+    var = np.square(grouped - mean).mean(axis=axes, keepdims=True)
+    return ((grouped - mean) / np.sqrt(var + epsilon)).reshape(x.shape) * scale + bias
+
+
+@pytest.mark.parametrize("shape,groups", [((2, 5, 6, 8), 2), ((2, 5, 6, 8), 8), ((3, 7, 16), 4), ((1, 3, 4, 5, 6), 3)],
+                         ids=["4-per-group", "1-per-group", "tokens", "3-d"])
+def test_group_norm_is_the_formula(shape, groups):
+    """Per-channel sums then per-group ones give GroupNorm's own formula (float64 NumPy), also for a
+    large common offset (a hard case for the variance: 1e3 over unit spread) and a group of one
+    channel; bfloat16 activations round only the output."""
+    rng = np.random.default_rng(3)
+    x = (rng.normal(size=shape) * rng.uniform(0.5, 2, shape[-1]) + 1e3).astype(np.float32)
+    scale = rng.uniform(0.5, 1.5, shape[-1]).astype(np.float32)
+    bias = rng.normal(size=shape[-1]).astype(np.float32)
+    params = {"params": {"scale": scale, "bias": bias}}
+    want = _group_norm_numpy(x, scale, bias, groups, 1e-6)
+    got = layers.GroupNorm(groups, 1e-6).apply(params, x)
+    assert got.dtype == np.float32
+    assert_close(got, want, rtol=2e-3, floor=2e-4)      # the float32 input's own rounding at 1e3: 6e-5 per unit
+    half = layers.GroupNorm(groups, 1e-6, dtype=jax.numpy.bfloat16).apply(params, x)
+    assert half.dtype == jax.numpy.bfloat16
+    assert_close(np.asarray(half, np.float32), np.asarray(got), rtol=1e-2, floor=1e-2)
+
+
+class _ResizeThenConv(nn.Module):
+    """The definition: nearest upsampling of the image, then `nn.Conv` 3×3 with padding 1, named "conv"."""
+
+    features: int
+    dtype: Any = np.float32
+
+    @nn.compact
+    def __call__(self, x, size=None):
+        x = layers.nearest_resize(x, size or (2 * x.shape[1], 2 * x.shape[2]))
+        return nn.Conv(self.features, (3, 3), padding=((1, 1), (1, 1)), dtype=self.dtype, name="conv")(x)
+
+
+@pytest.mark.parametrize("size", [None, (10, 14), (9, 13)], ids=["x2", "x2-given", "odd"])
+def test_upsample_is_resize_then_conv(size):
+    """`Upsample2D` (four 2×2 convolutions of the input at ×2) against the upsampled image convolved
+    as `nn.Conv` does: the same parameters from the same key, the same outputs up to rounding,
+    and the same gradients with respect to the input and the kernel."""
+    x = np.sin(np.arange(2 * 5 * 7 * 6, dtype=np.float32)).reshape(2, 5, 7, 6)
+    ours, reference = layers.Upsample2D(4), _ResizeThenConv(4)
+    params = ours.init(jax.random.key(1), x, size)
+    ref_params = reference.init(jax.random.key(1), x, size)
+    assert jax.tree.structure(params) == jax.tree.structure(ref_params)
+    assert all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(ref_params)))
+    params = jax.tree.map(lambda p: p + 0.1 * np.cos(np.arange(p.size)).reshape(p.shape).astype(np.float32), params)
+    got, want = ours.apply(params, x, size), reference.apply(params, x, size)
+    assert got.shape == want.shape == (2,) + (size or (10, 14)) + (4,)
+    assert_close(got, want)
+    loss = lambda module, p, image: (module.apply(p, image, size) ** 2).sum()  # noqa: E731
+    grads = jax.grad(lambda p, image: loss(ours, p, image), argnums=(0, 1))(params, x)
+    ref_grads = jax.grad(lambda p, image: loss(reference, p, image), argnums=(0, 1))(params, x)
+    assert_close(grads[0]["params"]["conv"]["kernel"], ref_grads[0]["params"]["conv"]["kernel"])
+    assert_close(grads[1], ref_grads[1])
+    half = layers.Upsample2D(4, dtype=jax.numpy.bfloat16).apply(params, x, size)
+    assert half.dtype == jax.numpy.bfloat16
+    assert_close(np.asarray(half, np.float32), want, rtol=3e-2, floor=3e-2)

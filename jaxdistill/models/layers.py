@@ -48,6 +48,34 @@ def _standardise(x, axes, epsilon):
     return (x - mean) * jax.lax.rsqrt(var + epsilon)
 
 
+def group_norm(x, scale, bias, num_groups: int, epsilon: float):
+    """GroupNorm of x (B, ..., C) over its spatial axes and each group of C / num_groups channels,
+    then `scale` and `bias` per channel; float32, the two-pass variance (as PyTorch).
+
+    The statistics are summed per channel over the spatial axes first (a reduction along rows of
+    x's own layout), then over each group's channels (a (B, C) array): grouping the channels of a
+    (B, H, W, C) array first, as (B, H, W, G, C / G), makes XLA's CPU backend reduce over a minor
+    axis of 2–16 elements, 3–5× slower at the VAE's 32–64 channels (docs/benchmarks.md §1). The
+    normalisation is one multiply-add per element with a per-channel factor.
+    """
+    x = x.astype(jnp.float32)
+    channels = x.shape[-1]
+    per_group = channels // num_groups
+    if per_group == 1:                        # a group is a channel: nothing to gather
+        return _standardise(x, tuple(range(1, x.ndim - 1)), epsilon) * scale + bias
+    spatial = tuple(range(1, x.ndim - 1))
+    count = math.prod(x.shape[1:-1]) * per_group
+    as_channels = (x.shape[0],) + (1,) * len(spatial) + (channels,)
+
+    def group_mean(channel_sums):             # (B, C) → each channel's group mean, (B, 1.., C)
+        means = channel_sums.reshape(-1, num_groups, per_group).sum(axis=-1) / count
+        return jnp.repeat(means, per_group, axis=-1).reshape(as_channels)
+
+    centred = x - group_mean(x.sum(axis=spatial))
+    factor = scale * jax.lax.rsqrt(group_mean(jnp.square(centred).sum(axis=spatial)) + epsilon)
+    return centred * factor + bias
+
+
 class ParamsByShape:
     """Mixin for a Flax module whose stored parameters are read by name and checked by shape.
 
@@ -95,10 +123,7 @@ class GroupNorm(ParamsByShape, nn.Module):
         channels = x.shape[-1]
         scale = self.param("scale", nn.initializers.ones, (channels,), jnp.float32)
         bias = self.param("bias", nn.initializers.zeros, (channels,), jnp.float32)
-        grouped = x.astype(jnp.float32).reshape(x.shape[:-1] + (self.num_groups, channels // self.num_groups))
-        axes = tuple(range(1, grouped.ndim - 2)) + (grouped.ndim - 1,)
-        normed = _standardise(grouped, axes, self.epsilon).reshape(x.shape)
-        return (normed * scale + bias).astype(self.dtype)
+        return group_norm(x, scale, bias, self.num_groups, self.epsilon).astype(self.dtype)
 
 
 class LayerNorm(ParamsByShape, nn.Module):
@@ -251,8 +276,54 @@ def nearest_resize(x, size: tuple[int, int]):
     return x[:, rows][:, :, cols]
 
 
+def _phase_taps(kernel, axis: int):
+    """A 3-tap kernel along `axis` applied to a nearest ×2 upsampling, as two 2-tap kernels on the
+    input: the even outputs read input rows (i − 1, i) with taps (k0, k1 + k2), the odd ones rows
+    (i, i + 1) with taps (k0 + k1, k2)."""
+    k0, k1, k2 = (jax.lax.index_in_dim(kernel, j, axis) for j in range(3))
+    return jnp.concatenate([k0, k1 + k2], axis), jnp.concatenate([k0 + k1, k2], axis)
+
+
+class UpsampleConv(ParamsByShape, nn.Module):
+    """Nearest upsampling, then a 3×3 convolution with padding 1 (`kernel` (3, 3, Cin, Cout) and
+    `bias`, as `nn.Conv`'s, whose initialiser it uses).
+
+    At ×2 the convolution is computed on the input itself: each of the four output phases (row
+    and column parity) is a 2×2 convolution of the input padded by one, with taps summed from the
+    3×3 kernel (`_phase_taps`). Same result up to the rounding of the summed taps; 16 multiplies
+    per output where the upsampled image needs 36. To another size (`size`, the UNet's odd latent
+    sides), the image is resized first (`nearest_resize`) and convolved as it is.
+    """
+
+    features: int
+    dtype: Dtype = jnp.float32
+    precision: str = "default"
+
+    @nn.compact
+    def __call__(self, x, size: tuple[int, int] | None = None):
+        kernel = self.param("kernel", nn.linear.default_kernel_init, (3, 3, x.shape[-1], self.features), jnp.float32)
+        bias = self.param("bias", nn.initializers.zeros, (self.features,), jnp.float32)
+        x = x.astype(self.dtype)
+        height, width = x.shape[1:3]
+        numbers = ("NHWC", "HWIO", "NHWC")
+        convolve = lambda image, taps, pad: jax.lax.conv_general_dilated(  # noqa: E731
+            image, taps.astype(self.dtype), (1, 1), pad, dimension_numbers=numbers,
+            precision=precision_of(self.precision))
+        if size is not None and tuple(size) != (2 * height, 2 * width):
+            out = convolve(nearest_resize(x, size), kernel, ((1, 1), (1, 1)))
+        else:
+            padded = jnp.pad(x, ((0, 0), (1, 1), (1, 1), (0, 0)))
+            rows = []
+            for a, by_rows in enumerate(_phase_taps(kernel, 0)):
+                cols = [convolve(padded[:, a:a + height + 1, b:b + width + 1], taps, "VALID")
+                        for b, taps in enumerate(_phase_taps(by_rows, 1))]
+                rows.append(jnp.stack(cols, axis=3))                  # (B, H, W, 2 column phases, C)
+            out = jnp.stack(rows, axis=2).reshape(x.shape[0], 2 * height, 2 * width, self.features)
+        return out + bias.astype(self.dtype)
+
+
 class Upsample2D(nn.Module):
-    """Nearest upsampling (×2, or to `size` when given) followed by a 3×3 convolution."""
+    """Nearest upsampling (×2, or to `size` when given) followed by a 3×3 convolution (`UpsampleConv`)."""
 
     channels: int
     dtype: Dtype = jnp.float32
@@ -260,8 +331,4 @@ class Upsample2D(nn.Module):
 
     @nn.compact
     def __call__(self, x, size: tuple[int, int] | None = None):
-        if size is None:
-            x = jnp.repeat(jnp.repeat(x, 2, axis=1), 2, axis=2)
-        else:
-            x = nearest_resize(x, size)
-        return conv(self.channels, 3, "conv", self.dtype, self.precision)(x)
+        return UpsampleConv(self.channels, self.dtype, self.precision, name="conv")(x, size)
