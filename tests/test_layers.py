@@ -110,26 +110,54 @@ class _ResizeThenConv(nn.Module):
         return nn.Conv(self.features, (3, 3), padding=((1, 1), (1, 1)), dtype=self.dtype, name="conv")(x)
 
 
-@pytest.mark.parametrize("size", [None, (10, 14), (9, 13)], ids=["x2", "x2-given", "odd"])
-def test_upsample_is_resize_then_conv(size):
-    """`Upsample2D` (four 2×2 convolutions of the input at ×2) against the upsampled image convolved
-    as `nn.Conv` does: the same parameters from the same key, the same outputs up to rounding,
-    and the same gradients with respect to the input and the kernel."""
-    x = np.sin(np.arange(2 * 5 * 7 * 6, dtype=np.float32)).reshape(2, 5, 7, 6)
-    ours, reference = layers.Upsample2D(4), _ResizeThenConv(4)
+@pytest.mark.parametrize("shape,features,size", [
+    ((2, 5, 7, 6), 4, None), ((2, 5, 7, 6), 4, (10, 14)), ((2, 5, 7, 6), 4, (9, 13)), ((1, 2, 3, 5), 16, None)],
+    ids=["x2", "x2-given", "odd", "x2-patches"])
+def test_upsample_is_resize_then_conv(shape, features, size):
+    """`Upsample2D` (four 2×2 convolutions of the input at ×2; with more output channels than a
+    phase has pixels, each a product of patches) against the upsampled image convolved as
+    `nn.Conv` does: the same parameters from the same key, the same outputs up to rounding, and
+    the same gradients with respect to the input and the kernel."""
+    x = np.sin(np.arange(np.prod(shape), dtype=np.float32)).reshape(shape)
+    ours, reference = layers.Upsample2D(features), _ResizeThenConv(features)
     params = ours.init(jax.random.key(1), x, size)
     ref_params = reference.init(jax.random.key(1), x, size)
     assert jax.tree.structure(params) == jax.tree.structure(ref_params)
     assert all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(ref_params)))
     params = jax.tree.map(lambda p: p + 0.1 * np.cos(np.arange(p.size)).reshape(p.shape).astype(np.float32), params)
     got, want = ours.apply(params, x, size), reference.apply(params, x, size)
-    assert got.shape == want.shape == (2,) + (size or (10, 14)) + (4,)
+    assert got.shape == want.shape == (shape[0],) + (size or (2 * shape[1], 2 * shape[2])) + (features,)
     assert_close(got, want)
     loss = lambda module, p, image: (module.apply(p, image, size) ** 2).sum()  # noqa: E731
     grads = jax.grad(lambda p, image: loss(ours, p, image), argnums=(0, 1))(params, x)
     ref_grads = jax.grad(lambda p, image: loss(reference, p, image), argnums=(0, 1))(params, x)
     assert_close(grads[0]["params"]["conv"]["kernel"], ref_grads[0]["params"]["conv"]["kernel"])
     assert_close(grads[1], ref_grads[1])
-    half = layers.Upsample2D(4, dtype=jax.numpy.bfloat16).apply(params, x, size)
+    half = layers.Upsample2D(features, dtype=jax.numpy.bfloat16).apply(params, x, size)
     assert half.dtype == jax.numpy.bfloat16
     assert_close(np.asarray(half, np.float32), want, rtol=3e-2, floor=3e-2)
+
+
+@pytest.mark.parametrize("shape,features", [((2, 5, 7, 6), 4), ((1, 2, 3, 5), 8), ((1, 1, 1, 3), 2)],
+                         ids=["lax", "patches", "one-pixel"])
+def test_conv3x3_is_flax_conv(shape, features):
+    """`Conv3x3` against `nn.Conv` 3×3 with padding 1: the same parameters from the same key; with
+    at least as many output pixels as channels it is the same XLA convolution (bit for bit), with
+    fewer a product of patches (equal up to rounding, gradients too)."""
+    x = np.cos(np.arange(np.prod(shape), dtype=np.float32)).reshape(shape)
+    ours = layers.conv(features, 3, None, np.float32, "default")
+    assert isinstance(ours, layers.Conv3x3)
+    reference = nn.Conv(features, (3, 3), padding=((1, 1), (1, 1)))
+    params, ref_params = ours.init(jax.random.key(2), x), reference.init(jax.random.key(2), x)
+    assert all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(ref_params)))
+    params = jax.tree.map(lambda p: p + 0.1 * np.sin(np.arange(p.size)).reshape(p.shape).astype(np.float32), params)
+    got, want = ours.apply(params, x), reference.apply(params, x)
+    if np.prod(shape[:3]) >= features:
+        np.testing.assert_array_equal(got, want)
+    else:
+        assert_close(got, want)
+    loss = lambda module, p, image: (module.apply(p, image) ** 2).sum()  # noqa: E731
+    grads = jax.grad(lambda p, image: loss(ours, p, image), argnums=(0, 1))(params, x)
+    ref_grads = jax.grad(lambda p, image: loss(reference, p, image), argnums=(0, 1))(params, x)
+    for a, b in zip(jax.tree.leaves(grads), jax.tree.leaves(ref_grads)):
+        assert_close(a, b)

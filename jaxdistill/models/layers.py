@@ -147,12 +147,48 @@ def dense(features: int, name: str | None, dtype: Dtype, precision: str, use_bia
 
 
 def conv(features: int, kernel: int, name: str | None, dtype: Dtype, precision: str, stride: int = 1,
-         padding: Any = "SAME_TORCH") -> Conv:
-    """A 2-D convolution, PyTorch padding `kernel // 2` unless `padding` is given."""
+         padding: Any = "SAME_TORCH") -> nn.Module:
+    """A 2-D convolution, PyTorch padding `kernel // 2` unless `padding` is given; 3×3 with stride 1
+    and that padding is `Conv3x3`."""
+    if kernel == 3 and stride == 1 and padding == "SAME_TORCH":
+        return Conv3x3(features, dtype, precision, name=name)
     if padding == "SAME_TORCH":
         padding = ((kernel // 2, kernel // 2),) * 2
     return Conv(features, (kernel, kernel), strides=(stride, stride), padding=padding, dtype=dtype,
                 param_dtype=jnp.float32, precision=precision_of(precision), name=name)
+
+
+def convolve_valid(image, taps, precision: str = "default"):
+    """The 'VALID' convolution of an NHWC `image` with HWIO `taps` (stride 1), in their dtype.
+
+    When the batch has fewer output pixels than output channels (the UNet's 3×4 to 12×16 latents
+    at 640–1280 channels), it is a matrix product of the image's patches (at most the kernel's
+    size) with the kernel reshaped to (kh·kw·Cin, Cout): XLA's CPU convolution spends 2–2.3× as
+    long there (docs/benchmarks.md §1). Otherwise it is `lax.conv_general_dilated`, as `nn.Conv`.
+    """
+    rows, cols = taps.shape[:2]
+    height, width = image.shape[1] - rows + 1, image.shape[2] - cols + 1
+    if image.shape[0] * height * width >= taps.shape[-1]:
+        return jax.lax.conv_general_dilated(image, taps, (1, 1), "VALID", dimension_numbers=("NHWC", "HWIO", "NHWC"),
+                                            precision=precision_of(precision))
+    patches = jnp.concatenate([image[:, i:i + height, j:j + width] for i in range(rows) for j in range(cols)], axis=-1)
+    return jnp.einsum("bhwk,ko->bhwo", patches, taps.reshape(-1, taps.shape[-1]), precision=precision_of(precision))
+
+
+class Conv3x3(ParamsByShape, nn.Module):
+    """A 3×3 convolution, stride 1, padding 1, with `nn.Conv`'s parameters (`kernel` (3, 3, Cin,
+    Cout), `bias`) and initialiser; computed by `convolve_valid` on the padded image."""
+
+    features: int
+    dtype: Dtype = jnp.float32
+    precision: str = "default"
+
+    @nn.compact
+    def __call__(self, x):
+        kernel = self.param("kernel", nn.linear.default_kernel_init, (3, 3, x.shape[-1], self.features), jnp.float32)
+        bias = self.param("bias", nn.initializers.zeros, (self.features,), jnp.float32)
+        padded = jnp.pad(x.astype(self.dtype), ((0, 0), (1, 1), (1, 1), (0, 0)))
+        return convolve_valid(padded, kernel.astype(self.dtype), self.precision) + bias.astype(self.dtype)
 
 
 def _scores_softmax_values(q, k, v, scale, precision, mask=None):
@@ -305,17 +341,15 @@ class UpsampleConv(ParamsByShape, nn.Module):
         bias = self.param("bias", nn.initializers.zeros, (self.features,), jnp.float32)
         x = x.astype(self.dtype)
         height, width = x.shape[1:3]
-        numbers = ("NHWC", "HWIO", "NHWC")
-        convolve = lambda image, taps, pad: jax.lax.conv_general_dilated(  # noqa: E731
-            image, taps.astype(self.dtype), (1, 1), pad, dimension_numbers=numbers,
-            precision=precision_of(self.precision))
+        convolve = lambda image, taps: convolve_valid(image, taps.astype(self.dtype), self.precision)  # noqa: E731
+        pad = lambda image: jnp.pad(image, ((0, 0), (1, 1), (1, 1), (0, 0)))  # noqa: E731
         if size is not None and tuple(size) != (2 * height, 2 * width):
-            out = convolve(nearest_resize(x, size), kernel, ((1, 1), (1, 1)))
+            out = convolve(pad(nearest_resize(x, size)), kernel)
         else:
-            padded = jnp.pad(x, ((0, 0), (1, 1), (1, 1), (0, 0)))
+            padded = pad(x)
             rows = []
             for a, by_rows in enumerate(_phase_taps(kernel, 0)):
-                cols = [convolve(padded[:, a:a + height + 1, b:b + width + 1], taps, "VALID")
+                cols = [convolve(padded[:, a:a + height + 1, b:b + width + 1], taps)
                         for b, taps in enumerate(_phase_taps(by_rows, 1))]
                 rows.append(jnp.stack(cols, axis=3))                  # (B, H, W, 2 column phases, C)
             out = jnp.stack(rows, axis=2).reshape(x.shape[0], 2 * height, 2 * width, self.features)
