@@ -138,12 +138,16 @@ def test_upsample_is_resize_then_conv(shape, features, size):
     assert_close(np.asarray(half, np.float32), want, rtol=3e-2, floor=3e-2)
 
 
-@pytest.mark.parametrize("shape,features", [((2, 5, 7, 6), 4), ((1, 2, 3, 5), 8), ((1, 1, 1, 3), 2)],
-                         ids=["lax", "patches", "one-pixel"])
-def test_conv3x3_is_flax_conv(shape, features):
+@pytest.mark.parametrize("shape,features,path", [
+    ((2, 5, 7, 6), 4, "direct"), ((1, 2, 3, 5), 8, "patches"), ((1, 1, 1, 3), 2, "patches"),
+    ((1, 4, 6, 8), 8, "winograd"), ((1, 5, 6, 8), 8, "direct")], ids=["lax", "patches", "one-pixel", "winograd", "odd"])
+def test_conv3x3_is_flax_conv(shape, features, path, monkeypatch):
     """`Conv3x3` against `nn.Conv` 3×3 with padding 1: the same parameters from the same key; with
     at least as many output pixels as channels it is the same XLA convolution (bit for bit), with
-    fewer a product of patches (equal up to rounding, gradients too)."""
+    fewer a product of patches, and with enough channels and pixels (here lowered to 8 and 24) and
+    even sides Winograd's (equal up to rounding, gradients too)."""
+    monkeypatch.setattr(layers, "WINOGRAD_MIN_CHANNELS", 8)
+    monkeypatch.setattr(layers, "WINOGRAD_MIN_PIXELS", 24)
     x = np.cos(np.arange(np.prod(shape), dtype=np.float32)).reshape(shape)
     ours = layers.conv(features, 3, None, np.float32, "default")
     assert isinstance(ours, layers.Conv3x3)
@@ -152,7 +156,7 @@ def test_conv3x3_is_flax_conv(shape, features):
     assert all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(ref_params)))
     params = jax.tree.map(lambda p: p + 0.1 * np.sin(np.arange(p.size)).reshape(p.shape).astype(np.float32), params)
     got, want = ours.apply(params, x), reference.apply(params, x)
-    if np.prod(shape[:3]) >= features:
+    if path == "direct":
         np.testing.assert_array_equal(got, want)
     else:
         assert_close(got, want)
@@ -160,4 +164,22 @@ def test_conv3x3_is_flax_conv(shape, features):
     grads = jax.grad(lambda p, image: loss(ours, p, image), argnums=(0, 1))(params, x)
     ref_grads = jax.grad(lambda p, image: loss(reference, p, image), argnums=(0, 1))(params, x)
     for a, b in zip(jax.tree.leaves(grads), jax.tree.leaves(ref_grads)):
+        assert_close(a, b)
+
+
+def test_winograd_is_the_convolution():
+    """F(2×2, 3×3) against XLA's 'VALID' convolution of the same padded image: outputs, and the
+    gradients with respect to the image and the kernel, equal up to rounding."""
+    rng = np.random.default_rng(5)
+    image = rng.normal(size=(2, 8, 10, 5)).astype(np.float32)
+    taps = rng.normal(size=(3, 3, 5, 7)).astype(np.float32)
+    direct = lambda a, k: jax.lax.conv_general_dilated(  # noqa: E731
+        a, k, (1, 1), "VALID", dimension_numbers=("NHWC", "HWIO", "NHWC"), precision="highest")
+    got = layers.winograd_3x3(image, taps, "highest")
+    assert got.shape == (2, 6, 8, 7)
+    assert_close(got, direct(image, taps))
+    weights = rng.normal(size=got.shape).astype(np.float32)
+    ours = jax.grad(lambda a, k: (layers.winograd_3x3(a, k, "highest") * weights).sum(), argnums=(0, 1))(image, taps)
+    want = jax.grad(lambda a, k: (direct(a, k) * weights).sum(), argnums=(0, 1))(image, taps)
+    for a, b in zip(ours, want):
         assert_close(a, b)

@@ -14,6 +14,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import errors as flax_errors
 from flax.core import meta as flax_meta
 from flax import linen as nn
@@ -158,21 +159,71 @@ def conv(features: int, kernel: int, name: str | None, dtype: Dtype, precision: 
                 param_dtype=jnp.float32, precision=precision_of(precision), name=name)
 
 
+# Winograd's F(2×2, 3×3) (Lavin & Gray 2016, "Fast Algorithms for Convolutional Neural Networks"):
+# input tile transform Bᵀ, kernel transform G, output transform Aᵀ
+_WINOGRAD_BT = np.array([[1, 0, -1, 0], [0, 1, 1, 0], [0, -1, 1, 0], [0, 1, 0, -1]], np.float32)
+_WINOGRAD_G = np.array([[1, 0, 0], [0.5, 0.5, 0.5], [0.5, -0.5, 0.5], [0, 0, 1]], np.float32)
+_WINOGRAD_AT = np.array([[1, 1, 1, 0], [0, 1, -1, -1]], np.float32)
+WINOGRAD_MIN_CHANNELS = 256        # on XLA's CPU backend, below these it was no faster (docs/benchmarks.md §1)
+WINOGRAD_MIN_PIXELS = 3072
+
+
+def _combine(matrix, terms):
+    """Σ_j matrix[i, j] · terms[j] for each row i, skipping zero coefficients (elementwise, fused by XLA)."""
+    return [sum(c * t for c, t in zip(row, terms) if c != 0) for row in matrix.tolist()]
+
+
+def winograd_3x3(padded, taps, precision: str = "default"):
+    """The 'VALID' 3×3 convolution of an NHWC image padded by one (output sides even) with HWIO
+    `taps`, by Winograd's F(2×2, 3×3): each 2×2 output tile from its 4×4 input tile, with 16
+    products of (tiles × Cin) by (Cin × Cout) where the direct convolution has 36. Equal up to
+    rounding (relative 2e-6 at 512 channels)."""
+    batch, height, width = padded.shape[0], padded.shape[1] - 2, padded.shape[2] - 2
+    tiles = [[padded[:, u:u + height:2, v:v + width:2] for v in range(4)] for u in range(4)]
+    rows = _combine(_WINOGRAD_BT, [jnp.stack(row) for row in tiles])           # Bᵀ d, each (4 v, B, h, w, C)
+    inputs = jnp.stack([t for r in rows for t in _combine(_WINOGRAD_BT, list(r))])   # Bᵀ d B: (16, B, h, w, C)
+    kernel = jnp.einsum("ai,ijco,bj->abco", _WINOGRAD_G, taps.astype(jnp.float32), _WINOGRAD_G,
+                        precision=jax.lax.Precision.HIGHEST).reshape(16, *taps.shape[2:]).astype(taps.dtype)
+    products = jnp.einsum("pbhwc,pco->pbhwo", inputs, kernel, precision=precision_of(precision))
+    products = products.reshape(4, 4, *products.shape[1:])
+    half = _combine(_WINOGRAD_AT, list(products))                                  # Aᵀ M, each (4, B, h, w, O)
+    out = jnp.stack([jnp.stack(_combine(_WINOGRAD_AT, list(h)), axis=3) for h in half], axis=2)
+    return out.reshape(batch, height, width, taps.shape[-1])                       # (B, h, 2, w, 2, O) interleaved
+
+
 def convolve_valid(image, taps, precision: str = "default"):
     """The 'VALID' convolution of an NHWC `image` with HWIO `taps` (stride 1), in their dtype.
 
-    When the batch has fewer output pixels than output channels (the UNet's 3×4 to 12×16 latents
-    at 640–1280 channels), it is a matrix product of the image's patches (at most the kernel's
-    size) with the kernel reshaped to (kh·kw·Cin, Cout): XLA's CPU convolution spends 2–2.3× as
-    long there (docs/benchmarks.md §1). Otherwise it is `lax.conv_general_dilated`, as `nn.Conv`.
+    On a GPU (or any backend but the CPU) it is `lax.conv_general_dilated`, as `nn.Conv`, whose
+    libraries choose their own algorithm. On XLA's CPU backend, by the shapes (each choice was
+    measured faster there, docs/benchmarks.md §1):
+    - fewer output pixels in the batch than output channels (the UNet's 3×4 to 12×16 latents at
+      640–1280 channels): a matrix product of the image's patches (at most the kernel's size) with
+      the kernel reshaped to (kh·kw·Cin, Cout), 2–2.3× faster;
+    - 3×3 taps, at least `WINOGRAD_MIN_CHANNELS` in and out and `WINOGRAD_MIN_PIXELS` output
+      pixels, even sides (the full-size VAE's middle resolutions): `winograd_3x3`, 1.3–1.5× faster;
+    - otherwise the XLA convolution.
     """
     rows, cols = taps.shape[:2]
     height, width = image.shape[1] - rows + 1, image.shape[2] - cols + 1
-    if image.shape[0] * height * width >= taps.shape[-1]:
+    pixels = image.shape[0] * height * width
+    prec = precision_of(precision)
+
+    def direct(image, taps):
         return jax.lax.conv_general_dilated(image, taps, (1, 1), "VALID", dimension_numbers=("NHWC", "HWIO", "NHWC"),
-                                            precision=precision_of(precision))
-    patches = jnp.concatenate([image[:, i:i + height, j:j + width] for i in range(rows) for j in range(cols)], axis=-1)
-    return jnp.einsum("bhwk,ko->bhwo", patches, taps.reshape(-1, taps.shape[-1]), precision=precision_of(precision))
+                                            precision=prec)
+
+    def on_cpu(image, taps):
+        if pixels < taps.shape[-1]:
+            patches = jnp.concatenate([image[:, i:i + height, j:j + width] for i in range(rows) for j in range(cols)],
+                                      axis=-1)
+            return jnp.einsum("bhwk,ko->bhwo", patches, taps.reshape(-1, taps.shape[-1]), precision=prec)
+        if ((rows, cols) == (3, 3) and min(taps.shape[2:]) >= WINOGRAD_MIN_CHANNELS and pixels >= WINOGRAD_MIN_PIXELS
+                and height % 2 == 0 and width % 2 == 0):
+            return winograd_3x3(image, taps, precision)
+        return direct(image, taps)
+
+    return jax.lax.platform_dependent(image, taps, cpu=on_cpu, default=direct)
 
 
 class Conv3x3(ParamsByShape, nn.Module):
