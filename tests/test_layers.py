@@ -120,20 +120,20 @@ def test_upsample_is_resize_then_conv(shape, features, size):
     the same gradients with respect to the input and the kernel."""
     x = np.sin(np.arange(np.prod(shape), dtype=np.float32)).reshape(shape)
     ours, reference = layers.Upsample2D(features), _ResizeThenConv(features)
-    params = ours.init(jax.random.key(1), x, size)
-    ref_params = reference.init(jax.random.key(1), x, size)
+    params = jax.jit(ours.init, static_argnums=2)(jax.random.key(1), x, size)
+    ref_params = jax.jit(reference.init, static_argnums=2)(jax.random.key(1), x, size)
     assert jax.tree.structure(params) == jax.tree.structure(ref_params)
     assert all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(ref_params)))
     params = jax.tree.map(lambda p: p + 0.1 * np.cos(np.arange(p.size)).reshape(p.shape).astype(np.float32), params)
-    got, want = ours.apply(params, x, size), reference.apply(params, x, size)
+    got, want = jax.jit(ours.apply, static_argnums=2)(params, x, size), jax.jit(reference.apply, static_argnums=2)(params, x, size)
     assert got.shape == want.shape == (shape[0],) + (size or (2 * shape[1], 2 * shape[2])) + (features,)
     assert_close(got, want)
     loss = lambda module, p, image: (module.apply(p, image, size) ** 2).sum()  # noqa: E731
-    grads = jax.grad(lambda p, image: loss(ours, p, image), argnums=(0, 1))(params, x)
-    ref_grads = jax.grad(lambda p, image: loss(reference, p, image), argnums=(0, 1))(params, x)
+    grads = jax.jit(jax.grad(lambda p, image: loss(ours, p, image), argnums=(0, 1)))(params, x)
+    ref_grads = jax.jit(jax.grad(lambda p, image: loss(reference, p, image), argnums=(0, 1)))(params, x)
     assert_close(grads[0]["params"]["conv"]["kernel"], ref_grads[0]["params"]["conv"]["kernel"])
     assert_close(grads[1], ref_grads[1])
-    half = layers.Upsample2D(features, dtype=jax.numpy.bfloat16).apply(params, x, size)
+    half = jax.jit(layers.Upsample2D(features, dtype=jax.numpy.bfloat16).apply, static_argnums=2)(params, x, size)
     assert half.dtype == jax.numpy.bfloat16
     assert_close(np.asarray(half, np.float32), want, rtol=3e-2, floor=3e-2)
 
@@ -152,17 +152,17 @@ def test_conv3x3_is_flax_conv(shape, features, path, monkeypatch):
     ours = layers.conv(features, 3, None, np.float32, "default")
     assert isinstance(ours, layers.Conv3x3)
     reference = nn.Conv(features, (3, 3), padding=((1, 1), (1, 1)))
-    params, ref_params = ours.init(jax.random.key(2), x), reference.init(jax.random.key(2), x)
+    params, ref_params = jax.jit(ours.init)(jax.random.key(2), x), jax.jit(reference.init)(jax.random.key(2), x)
     assert all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(ref_params)))
     params = jax.tree.map(lambda p: p + 0.1 * np.sin(np.arange(p.size)).reshape(p.shape).astype(np.float32), params)
-    got, want = ours.apply(params, x), reference.apply(params, x)
+    got, want = jax.jit(ours.apply)(params, x), jax.jit(reference.apply)(params, x)
     if path == "direct":
         np.testing.assert_array_equal(got, want)
     else:
         assert_close(got, want)
     loss = lambda module, p, image: (module.apply(p, image) ** 2).sum()  # noqa: E731
-    grads = jax.grad(lambda p, image: loss(ours, p, image), argnums=(0, 1))(params, x)
-    ref_grads = jax.grad(lambda p, image: loss(reference, p, image), argnums=(0, 1))(params, x)
+    grads = jax.jit(jax.grad(lambda p, image: loss(ours, p, image), argnums=(0, 1)))(params, x)
+    ref_grads = jax.jit(jax.grad(lambda p, image: loss(reference, p, image), argnums=(0, 1)))(params, x)
     for a, b in zip(jax.tree.leaves(grads), jax.tree.leaves(ref_grads)):
         assert_close(a, b)
 
@@ -175,11 +175,11 @@ def test_winograd_is_the_convolution():
     taps = rng.normal(size=(3, 3, 5, 7)).astype(np.float32)
     direct = lambda a, k: jax.lax.conv_general_dilated(  # noqa: E731
         a, k, (1, 1), "VALID", dimension_numbers=("NHWC", "HWIO", "NHWC"), precision="highest")
-    got = layers.winograd_3x3(image, taps, "highest")
+    got = jax.jit(layers.winograd_3x3, static_argnums=2)(image, taps, "highest")
     assert got.shape == (2, 6, 8, 7)
     assert_close(got, direct(image, taps))
     weights = rng.normal(size=got.shape).astype(np.float32)
-    ours = jax.grad(lambda a, k: (layers.winograd_3x3(a, k, "highest") * weights).sum(), argnums=(0, 1))(image, taps)
-    want = jax.grad(lambda a, k: (direct(a, k) * weights).sum(), argnums=(0, 1))(image, taps)
+    ours = jax.jit(jax.grad(lambda a, k: (layers.winograd_3x3(a, k, "highest") * weights).sum(), argnums=(0, 1)))(image, taps)
+    want = jax.jit(jax.grad(lambda a, k: (direct(a, k) * weights).sum(), argnums=(0, 1)))(image, taps)
     for a, b in zip(ours, want):
         assert_close(a, b)

@@ -13,7 +13,8 @@ TEST_MODULES = {p.stem for p in (REPO / "tests").glob("*.py")}
 # tests that load a script to test that script's own code (its objects, generation, checks)
 LOADS_ITS_SCRIPT = {"test_bedroom.py": "make_bedroom", "test_room_scene.py": "make_room_scene",
                     "test_photo_light_scale.py": "photo_light_scale", "test_bench_step.py": "bench_step",
-                    "test_bench_main.py": "bench_main", "test_bench_scale.py": "bench_scale"}
+                    "test_bench_main.py": "bench_main", "test_bench_scale.py": "bench_scale",
+                    "test_bench_layers.py": "bench_layers"}
 
 
 def imported_names(path: Path) -> set[str]:
