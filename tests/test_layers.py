@@ -183,3 +183,45 @@ def test_winograd_is_the_convolution():
     want = jax.jit(jax.grad(lambda a, k: (direct(a, k) * weights).sum(), argnums=(0, 1)))(image, taps)
     for a, b in zip(ours, want):
         assert_close(a, b)
+
+
+def test_group_norm_refuses_groups_that_do_not_divide_the_channels():
+    x = np.ones((4, 3, 3, 10), np.float32)
+    with pytest.raises(ValueError, match="10 channels in 4 groups"):
+        layers.group_norm(x, np.ones(10, np.float32), np.zeros(10, np.float32), 4, 1e-6)
+
+
+def test_winograd_in_bfloat16_is_as_close_as_the_direct_convolution():
+    """bfloat16 in and out, float32 inside: the error against the float32 convolution of the same
+    (bfloat16-rounded) inputs is that of the direct bfloat16 convolution, not the transforms'."""
+    rng = np.random.default_rng(9)
+    image = jax.numpy.asarray(rng.normal(size=(1, 10, 12, 64)), jax.numpy.bfloat16)
+    taps = jax.numpy.asarray(rng.normal(size=(3, 3, 64, 32)) / 24, jax.numpy.bfloat16)
+    direct = lambda a, k: jax.lax.conv_general_dilated(  # noqa: E731
+        a, k, (1, 1), "VALID", dimension_numbers=("NHWC", "HWIO", "NHWC"))
+    exact = np.asarray(direct(image.astype(np.float32), taps.astype(np.float32)))
+    ours = jax.jit(layers.winograd_3x3)(image, taps)
+    assert ours.dtype == jax.numpy.bfloat16
+    rms = lambda a: float(np.sqrt(np.mean(np.square(np.asarray(a, np.float32) - exact))))  # noqa: E731
+    assert rms(ours) <= 1.2 * rms(direct(image, taps))
+
+
+@pytest.mark.parametrize("shape,features,on_cpu", [
+    ((1, 2, 3, 16), 32, "dot"), ((1, 8, 8, 8), 8, "winograd"), ((2, 8, 8, 8), 4, "convolution")],
+    ids=["patches", "winograd", "direct"])
+def test_only_the_cpu_lowering_takes_another_path(shape, features, on_cpu, monkeypatch):
+    """Lowered for CUDA every 3×3 convolution is one XLA convolution, whatever the shape; lowered
+    for the CPU the shapes pick the patches' product, Winograd's (here with thresholds lowered
+    to 8 channels and 64 pixels) or the convolution."""
+    monkeypatch.setattr(layers, "WINOGRAD_MIN_CHANNELS", 8)
+    monkeypatch.setattr(layers, "WINOGRAD_MIN_PIXELS", 64)
+    image = jax.ShapeDtypeStruct((shape[0], shape[1] + 2, shape[2] + 2, shape[3]), np.float32)
+    taps = jax.ShapeDtypeStruct((3, 3, shape[3], features), np.float32)
+    traced = jax.jit(layers.convolve_valid).trace(image, taps)
+    counts = {}
+    for platform in ("cuda", "cpu"):
+        text = traced.lower(lowering_platforms=(platform,)).as_text()
+        counts[platform] = (text.count("stablehlo.convolution"), text.count("stablehlo.dot_general"))
+    assert counts["cuda"] == (1, 0)
+    want = {"dot": (0, 1), "winograd": (0, 3), "convolution": (1, 0)}[on_cpu]   # Winograd's: G·g·Gᵀ (2), products
+    assert counts["cpu"] == want, counts
