@@ -9,7 +9,10 @@ model (docs/benchmarks.md section 1, "The layers on the CPU"):
 - GroupNorm: `layers.group_norm` (per-channel sums, then per group) against the statistics taken
   over (H, W, C / G) of the grouped array, as before;
 - nearest ×2 upsampling and a 3×3 convolution: `layers.UpsampleConv` (four 2×2 phase convolutions
-  of the input) against the upsampled image convolved.
+  of the input) against the upsampled image convolved;
+- `winograd`: `layers.winograd_3x3` forced at shapes below its thresholds, against XLA's convolution;
+- `resize_then_conv`: the upsampled image convolved by `convolve_valid` (Winograd where it applies)
+  against XLA's convolution of it.
 
 Each case is jitted, run once, then timed `--repeats` times per side, the two sides alternating;
 prints the medians, their ratio (ours / plain) and the largest difference relative to the plain
@@ -51,10 +54,18 @@ CASES = [
     ("upsample", "RGB↔X VAE, 64×48 → 128×96", (1, 48, 64, 512), 512),
     ("upsample", "RGB↔X VAE, 128×96 → 256×192", (1, 96, 128, 256), 256),
     ("upsample", "shipped VAE, 40 × 64×48 → 128×96", (40, 48, 64, 32), 32),
+    # Winograd forced below its thresholds (why they are where they are), and the ×2 upsampling
+    # whose phases gained nothing, convolved after the resize by `convolve_valid` instead
+    ("winograd", "RGB↔X VAE, 256×192 (128 channels)", (1, 192, 256, 128), 128),
+    ("winograd", "RGB↔X VAE, 32×24 (768 pixels)", (1, 24, 32, 512), 512),
+    ("winograd", "shipped VAE, 40 × 64×48", (40, 48, 64, 64), 64),
+    ("winograd", "shipped VAE, 40 × 128×96", (40, 96, 128, 32), 16),
+    ("resize_then_conv", "RGB↔X VAE, 128×96 → 256×192", (1, 96, 128, 256), 256),
 ]
 QUICK = [
     ("conv3x3", "patches", (1, 2, 3, 64), 128), ("conv3x3", "direct", (2, 8, 8, 8), 8),
     ("group_norm", "small", (2, 8, 8, 16), 4), ("upsample", "small", (2, 4, 4, 8), 8),
+    ("winograd", "small", (1, 8, 8, 8), 8), ("resize_then_conv", "small", (1, 4, 4, 8), 8),
 ]
 
 
@@ -81,13 +92,19 @@ def sides(kind: str, shape: tuple, size: int, rng: np.random.Generator):
         return (lambda x, s, b: layers.group_norm(x, s, b, size, 1e-6),
                 lambda x, s, b: _grouped_norm(x, s, b, size), (x, scale, bias))
     kernel = (rng.normal(size=(3, 3, shape[-1], size)) / np.sqrt(9 * shape[-1])).astype(np.float32)
+    pad = lambda image: jnp.pad(image, ((0, 0), (1, 1), (1, 1), (0, 0)))  # noqa: E731
+    upsampled = lambda image: jnp.repeat(jnp.repeat(image, 2, axis=1), 2, axis=2)  # noqa: E731
     if kind == "conv3x3":
-        pad = lambda image: jnp.pad(image, ((0, 0), (1, 1), (1, 1), (0, 0)))  # noqa: E731
         return (lambda x, k: layers.convolve_valid(pad(x), k), _direct, (x, kernel))
+    if kind == "winograd":
+        return (lambda x, k: layers.winograd_3x3(pad(x), k), _direct, (x, kernel))
+    if kind == "resize_then_conv":
+        return (lambda x, k: layers.convolve_valid(pad(upsampled(x)), k), lambda x, k: _direct(upsampled(x), k),
+                (x, kernel))
     params = {"params": {"kernel": kernel, "bias": np.zeros(size, np.float32)}}
     module = layers.UpsampleConv(size)
     return (lambda x, p: module.apply(p, x),
-            lambda x, p: _direct(jnp.repeat(jnp.repeat(x, 2, axis=1), 2, axis=2), p["params"]["kernel"]), (x, params))
+            lambda x, p: _direct(upsampled(x), p["params"]["kernel"]), (x, params))
 
 
 def time_case(kind: str, shape: tuple, size: int, repeats: int) -> dict:
