@@ -92,14 +92,13 @@ def sides(kind: str, shape: tuple, size: int, rng: np.random.Generator):
         return (lambda x, s, b: layers.group_norm(x, s, b, size, 1e-6),
                 lambda x, s, b: _grouped_norm(x, s, b, size), (x, scale, bias))
     kernel = (rng.normal(size=(3, 3, shape[-1], size)) / np.sqrt(9 * shape[-1])).astype(np.float32)
-    pad = lambda image: jnp.pad(image, ((0, 0), (1, 1), (1, 1), (0, 0)))  # noqa: E731
     upsampled = lambda image: jnp.repeat(jnp.repeat(image, 2, axis=1), 2, axis=2)  # noqa: E731
     if kind == "conv3x3":
-        return (lambda x, k: layers.convolve_valid(pad(x), k), _direct, (x, kernel))
+        return (lambda x, k: layers.convolve_valid(layers.pad_one(x), k), _direct, (x, kernel))
     if kind == "winograd":
-        return (lambda x, k: layers.winograd_3x3(pad(x), k), _direct, (x, kernel))
+        return (lambda x, k: layers.winograd_3x3(layers.pad_one(x), k), _direct, (x, kernel))
     if kind == "resize_then_conv":
-        return (lambda x, k: layers.convolve_valid(pad(upsampled(x)), k), lambda x, k: _direct(upsampled(x), k),
+        return (lambda x, k: layers.convolve_valid(layers.pad_one(upsampled(x)), k), lambda x, k: _direct(upsampled(x), k),
                 (x, kernel))
     params = {"params": {"kernel": kernel, "bias": np.zeros(size, np.float32)}}
     module = layers.UpsampleConv(size)

@@ -232,6 +232,17 @@ def convolve_valid(image, taps, precision: str = "default"):
     return jax.lax.platform_dependent(image, taps, cpu=on_cpu, default=direct)
 
 
+def pad_one(image):
+    """An NHWC image with one zero row and column on each side."""
+    return jnp.pad(image, ((0, 0), (1, 1), (1, 1), (0, 0)))
+
+
+def _conv3x3_params(module: nn.Module, in_channels: int):
+    """(kernel (3, 3, Cin, features), bias): `nn.Conv`'s parameters, names and initialisers."""
+    kernel = module.param("kernel", nn.linear.default_kernel_init, (3, 3, in_channels, module.features), jnp.float32)
+    return kernel, module.param("bias", nn.initializers.zeros, (module.features,), jnp.float32)
+
+
 class Conv3x3(ParamsByShape, nn.Module):
     """A 3×3 convolution, stride 1, padding 1, with `nn.Conv`'s parameters (`kernel` (3, 3, Cin,
     Cout), `bias`) and initialiser; computed by `convolve_valid` on the padded image."""
@@ -242,9 +253,8 @@ class Conv3x3(ParamsByShape, nn.Module):
 
     @nn.compact
     def __call__(self, x):
-        kernel = self.param("kernel", nn.linear.default_kernel_init, (3, 3, x.shape[-1], self.features), jnp.float32)
-        bias = self.param("bias", nn.initializers.zeros, (self.features,), jnp.float32)
-        padded = jnp.pad(x.astype(self.dtype), ((0, 0), (1, 1), (1, 1), (0, 0)))
+        kernel, bias = _conv3x3_params(self, x.shape[-1])
+        padded = pad_one(x.astype(self.dtype))
         return convolve_valid(padded, kernel.astype(self.dtype), self.precision) + bias.astype(self.dtype)
 
 
@@ -394,16 +404,14 @@ class UpsampleConv(ParamsByShape, nn.Module):
 
     @nn.compact
     def __call__(self, x, size: tuple[int, int] | None = None):
-        kernel = self.param("kernel", nn.linear.default_kernel_init, (3, 3, x.shape[-1], self.features), jnp.float32)
-        bias = self.param("bias", nn.initializers.zeros, (self.features,), jnp.float32)
+        kernel, bias = _conv3x3_params(self, x.shape[-1])
         x = x.astype(self.dtype)
         height, width = x.shape[1:3]
         convolve = lambda image, taps: convolve_valid(image, taps.astype(self.dtype), self.precision)  # noqa: E731
-        pad = lambda image: jnp.pad(image, ((0, 0), (1, 1), (1, 1), (0, 0)))  # noqa: E731
         if size is not None and tuple(size) != (2 * height, 2 * width):
-            out = convolve(pad(nearest_resize(x, size)), kernel)
+            out = convolve(pad_one(nearest_resize(x, size)), kernel)
         else:
-            padded = pad(x)
+            padded = pad_one(x)
             rows = []
             for a, by_rows in enumerate(_phase_taps(kernel, 0)):
                 cols = [convolve(padded[:, a:a + height + 1, b:b + width + 1], taps)
