@@ -46,6 +46,10 @@ CASES = [
     ("conv3x3", "RGB↔X VAE, 128×96", (1, 96, 128, 256), 256),
     ("conv3x3", "RGB↔X VAE, 256×192", (1, 192, 256, 128), 128),
     ("conv3x3", "shipped VAE, 40 × 128×96", (40, 96, 128, 32), 16),
+    ("conv3x3", "shipped VAE, 40 × 32×24", (40, 24, 32, 64), 64),
+    ("conv3x3", "shipped VAE, 40 × 16×12", (40, 12, 16, 64), 64),
+    ("conv3x3", "shipped UNet, 40 × 8×6", (40, 6, 8, 64), 64),
+    ("conv3x3", "shipped VAE, 16 × 32×24 (estimates)", (16, 24, 32, 64), 64),
     ("group_norm", "shipped VAE, 40 × 128×96", (40, 96, 128, 32), 16),
     ("group_norm", "shipped VAE, 40 × 64×48", (40, 48, 64, 64), 16),
     ("group_norm", "RGB↔X VAE, 256×192", (1, 192, 256, 128), 32),
@@ -53,14 +57,18 @@ CASES = [
     ("upsample", "RGB↔X VAE, 32×24 → 64×48", (1, 24, 32, 512), 512),
     ("upsample", "RGB↔X VAE, 64×48 → 128×96", (1, 48, 64, 512), 512),
     ("upsample", "RGB↔X VAE, 128×96 → 256×192", (1, 96, 128, 256), 256),
+    ("upsample", "shipped VAE, 40 × 16×12 → 32×24", (40, 12, 16, 64), 64),
     ("upsample", "shipped VAE, 40 × 64×48 → 128×96", (40, 48, 64, 32), 32),
-    # Winograd forced below its thresholds (why they are where they are), and the ×2 upsampling
-    # whose phases gained nothing, convolved after the resize by `convolve_valid` instead
-    ("winograd", "RGB↔X VAE, 256×192 (128 channels)", (1, 192, 256, 128), 128),
+    # Winograd forced where its thresholds keep it off (why they are where they are), and the ×2
+    # upsampling convolved after the resize by `convolve_valid` (Winograd where it applies)
     ("winograd", "RGB↔X VAE, 32×24 (768 pixels)", (1, 24, 32, 512), 512),
-    ("winograd", "shipped VAE, 40 × 64×48", (40, 48, 64, 64), 64),
-    ("winograd", "shipped VAE, 40 × 128×96", (40, 96, 128, 32), 16),
+    ("winograd", "shipped VAE, 40 × 64×48, 64 → 32", (40, 48, 64, 64), 32),
+    ("winograd", "shipped VAE, 40 × 128×96, 32 → 16", (40, 96, 128, 32), 16),
+    ("winograd", "shipped UNet, 40 × 16×12, 32", (40, 12, 16, 32), 32),
+    ("resize_then_conv", "RGB↔X VAE, 32×24 → 64×48", (1, 24, 32, 512), 512),
+    ("resize_then_conv", "RGB↔X VAE, 64×48 → 128×96", (1, 48, 64, 512), 512),
     ("resize_then_conv", "RGB↔X VAE, 128×96 → 256×192", (1, 96, 128, 256), 256),
+    ("resize_then_conv", "shipped VAE, 40 × 16×12 → 32×24", (40, 12, 16, 64), 64),
 ]
 QUICK = [
     ("conv3x3", "patches", (1, 2, 3, 64), 128), ("conv3x3", "direct", (2, 8, 8, 8), 8),
