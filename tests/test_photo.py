@@ -267,6 +267,38 @@ def test_the_gradient_reaches_albedo_and_irradiance_only_where_the_views_see_the
     assert np.isfinite(float(value))
 
 
+def test_the_step_adds_the_photo_gradient_to_the_sds_gradient_through_one_shared_pyramid(tiny_scene, tmp_path):
+    """The step builds one mip pyramid for the renders and the photos and transposes it once: its
+    gradient (read off an SGD step of rate 1) is the SDS step's gradient plus the weighted
+    gradient of `_photo_fn`, which builds its own pyramid from the texels."""
+    import optax
+
+    config, problem = photo_problem(tiny_scene, tmp_path, photo_scale="none", sampler="trilinear",
+                                    irradiance_smoothness=0.5, albedo_smoothness=0.5)
+    assert problem.space.pyramid_size > problem.space.num_texels        # there are mip levels to share
+    settings = loop.step_settings(config, problem)
+    assert settings.photo_weight == 1.0
+    batch = problem.batch(np.array([0, 2]))
+    rng = np.random.default_rng(1)
+    texels = (problem.initial_texels()
+              + rng.uniform(-0.3, 0.3, (problem.space.num_texels, problem.channels.num_channels))).astype(np.float32)
+
+    def gradient(step_settings):
+        step = jax.jit(make_step(problem.prior, step_settings, optax.sgd(1.0)))
+        state, metrics = step(init_state(texels, optax.sgd(1.0), 0), batch, problem.frozen)
+        assert int(metrics["finite"]) == 1
+        return texels - np.asarray(state.texels, np.float64)
+
+    weight = 0.7
+    both = gradient(dataclasses.replace(settings, photo_weight=weight))
+    sds = gradient(dataclasses.replace(settings, photo_weight=0.0))
+    (_, _), photo_grad = jax.value_and_grad(_photo_fn(settings, batch, problem.frozen), has_aux=True)(
+        jnp.asarray(texels))
+    expected = sds + weight * np.asarray(photo_grad, np.float64)
+    assert np.abs(weight * np.asarray(photo_grad)).max() > 1e-3        # the photo term is there to be added
+    assert_close(both, expected, rtol=1e-4, floor=1e-6)
+
+
 def test_photo_weight_zero_is_todays_step_exactly(tiny_scene, tmp_path):
     """--photo_weight=0 traces the very program today's step traces (the same jaxpr: the same
     XLA computation, bit for bit), batches carry no photo arrays, and whole runs with the other

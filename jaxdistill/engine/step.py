@@ -38,7 +38,7 @@ from jaxdistill.engine.config import DistillConfig
 from jaxdistill.engine.priors import Prior
 from jaxdistill.scene.maps import MapChannels
 from jaxdistill.render.gather_plan import GatherPlan
-from jaxdistill.render.sampler import render
+from jaxdistill.render.sampler import build_pyramid, render, sample
 
 
 @flax.struct.dataclass
@@ -141,7 +141,12 @@ def initial_align(num_views: int, channels: MapChannels, align_optimizer: optax.
 
 def render_maps(texels, plan: GatherPlan, normal_rotation, channels: MapChannels) -> dict:
     """{map: (B, H, W, C_map)} model-space renders; normals as n_world @ normal_rotation[b]."""
-    images = channels.split(render(texels, plan))
+    return _rotated_maps(render(texels, plan), normal_rotation, channels)
+
+
+def _rotated_maps(image, normal_rotation, channels: MapChannels) -> dict:
+    """`render_maps` of a rendered (B, H, W, C) image."""
+    images = channels.split(image)
     if "normal" in images:
         images["normal"] = jnp.einsum("bhwi,bij->bhwj", images["normal"], normal_rotation)
     return images
@@ -206,8 +211,10 @@ def make_step(prior: Prior, settings: StepSettings, optimizer: optax.GradientTra
     def step(state: DistillState, batch: dict, frozen: dict):
         key = jax.random.fold_in(state.key, state.step)
         k_features, k_t, k_prior, k_keep = jax.random.split(key, 4)
+        # one mip pyramid for the renders and the photos, so one transpose of it in the gradient
+        pyramid, pyramid_pullback = jax.vjp(lambda x: build_pyramid(x, frozen["chain"]), state.texels)
         features_of = _features_fn(prior, settings, batch, frozen, k_features)
-        features, pullback = jax.vjp(features_of, state.texels)
+        features, pullback = jax.vjp(features_of, pyramid)
         num_views = batch["pixel_weight"].shape[0]
 
         def fresh(_):
@@ -244,9 +251,10 @@ def make_step(prior: Prior, settings: StepSettings, optimizer: optax.GradientTra
         photo_metrics = {}
         if settings.photo_weight > 0:       # the photos re-rendered from the texels (photo.py)
             (photo_value, photo_metrics), photo_grad = jax.value_and_grad(
-                _photo_fn(settings, batch, frozen), has_aux=True)(state.texels)
+                _photo_of_pyramid(settings, batch, frozen), has_aux=True)(pyramid)
             loss = loss + settings.photo_weight * photo_value
             grad = grad + settings.photo_weight * photo_grad
+        (grad,) = pyramid_pullback(grad)
         updates, opt_state = optimizer.update(grad, state.opt_state, state.texels)
         texels = optax.apply_updates(state.texels, updates)
         finite = jnp.isfinite(loss) & jnp.all(jnp.isfinite(grad)) & jnp.all(jnp.isfinite(grad_gains))
@@ -274,12 +282,13 @@ def make_step(prior: Prior, settings: StepSettings, optimizer: optax.GradientTra
 
 
 def _features_fn(prior, settings: StepSettings, batch: dict, frozen: dict, key) -> Callable:
-    """texels → the prior's features (renders, or their latents) of the batch's views."""
+    """pyramid (`build_pyramid` of the texels) → the prior's features (renders, or their
+    latents) of the batch's views."""
     plan = GatherPlan(index=batch["index"], weight=batch["weight"], hit=batch["hit"], chain=frozen["chain"],
                       height=settings.height, width=settings.width)
 
-    def features_of(texels):
-        images = render_maps(texels, plan, batch["normal_rotation"], settings.channels)
+    def features_of(pyramid):
+        images = _rotated_maps(sample(pyramid, plan), batch["normal_rotation"], settings.channels)
         return prior.features(frozen["prior"], images, key)
 
     return features_of
@@ -288,16 +297,23 @@ def _features_fn(prior, settings: StepSettings, batch: dict, frozen: dict, key) 
 def _photo_fn(settings: StepSettings, batch: dict, frozen: dict) -> Callable:
     """texels → (L_photo, metrics) of the batch's photos (`photo.photo_loss`), rendered through
     the photo-sized gather plans."""
+    photo_of = _photo_of_pyramid(settings, batch, frozen)
+    return lambda texels: photo_of(build_pyramid(texels, frozen["chain"]))
+
+
+def _photo_of_pyramid(settings: StepSettings, batch: dict, frozen: dict) -> Callable:
+    """`_photo_fn` of the texels' pyramid. Every channel is sampled and the photo's maps taken
+    from the images: the photos' taps read whole pyramid rows either way, and a column subset of
+    the pyramid (or the texels) would cost a gather and its scatter-add over every row."""
     plan = GatherPlan(index=batch["photo_index"], weight=batch["photo_tap_weight"], hit=batch["photo_hit"],
                       chain=frozen["chain"], height=settings.photo_height, width=settings.photo_width)
     hit = batch["photo_hit"].reshape(-1, settings.photo_height, settings.photo_width)
     ratio = settings.height * settings.width / (settings.photo_height * settings.photo_width)
+    used = [m for m in ("albedo", "irradiance", "metallic") if m in settings.channels.maps]
 
-    used = MapChannels(tuple(m for m in ("albedo", "irradiance", "metallic") if m in settings.channels.maps))
-    columns = np.concatenate([np.arange(settings.channels.num_channels)[settings.channels.slice(m)] for m in used.maps])
-
-    def photo_of(texels):
-        images = used.split(render(texels[:, columns], plan))     # only the maps the photo is made of
+    def photo_of(pyramid):
+        rendered = settings.channels.split(sample(pyramid, plan))
+        images = {m: rendered[m] for m in used}          # only the maps the photo is made of
         return photo_lib.photo_loss(images, batch["photo"], batch["photo_pixel_weight"], hit,
                                     loss=settings.photo_loss, space=settings.photo_space, scale=settings.photo_scale,
                                     pixel_ratio=ratio, smooth=settings.irradiance_smoothness,
@@ -314,7 +330,8 @@ def initial_reused(prior, settings: StepSettings, texels, batch: dict, frozen: d
     if settings.reuse_steps <= 1:
         return None
     features_of = _features_fn(prior, settings, batch, frozen, jax.random.PRNGKey(0))
-    features = jax.eval_shape(features_of, jax.ShapeDtypeStruct(texels.shape, texels.dtype))
+    features = jax.eval_shape(lambda x: features_of(build_pyramid(x, frozen["chain"])),
+                              jax.ShapeDtypeStruct(texels.shape, texels.dtype))
     t = jax.ShapeDtypeStruct((batch["pixel_weight"].shape[0], len(settings.channels.maps)), jnp.int32)
     reused = {"targets": prior.target_struct(features), "sample_weights": jax.ShapeDtypeStruct(t.shape, jnp.float32),
               "t": t}

@@ -39,10 +39,15 @@ def render(texels: jnp.ndarray, plan: GatherPlan) -> jnp.ndarray:
 
     Values keep the texels' space (e.g. [-1, 1] while optimising); missed pixels are 0.
     """
-    pyramid = build_pyramid(texels, plan.chain)
+    return sample(build_pyramid(texels, plan.chain), plan)
+
+
+def sample(pyramid: jnp.ndarray, plan: GatherPlan) -> jnp.ndarray:
+    """`render` from a pyramid already built (`build_pyramid` with the plan's chain): plans that
+    share a chain (a step's renders and its photos) share one pyramid, and one transpose of it."""
     values = pyramid[plan.index]                                   # (..., P, T, C)
     image = jnp.einsum("...pt,...ptc->...pc", plan.weight.astype(values.dtype), values)
-    return image.reshape(*plan.index.shape[:-2], plan.height, plan.width, texels.shape[-1])
+    return image.reshape(*plan.index.shape[:-2], plan.height, plan.width, pyramid.shape[-1])
 
 
 def _tile_view(page: np.ndarray, b: int) -> np.ndarray:
