@@ -92,15 +92,18 @@ def default_step(repeats: int = 4) -> dict:
     state, _ = step(state, first, frozen)
     jax.block_until_ready(state.texels)
     compile_s = time.perf_counter() - start
-    seconds = {0: [], 1: []}
-    for i in range(1, 2 * repeats + 1):
+    if config.reuse_steps < 2:
+        raise SystemExit(f"configs/bedroom.cfg: --reuse_steps={config.reuse_steps}; the step is timed with and "
+                         "without the prior's pass, which needs --reuse_steps >= 2")
+    seconds = {"prior": [], "reused": []}
+    for i in range(1, config.reuse_steps * repeats + 1):
         batch = problem.batch(batch_views(problem, config, i))
         start = time.perf_counter()
         state, _ = step(state, batch, frozen)
         jax.block_until_ready(state.texels)
-        seconds[i % config.reuse_steps].append(time.perf_counter() - start)
-    return {"step_compile_s": compile_s, "step_prior_s": statistics.median(seconds[0]),
-            "step_reused_s": statistics.median(seconds[1])}
+        seconds["prior" if i % config.reuse_steps == 0 else "reused"].append(time.perf_counter() - start)
+    return {"step_compile_s": compile_s, "step_prior_s": statistics.median(seconds["prior"]),
+            "step_reused_s": statistics.median(seconds["reused"])}
 
 
 def child(args) -> dict:
@@ -142,7 +145,10 @@ def main(argv=None) -> int:
                 env["JAXDISTILL_XLA_FLAGS"] = "0"
             else:
                 env.pop("JAXDISTILL_XLA_FLAGS", None)
-            out = subprocess.run(cmd, capture_output=True, text=True, check=True, env=env).stdout
+            proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
+            if proc.returncode:
+                raise SystemExit(f"the {setting} child failed (exit {proc.returncode}):\n{proc.stderr[-3000:]}")
+            out = proc.stdout
             rows[setting].append(json.loads(next(line for line in out.splitlines() if line.startswith("ROW "))[4:]))
             print(setting, {k: round(v, 3) for k, v in rows[setting][-1].items() if k.endswith("_s")}, flush=True)
     keys = [k for k in rows["flags"][0] if k.endswith("_s")]

@@ -22,10 +22,12 @@ print("YNN" if "ynn_fusion" in text else "NO-YNN")
 """
 
 
-def run_python(code: str, xla: str | None) -> subprocess.CompletedProcess:
+def run_python(code: str, xla: str | None, opt_out: bool = False) -> subprocess.CompletedProcess:
     env = dict(os.environ, JAX_PLATFORMS="cpu")
     env.pop("XLA_FLAGS", None)
     env.pop("JAXDISTILL_XLA_FLAGS", None)           # the suite's own setting (tests/conftest.py)
+    if opt_out:
+        env["JAXDISTILL_XLA_FLAGS"] = "0"
     if xla is not None:
         env["XLA_FLAGS"] = xla
     return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
@@ -45,15 +47,32 @@ def test_flags_are_appended_unless_the_user_named_them():
     assert xla_flags.apply(env) is False and env["XLA_FLAGS"] == "--a=1"          # jaxlib's own defaults
 
 
+def test_a_jaxlib_older_than_the_flag_or_unknown_is_left_alone():
+    """XLA aborts on a flag its build does not know: older jaxlibs get nothing."""
+    for version in ((0, 4, 35), (0, 9, 9), None):
+        env = {"XLA_FLAGS": "--a=1"}
+        assert xla_flags.apply(env, version=version) is False and env == {"XLA_FLAGS": "--a=1"}
+    env = {}
+    assert xla_flags.apply(env, version=xla_flags.MIN_JAXLIB) is True and env["XLA_FLAGS"] == f"{FLAG}="
+    assert xla_flags.jaxlib_version()[:2] >= (0, 4)                # read from the installed jaxlib's metadata
+
+
 def test_importing_the_package_turns_the_library_fusions_off_and_a_users_value_wins():
-    users = run_python("import jaxdistill\n" + COMPILED_TEXT, f"{FLAG}=dot,eltwise").stdout.split()[-1]
-    if users == "NO-YNN":
-        pytest.skip("this jaxlib's CPU backend makes no YNNPACK fusions: the flag has nothing to turn off")
+    if xla_flags.jaxlib_version() < xla_flags.MIN_JAXLIB:
+        pytest.skip("this jaxlib predates the flag: the package sets nothing")
+    # the control: jaxlib's defaults (the package's flags opted out) fuse this program
+    if run_python("import jaxdistill\n" + COMPILED_TEXT, None, opt_out=True).stdout.split()[-1] == "NO-YNN":
+        pytest.skip("this jaxlib's CPU backend makes no YNNPACK fusions here: the flag has nothing to turn off")
+    assert run_python("import jaxdistill\n" + COMPILED_TEXT, f"{FLAG}=dot,eltwise").stdout.split()[-1] == "YNN"
     assert run_python("import jaxdistill\n" + COMPILED_TEXT, None).stdout.split()[-1] == "NO-YNN"
     assert run_python("import jaxdistill\n" + COMPILED_TEXT, "").stdout.split()[-1] == "NO-YNN"
+    # jax imported first is fine: XLA reads the flags when its first backend starts
+    assert run_python("import jax\nimport jaxdistill\n" + COMPILED_TEXT, None).stdout.split()[-1] == "NO-YNN"
 
 
 def test_importing_after_jax_computed_warns_and_changes_nothing():
+    if xla_flags.jaxlib_version() < xla_flags.MIN_JAXLIB:
+        pytest.skip("this jaxlib predates the flag: the package sets nothing")
     code = ("import os, warnings, jax.numpy as jnp\n"
             "jnp.ones(2).block_until_ready()\n"
             "with warnings.catch_warnings(record=True) as caught:\n"
@@ -64,3 +83,6 @@ def test_importing_after_jax_computed_warns_and_changes_nothing():
     out = run_python(code, None).stdout.splitlines()
     assert out[-2] == "None"
     assert "was not applied" in out[-1] and FLAG in out[-1]
+    # a flag already there (given, or inherited from a parent that imported the package) needs no warning
+    out = run_python(code, f"{FLAG}=").stdout.splitlines()
+    assert out[-2] == repr(f"{FLAG}=") and out[-1] == "[]"

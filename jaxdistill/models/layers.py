@@ -166,8 +166,8 @@ def conv(features: int, kernel: int, name: str | None, dtype: Dtype, precision: 
 _WINOGRAD_BT = np.array([[1, 0, -1, 0], [0, 1, 1, 0], [0, -1, 1, 0], [0, 1, 0, -1]], np.float32)
 _WINOGRAD_G = np.array([[1, 0, 0], [0.5, 0.5, 0.5], [0.5, -0.5, 0.5], [0, 0, 1]], np.float32)
 _WINOGRAD_AT = np.array([[1, 1, 1, 0], [0, 1, -1, -1]], np.float32)
-WINOGRAD_MIN_CHANNELS = 64         # on XLA's CPU backend, below these it was slower (docs/benchmarks.md §1)
-WINOGRAD_MIN_PIXELS = 1920
+WINOGRAD_MIN_CHANNELS = 256        # on XLA's CPU backend, below these it was slower (docs/benchmarks.md §1)
+WINOGRAD_MIN_PIXELS = 3072
 
 
 def _combine(matrix, terms):
@@ -207,9 +207,9 @@ def convolve_valid(image, taps, precision: str = "default"):
       640–1280 channels): a matrix product of the image's patches (at most the kernel's size) with
       the kernel reshaped to (kh·kw·Cin, Cout), 2–2.3× faster;
     - 3×3 taps, at least `WINOGRAD_MIN_CHANNELS` in and out and `WINOGRAD_MIN_PIXELS` output
-      pixels, even sides (the full-size VAE's 128–512-channel resolutions, the shipped model's
-      64-channel ones): `winograd_3x3`, 1.1–1.5× faster (slower with 32 channels in or out, or
-      768 pixels);
+      pixels, even sides (the full-size VAE's 256–512-channel resolutions): `winograd_3x3`,
+      1.3–1.4× faster with the package's XLA flags (`jaxdistill/xla_flags.py`; at 64 channels it
+      was faster only with jaxlib's YNNPACK fusions on, and slower with 32 channels or 768 pixels);
     - otherwise the XLA convolution.
     """
     rows, cols = taps.shape[:2]
