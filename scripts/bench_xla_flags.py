@@ -1,13 +1,15 @@
 """The package's XLA flags (`jaxdistill/xla_flags.py`) against jaxlib's own defaults, side by side.
 
-    python scripts/bench_xla_flags.py [--rgbx_dir=DIR] [--batches=16,40] [--repeats=3] [--step] [--json=FILE]
+    python scripts/bench_xla_flags.py [--rgbx_dir=DIR] [--batches=16,40] [--networks=unet,decode,encode]
+        [--repeats=3] [--step] [--json=FILE]
 
 Each case runs in a child process, since XLA reads its flags once per process: with the package's
 flags (as `import jaxdistill` sets them) and with none (`JAXDISTILL_XLA_FLAGS=0`), the two
 alternated `--repeats` times. A child times the model's networks at the shapes the default run
 gives them (default: the shipped model; 128×96 images, 16×12 latents): the UNet's pass at each
 batch of `--batches` (16: one sampling call of the per-view estimates, 40: a step's 8 views × 5
-maps), the VAE decode and encode at the largest batch, each the median of 5 calls after a
+maps), the VAE decode and encode at the largest batch (`--networks` picks among the three), each
+the median of 5 calls after a
 compiling one. With `--step` it also builds `configs/bedroom.cfg`'s problem and step (as
 `scripts/bench_photo.py` does) and times steps with the prior's pass (even) and without (odd,
 x̂0 reused), 4 of each. Prints the medians per setting and their ratio, flags / defaults.
@@ -27,6 +29,8 @@ GIVEN_XLA_FLAGS = os.environ.get("XLA_FLAGS")   # before `import jaxdistill` app
 
 from jaxdistill.xla_flags import FLAGS  # noqa: E402
 
+NETWORKS = ("unet", "decode", "encode")
+
 
 def time_calls(fn, *args, calls: int = 5) -> float:
     """Median seconds of `calls` calls after one that compiles."""
@@ -40,7 +44,7 @@ def time_calls(fn, *args, calls: int = 5) -> float:
     return statistics.median(seconds)
 
 
-def networks(rgbx_dir: str | None, batches: list[int]) -> dict:
+def networks(rgbx_dir: str | None, batches: list[int], which: tuple[str, ...] = NETWORKS) -> dict:
     import jax
     import jax.numpy as jnp
 
@@ -56,13 +60,15 @@ def networks(rgbx_dir: str | None, batches: list[int]) -> dict:
     decode = jax.jit(lambda p, z: nets.vae.apply(p, z, method="decode"))
     encode = jax.jit(lambda p, x: nets.vae.apply(p, x, method="encode"))
     row = {}
-    for b in batches:
+    for b in (batches if "unet" in which else []):
         context = jnp.ones((b, 77, nets.unet.config.cross_attention_dim))
         row[f"unet_b{b}_s"] = time_calls(unet, params["unet"], jnp.ones((b, *latent, nets.unet.config.in_channels)),
                                          context)
     b = max(batches)
-    row[f"vae_decode_b{b}_s"] = time_calls(decode, params["vae"], jnp.ones((b, *latent, 4)))
-    row[f"vae_encode_b{b}_s"] = time_calls(encode, params["vae"], jnp.ones((b, height, width, 3)))
+    if "decode" in which:
+        row[f"vae_decode_b{b}_s"] = time_calls(decode, params["vae"], jnp.ones((b, *latent, 4)))
+    if "encode" in which:
+        row[f"vae_encode_b{b}_s"] = time_calls(encode, params["vae"], jnp.ones((b, height, width, 3)))
     return row
 
 
@@ -109,7 +115,7 @@ def default_step(repeats: int = 4) -> dict:
 def child(args) -> dict:
     from jaxdistill import xla_flags  # noqa: F401  (imported first: the flags, or none, before JAX starts)
     row = {"xla_flags": os.environ.get("XLA_FLAGS", "")}
-    row.update(networks(args.rgbx_dir, [int(b) for b in args.batches.split(",")]))
+    row.update(networks(args.rgbx_dir, [int(b) for b in args.batches.split(",")], tuple(args.networks.split(","))))
     if args.step:
         row.update(default_step())
     return row
@@ -120,6 +126,7 @@ def main(argv=None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--rgbx_dir", default=None, help="model folder (default: the shipped model)")
     parser.add_argument("--batches", default="16,40")
+    parser.add_argument("--networks", default=",".join(NETWORKS), help="which of unet, decode, encode to time")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--step", action="store_true", help="also the default run's step (about 2 min a child)")
     parser.add_argument("--json", default=None)
@@ -132,7 +139,10 @@ def main(argv=None) -> int:
     clash = [f for f in FLAGS if f.split("=", 1)[0] in named]
     if clash:
         parser.error(f"XLA_FLAGS names {', '.join(clash)} already: both settings would run it; unset it to compare")
-    cmd = [sys.executable, os.path.abspath(__file__), "--child", f"--batches={args.batches}"]
+    unknown = set(args.networks.split(",")) - set(NETWORKS)
+    if unknown:
+        parser.error(f"--networks: unknown {', '.join(sorted(unknown))}; choose among {', '.join(NETWORKS)}")
+    cmd = [sys.executable, os.path.abspath(__file__), "--child", f"--batches={args.batches}", f"--networks={args.networks}"]
     cmd += ([f"--rgbx_dir={args.rgbx_dir}"] if args.rgbx_dir else []) + (["--step"] if args.step else [])
     rows = {"flags": [], "defaults": []}
     for _ in range(args.repeats):
