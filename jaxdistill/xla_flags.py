@@ -18,6 +18,7 @@ package was imported (then nothing is changed, and `apply` warns).
 from __future__ import annotations
 
 import os
+import re
 import sys
 from typing import MutableMapping
 
@@ -32,20 +33,14 @@ def with_flags(xla_flags: str, flags=FLAGS) -> str:
     return " ".join([xla_flags.strip(), *added]).strip()
 
 
-def jaxlib_version() -> tuple[int, ...] | None:
-    """The installed jaxlib's (major, minor, ...) from its metadata, or None when it cannot be read."""
+def jaxlib_version() -> tuple[int, int] | None:
+    """The installed jaxlib's (major, minor) from its metadata, or None when it cannot be read."""
     from importlib import metadata
     try:
-        parts = metadata.version("jaxlib").split(".")
+        match = re.match(r"(\d+)\.(\d+)", metadata.version("jaxlib"))
     except metadata.PackageNotFoundError:
         return None
-    numbers = []
-    for part in parts:
-        digits = "".join(c for c in part if c.isdigit()) if part[:1].isdigit() else ""
-        if not digits:
-            break
-        numbers.append(int(digits))
-    return tuple(numbers) or None
+    return (int(match[1]), int(match[2])) if match else None
 
 
 def backends_started() -> bool:
