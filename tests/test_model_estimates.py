@@ -6,6 +6,7 @@ from __future__ import annotations
 import hashlib
 import json
 
+import jax
 import numpy as np
 import pytest
 
@@ -92,6 +93,41 @@ def test_batched_cached_estimates_equal_the_estimate_command(rgbx_dir, tmp_path,
     assert again == folder
     with pytest.raises(AssertionError, match="computed again"):      # another seed is another baseline
         model_estimates.cached_estimates(model, photos, maps, 24, 32, steps=4, seed=4, cache_dir=cache, progress=False)
+
+
+def test_estimates_in_padded_batches_of_mixed_maps_equal_one_batch_of_each_map(rgbx_dir, tmp_path, monkeypatch):
+    """The (map, view) pairs go through the sampler in batches of one size that mix maps (each
+    sample with its own prompt), the last batch padded: every call has the same shapes, so one
+    compiled program, and each view's estimate of each map is the one a batch of that map alone gives."""
+    scene = read_scene(write_tiny_scene(tmp_path / "scene", views=3, width=32, height=24))
+    photos = [(v.name, v.photo, v.exposure) for v in scene.views]
+    maps = ("albedo", "roughness", "irradiance")
+    model = rgbx.load_prior(convert.load_rgbx(rgbx_dir))
+    latents = np.concatenate([np.asarray(rgbx.encode_photo(model, imageio.read_photo_srgb(p, e))) for _, p, e in photos])
+    calls, sample = [], rgbx.estimate_batch
+
+    def spy(prior, image_latents, map_name, x_T, *args, **kwargs):
+        calls.append((len(x_T), list(map_name)))
+        return sample(prior, image_latents, map_name, x_T, *args, **kwargs)
+
+    monkeypatch.setattr(rgbx, "estimate_batch", spy)
+    monkeypatch.setattr(model_estimates, "BATCH", 4)
+    monkeypatch.setattr(model_estimates, "BATCH_LATENT_PIXELS", 0)
+    model_estimates.estimate_views(model, photos, maps, 24, 32, tmp_path / "est", steps=2, seed=3, progress=False)
+    # 9 pairs in batches of 4: the maps meet inside a batch, the last batch repeats its one pair
+    assert [n for n, _ in calls] == [4, 4, 4]
+    assert calls[0][1] == ["albedo"] * 3 + ["roughness"] and calls[2][1] == ["irradiance"] * 4
+    key = jax.random.key(3)
+    for m in maps:                                  # the reference: one call per map, all views, one prompt
+        noise = np.concatenate([np.asarray(jax.random.normal(rgbx.view_map_key(key, n, m), (1,) + latents.shape[1:]))
+                                for n, _, _ in photos])
+        alone = sample(model, latents, m, noise, 2, gamma=False)
+        for (name, _, _), image in zip(photos, alone):
+            ours = imageio.read_image(tmp_path / "est" / m / f"{name}.png", linear=False)
+            theirs = imageio.linear_to_srgb(image) if m in rgbx.GAMMA_MAPS else image
+            assert ours.shape == (24, 32, 3)
+            # 8-bit files against floats: half a level, plus a level where batching flips a rounding
+            assert np.max(np.abs(ours - theirs)) <= 1.5 / 255, (m, name)
 
 
 def test_concurrent_runs_sharing_the_cache_never_mix_their_folders(tmp_path, monkeypatch):

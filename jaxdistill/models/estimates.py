@@ -1,8 +1,8 @@
 """The rgbx prior's own per-view estimates: the baseline a distillation with that model is scored against.
 
 Each view's photo, at the run's render size, sampled by the model with the authors' demo
-settings (`jaxdistill.estimate`: 50 DDIM steps, noise per view and map from the seed), all views
-of one map in one batch. They are written as scene-target PNGs (the encoding `estimate` writes,
+settings (`jaxdistill.estimate`: 50 DDIM steps, noise per view and map from the seed), in batches of
+(map, view) pairs of one size. They are written as scene-target PNGs (the encoding `estimate` writes,
 read back by `view_images.read_target`, so the cache can also be listed as a scene's targets for
 the `views` prior) into a cache folder keyed by the model's weights, the photos, the size and
 the settings: computed once, reused by every run that would compute the same thing.
@@ -31,7 +31,15 @@ from jaxdistill.io.view_images import read_target, resize
 from jaxdistill.io.view_rows import LazyViews
 
 ESTIMATE_STEPS = 50          # the authors' demo
-BATCH = 16                   # views per sampling call
+BATCH = 16                   # (map, view) pairs per sampling call, at least
+BATCH_LATENT_PIXELS = 9216   # and up to this many latent pixels a call: 48 at the shipped model's 16 x 12 latents,
+                             # 0.82x the time per image of 16 there on 2 cores (docs/benchmarks.md §7)
+
+
+def batch_size(latent_pixels: int, items: int) -> int:
+    """(map, view) pairs per sampling call: as many as fill `BATCH_LATENT_PIXELS`, at least `BATCH`,
+    at most `items`."""
+    return max(1, min(items, max(BATCH, BATCH_LATENT_PIXELS // max(latent_pixels, 1))))
 
 
 def cache_key(model_folder: Path, photos: Sequence[tuple[str, Path, float]], height: int, width: int, steps: int,
@@ -67,17 +75,22 @@ def estimate_views(model: rgbx.RgbxPrior, photos: Sequence[tuple[str, Path, floa
         photo = resize(imageio.read_photo_srgb(path, exposure), height, width)
         latents.append(rgbx.encode_photo(model, photo, str(path)))
     latents = np.concatenate([np.asarray(x) for x in latents])
-    with tqdm(total=len(photos) * len(maps), desc="model's per-view estimates", unit="map", disable=not progress,
+    # every (map, view) in batches of one size (the last padded by repeating its last item), each
+    # sample with its own prompt: one compiled sampling program per run, whatever the view count
+    items = [(m, v) for m in maps for v in range(len(photos))]
+    size = batch_size(latent_shape[1] * latent_shape[2], len(items))
+    with tqdm(total=len(items), desc="model's per-view estimates", unit="map", disable=not progress,
               dynamic_ncols=True) as bar:
-        for m in maps:
-            for i in range(0, len(photos), BATCH):
-                names = [n for n, _, _ in photos[i:i + BATCH]]
-                noise = np.concatenate([np.asarray(jax.random.normal(rgbx.view_map_key(key, n, m), latent_shape))
-                                        for n in names])
-                images = rgbx.estimate_batch(model, latents[i:i + BATCH], m, noise, steps, gamma=False)
-                for n, image in zip(names, images):
-                    imageio.write_image(folder / m / f"{n}.png", image, encode_srgb=m in rgbx.GAMMA_MAPS)
-                bar.update(len(names))
+        for i in range(0, len(items), size):
+            chunk = items[i:i + size]
+            padded = chunk + chunk[-1:] * (size - len(chunk))
+            noise = np.concatenate([np.asarray(jax.random.normal(rgbx.view_map_key(key, photos[v][0], m), latent_shape))
+                                    for m, v in padded])
+            images = rgbx.estimate_batch(model, latents[[v for _, v in padded]], [m for m, _ in padded], noise, steps,
+                                         gamma=False)
+            for (m, v), image in zip(chunk, images):
+                imageio.write_image(folder / m / f"{photos[v][0]}.png", image, encode_srgb=m in rgbx.GAMMA_MAPS)
+            bar.update(len(chunk))
     summary = {"model": str(model.loaded.folder), "views": [n for n, _, _ in photos], "maps": list(maps),
                "size": [height, width], "steps": steps, "seed": seed,
                "seconds": time.perf_counter() - start}

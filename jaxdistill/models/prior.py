@@ -17,7 +17,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import zlib
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -224,13 +224,28 @@ def view_map_key(key: jax.Array, view_name: str, map_name: str) -> jax.Array:
     return jax.random.fold_in(jax.random.fold_in(key, zlib.crc32(view_name.encode())), list(MAP_PROMPTS).index(map_name))
 
 
-def estimate_batch(prior: RgbxPrior, image_latents, map_name: str, x_T, num_steps: int = 50,
+def estimate_batch(prior: RgbxPrior, image_latents, map_name: str | Sequence[str], x_T, num_steps: int = 50,
                    guidance: Guidance = Guidance(), gamma: bool = True) -> np.ndarray:
     """`estimate_from_latent` for a batch: image latents and initial noise x_T (B, h, w, 4) →
-    (B, H, W, 3) float32 maps (one DDIM sampling of the whole batch)."""
-    if map_name not in MAP_PROMPTS:
-        raise InputError.single("estimate", "map_name", f"{map_name!r}; choose one of {sorted(MAP_PROMPTS)}")
+    (B, H, W, 3) float32 maps (one DDIM sampling of the whole batch). `map_name` is one map for
+    the whole batch or one per sample: a batch may mix maps, each sample with its own prompt (a
+    sequence gives the UNet (B, 77, D) prompts whatever it holds, so every batch of one size runs
+    one compiled program)."""
+    names = [map_name] * len(x_T) if isinstance(map_name, str) else list(map_name)
+    if len(names) != len(x_T):
+        raise ValueError(f"{len(names)} map names for a batch of {len(x_T)}")
+    for name in names:
+        if name not in MAP_PROMPTS:
+            raise InputError.single("estimate", "map_name", f"{name!r}; choose one of {sorted(MAP_PROMPTS)}")
+    if isinstance(map_name, str):
+        text = prior.text[map_name]
+    else:
+        text = TextEmbedding(jnp.concatenate([prior.text[n].prompt for n in names]), prior.text[names[0]].empty)
     latent = _sample(prior.networks, prior.scheduler, num_steps, guidance, prior.params, image_latents,
-                     prior.text[map_name], jnp.asarray(x_T, jnp.float32))
-    image = decode_latents(prior.networks.vae, prior.params["vae"], latent)
-    return np.asarray(model_space_to_map(image, map_name, gamma))
+                     text, jnp.asarray(x_T, jnp.float32))
+    image = np.asarray(decode_latents(prior.networks.vae, prior.params["vae"], latent))
+    out = np.empty(image.shape[:-1] + (3,), np.float32)
+    for name in dict.fromkeys(names):                  # each map's samples, converted as that map
+        rows = np.array([i for i, n in enumerate(names) if n == name])
+        out[rows] = np.asarray(model_space_to_map(image[rows], name, gamma))
+    return out
