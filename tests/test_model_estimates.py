@@ -111,23 +111,34 @@ def test_estimates_in_padded_batches_of_mixed_maps_equal_one_batch_of_each_map(r
         return sample(prior, image_latents, map_name, x_T, *args, **kwargs)
 
     monkeypatch.setattr(rgbx, "estimate_batch", spy)
-    monkeypatch.setattr(model_estimates, "BATCH", 4)
+    monkeypatch.setattr(model_estimates, "BATCH", 5)
     monkeypatch.setattr(model_estimates, "BATCH_LATENT_PIXELS", 0)
     model_estimates.estimate_views(model, photos, maps, 24, 32, tmp_path / "est", steps=2, seed=3, progress=False)
-    # 9 pairs in batches of 4: the maps meet inside a batch, the last batch repeats its one pair
-    assert [n for n, _ in calls] == [4, 4, 4]
-    assert calls[0][1] == ["albedo"] * 3 + ["roughness"] and calls[2][1] == ["irradiance"] * 4
-    key = jax.random.key(3)
+    # 9 pairs, at most 5 a call: two calls of 5, the maps meeting inside each, the last repeating its last pair
+    assert calls == [(5, ["albedo"] * 3 + ["roughness"] * 2), (5, ["roughness"] + ["irradiance"] * 4)]
+    key, references = jax.random.key(3), {}
     for m in maps:                                  # the reference: one call per map, all views, one prompt
         noise = np.concatenate([np.asarray(jax.random.normal(rgbx.view_map_key(key, n, m), (1,) + latents.shape[1:]))
                                 for n, _, _ in photos])
-        alone = sample(model, latents, m, noise, 2, gamma=False)
+        references[m] = alone = sample(model, latents, m, noise, 2, gamma=False)
         for (name, _, _), image in zip(photos, alone):
             ours = imageio.read_image(tmp_path / "est" / m / f"{name}.png", linear=False)
             theirs = imageio.linear_to_srgb(image) if m in rgbx.GAMMA_MAPS else image
             assert ours.shape == (24, 32, 3)
             # 8-bit files against floats: half a level, plus a level where batching flips a rounding
             assert np.max(np.abs(ours - theirs)) <= 1.5 / 255, (m, name)
+    # a wrong prompt or noise would show: the maps of one view differ by far more than that
+    for a, b in (("albedo", "roughness"), ("albedo", "irradiance"), ("roughness", "irradiance")):
+        assert np.max(np.abs(references[a] - references[b])) > 20 / 255, (a, b)
+
+
+def test_estimate_batches_are_as_few_and_as_even_as_the_cap_allows():
+    """The shipped model's 16 x 12 latents: 48 pairs a call (the bedroom's 48 views x 5 maps in 5
+    calls), 24 views x 5 maps in 3 calls of 40 (not 48 + 48 + 24 padded to 48), fewer pairs in
+    one call; large latents at least 16 a call (the earlier fixed batch)."""
+    size = model_estimates.batch_size
+    assert [size(16 * 12, n) for n in (240, 120, 50, 20, 1)] == [48, 40, 25, 20, 1]
+    assert size(64 * 48, 240) == size(32 * 24, 240) == 16 and size(64 * 48, 20) == 10
 
 
 def test_concurrent_runs_sharing_the_cache_never_mix_their_folders(tmp_path, monkeypatch):

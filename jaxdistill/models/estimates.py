@@ -33,13 +33,17 @@ from jaxdistill.io.view_rows import LazyViews
 ESTIMATE_STEPS = 50          # the authors' demo
 BATCH = 16                   # (map, view) pairs per sampling call, at least
 BATCH_LATENT_PIXELS = 9216   # and up to this many latent pixels a call: 48 at the shipped model's 16 x 12 latents,
-                             # 0.82x the time per image of 16 there on 2 cores (docs/benchmarks.md §7)
+                             # where the bedroom's 240 estimates took 0.94x the time of 16 a call
+                             # (scripts/bench_estimates.py, docs/benchmarks.md §7)
 
 
 def batch_size(latent_pixels: int, items: int) -> int:
-    """(map, view) pairs per sampling call: as many as fill `BATCH_LATENT_PIXELS`, at least `BATCH`,
-    at most `items`."""
-    return max(1, min(items, max(BATCH, BATCH_LATENT_PIXELS // max(latent_pixels, 1))))
+    """(map, view) pairs per sampling call: as few calls as a cap of `BATCH_LATENT_PIXELS` latent
+    pixels a call (at least `BATCH` pairs) allows, shared evenly, so the last call's padding is
+    less than one pair per call; at most `items`."""
+    cap = max(BATCH, BATCH_LATENT_PIXELS // max(latent_pixels, 1), 1)
+    calls = max(1, -(-items // cap))
+    return max(1, -(-items // calls))
 
 
 def cache_key(model_folder: Path, photos: Sequence[tuple[str, Path, float]], height: int, width: int, steps: int,

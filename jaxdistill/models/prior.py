@@ -49,7 +49,8 @@ class Guidance:
 
 
 class TextEmbedding(NamedTuple):
-    """CLIP last hidden states (1, 77, D) float32 of the map prompt and of the empty prompt."""
+    """CLIP last hidden states (1, 77, D) float32 of the map prompt and of the empty prompt (the
+    prompt may hold one per sample, (B, 77, D): `estimate_batch` of several maps)."""
 
     prompt: jax.Array
     empty: jax.Array
@@ -232,7 +233,7 @@ def estimate_batch(prior: RgbxPrior, image_latents, map_name: str | Sequence[str
     sequence gives the UNet (B, 77, D) prompts whatever it holds, so every batch of one size runs
     one compiled program)."""
     names = [map_name] * len(x_T) if isinstance(map_name, str) else list(map_name)
-    if len(names) != len(x_T):
+    if not names or len(names) != len(x_T):
         raise ValueError(f"{len(names)} map names for a batch of {len(x_T)}")
     for name in names:
         if name not in MAP_PROMPTS:
@@ -243,7 +244,10 @@ def estimate_batch(prior: RgbxPrior, image_latents, map_name: str | Sequence[str
         text = TextEmbedding(jnp.concatenate([prior.text[n].prompt for n in names]), prior.text[names[0]].empty)
     latent = _sample(prior.networks, prior.scheduler, num_steps, guidance, prior.params, image_latents,
                      text, jnp.asarray(x_T, jnp.float32))
-    image = np.asarray(decode_latents(prior.networks.vae, prior.params["vae"], latent))
+    image = decode_latents(prior.networks.vae, prior.params["vae"], latent)
+    if isinstance(map_name, str):                     # one map: converted where it was decoded
+        return np.asarray(model_space_to_map(image, map_name, gamma), np.float32)
+    image = np.asarray(image)
     out = np.empty(image.shape[:-1] + (3,), np.float32)
     for name in dict.fromkeys(names):                  # each map's samples, converted as that map
         rows = np.array([i for i, n in enumerate(names) if n == name])

@@ -1,0 +1,30 @@
+"""`scripts/bench_estimates.py` as a user runs it: the estimates phase at two batch sizes, side by
+side, on a tiny scene and model; the pairs are counted and the first size's ratio is 1."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+from tiny_scene import write_tiny_scene
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_the_benchmark_times_each_batch_size_and_gives_their_ratio(run_rgbx_dir, tmp_path):
+    scene = write_tiny_scene(tmp_path / "scene", views=3, width=32, height=24)
+    out = tmp_path / "bench.json"
+    done = subprocess.run([sys.executable, "scripts/bench_estimates.py", f"--scene={scene}", f"--rgbx_dir={run_rgbx_dir}",
+                           "--batches=2,4", "--steps=1", "--maps=albedo,roughness", "--render_size=32", "--repeats=1",
+                           f"--json={out}"], cwd=REPO, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "3 views x 2 maps = 6 pairs at 32x24" in done.stdout
+    assert "2 pairs a call (3 calls, 0 padded)" in done.stdout and "4 pairs a call (2 calls, 2 padded)" in done.stdout
+    doc = json.loads(out.read_text())
+    assert doc["pairs"] == 6 and doc["size"] == [24, 32] and doc["ratio_to_first"]["2"] == 1.0
+    assert all(len(s) == 1 and s[0] > 0 for s in doc["seconds"].values())
+    bad = subprocess.run([sys.executable, "scripts/bench_estimates.py", "--batches=0"], cwd=REPO,
+                         capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "must be positive" in bad.stderr
