@@ -247,9 +247,8 @@ def estimate_batch(prior: RgbxPrior, image_latents, map_name: str | Sequence[str
     image = decode_latents(prior.networks.vae, prior.params["vae"], latent)
     if isinstance(map_name, str):                     # one map: converted where it was decoded
         return np.asarray(model_space_to_map(image, map_name, gamma), np.float32)
-    image = np.asarray(image)
     out = np.empty(image.shape[:-1] + (3,), np.float32)
-    for name in dict.fromkeys(names):                  # each map's samples, converted as that map
-        rows = np.array([i for i, n in enumerate(names) if n == name])
-        out[rows] = np.asarray(model_space_to_map(image[rows], name, gamma))
+    for name in dict.fromkeys(names):                  # each map's samples, converted as that map (the whole
+        rows = np.array([i for i, n in enumerate(names) if n == name])     # batch: one shape, one program a map)
+        out[rows] = np.asarray(model_space_to_map(image, name, gamma))[rows]
     return out
