@@ -16,7 +16,8 @@ model (docs/benchmarks.md section 1, "The layers on the CPU"):
 
 Each case is jitted, run once, then timed `--repeats` times per side, the two sides alternating;
 prints the medians, their ratio (ours / plain) and the largest difference relative to the plain
-result's largest value. `--quick` runs small shapes (a check that the script works, not a figure).
+result's largest value. `--quick` runs small shapes (a check that the script works, not a figure);
+`--cases` picks cases by kind or place.
 """
 
 from __future__ import annotations
@@ -135,12 +136,18 @@ def main(argv=None) -> list[dict]:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--quick", action="store_true", help="small shapes: checks the script, measures nothing")
     parser.add_argument("--json", type=Path, help="write the rows here")
+    parser.add_argument("--cases", default="", help="comma-separated: only the cases whose kind or place holds "
+                        "one of these (e.g. 'RGB↔X UNet,group_norm'); default: all")
     args = parser.parse_args(argv)
+    wanted = [c for c in args.cases.split(",") if c]
+    cases = [c for c in (QUICK if args.quick else CASES) if not wanted or any(w in f"{c[0]} {c[1]}" for w in wanted)]
+    if not cases:
+        parser.error(f"--cases={args.cases}: no case matches")
     if jax.default_backend() != "cpu":
         parser.error(f"the choices measured here are the CPU backend's; JAX runs on {jax.default_backend()}")
     rows = []
     print(f"{'kind':<11} {'where':<34} {'shape':<22} {'out/G':>5} {'plain ms':>9} {'ours ms':>8} {'ratio':>6} {'rel diff':>9}")
-    for kind, where, shape, size in (QUICK if args.quick else CASES):
+    for kind, where, shape, size in cases:
         row = {"where": where, **time_case(kind, shape, size, args.repeats)}
         rows.append(row)
         print(f"{kind:<11} {where:<34} {'x'.join(map(str, shape)):<22} {size:>5} {1e3 * row['plain_s']:>9.1f} "

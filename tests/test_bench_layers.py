@@ -21,3 +21,12 @@ def test_the_quick_cases_time_both_sides_and_agree(tmp_path):
         assert abs(row["ratio"] - row["ours_s"] / row["plain_s"]) < 1e-12
         assert row["max_rel_diff"] < 1e-5, row          # the two formulations compute the same layer
     assert json.loads(out.read_text())["rows"] == rows
+    # --cases keeps the cases whose kind or place names one of its words, and refuses a choice of none
+    picked = bench.main(["--quick", "--repeats=1", "--cases=group_norm,direct"])
+    assert [(r["kind"], r["where"]) for r in picked] == [("conv3x3", "direct"), ("group_norm", "small")]
+    try:
+        bench.main(["--quick", "--cases=nothing"])
+    except SystemExit as stop:
+        assert stop.code == 2
+    else:
+        raise AssertionError("--cases=nothing ran")
