@@ -136,8 +136,8 @@ def main(argv=None) -> list[dict]:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--quick", action="store_true", help="small shapes: checks the script, measures nothing")
     parser.add_argument("--json", type=Path, help="write the rows here")
-    parser.add_argument("--cases", default="", help="comma-separated: only the cases whose kind or place holds "
-                        "one of these (e.g. 'RGB↔X UNet,group_norm'); default: all")
+    parser.add_argument("--cases", default="", help="comma-separated substrings: only the cases whose 'kind place' "
+                        "holds one of them (e.g. 'RGB↔X UNet,group_norm'); default: all")
     args = parser.parse_args(argv)
     wanted = [c for c in args.cases.split(",") if c]
     cases = [c for c in (QUICK if args.quick else CASES) if not wanted or any(w in f"{c[0]} {c[1]}" for w in wanted)]

@@ -56,8 +56,8 @@ def group_norm(x, scale, bias, num_groups: int, epsilon: float):
     The statistics are summed per channel over the spatial axes first (a reduction along rows of
     x's own layout), then over each group's channels (a (B, C) array): grouping the channels of a
     (B, H, W, C) array first, as (B, H, W, G, C / G), makes XLA's CPU backend reduce over a minor
-    axis of 2–16 elements: 1.4–3× slower at the VAE's 32–256 channels with jaxlib's own flags, about
-    the same with the package's (docs/benchmarks.md §1). The normalisation is one multiply-add per
+    axis of 2–8 elements: 1.4–3.1× slower at the VAE's 32–256 channels with jaxlib 0.10's own flags,
+    about the same with the package's (docs/benchmarks.md §1). The normalisation is one multiply-add per
     element with a per-channel factor.
     """
     x = x.astype(jnp.float32)
@@ -206,8 +206,8 @@ def convolve_valid(image, taps, precision: str = "default"):
     measured faster there, docs/benchmarks.md §1):
     - fewer output pixels in the batch than output channels (the UNet's 3×4 to 12×16 latents at
       640–1280 channels): a matrix product of the image's patches (at most the kernel's size) with
-      the kernel reshaped to (kh·kw·Cin, Cout): 1.2–2.1× faster with jaxlib's own flags, about the
-      same as XLA's convolution with the package's (0.95–1.10);
+      the kernel reshaped to (kh·kw·Cin, Cout): 1.1–2.1× faster with jaxlib 0.10's own flags, about
+      the same as XLA's convolution with the package's (0.95–1.10);
     - 3×3 taps, at least `WINOGRAD_MIN_CHANNELS` in and out and `WINOGRAD_MIN_PIXELS` output
       pixels, even sides (the full-size VAE's 256–512-channel resolutions): `winograd_3x3`,
       1.3–1.4× faster with the package's XLA flags (`jaxdistill/xla_flags.py`; at 64 channels it

@@ -248,7 +248,9 @@ def estimate_batch(prior: RgbxPrior, image_latents, map_name: str | Sequence[str
     if isinstance(map_name, str):                     # one map: converted where it was decoded
         return np.asarray(model_space_to_map(image, map_name, gamma), np.float32)
     out = np.empty(image.shape[:-1] + (3,), np.float32)
-    for name in dict.fromkeys(names):                  # each map's samples, converted as that map (the whole
-        rows = np.array([i for i, n in enumerate(names) if n == name])     # batch: one shape, one program a map)
+    # each map's samples converted as that map: the conversion runs on the whole batch (one shape, so
+    # its eager operations are compiled once per map and batch size) and keeps that map's rows
+    for name in dict.fromkeys(names):
+        rows = np.array([i for i, n in enumerate(names) if n == name])
         out[rows] = np.asarray(model_space_to_map(image, name, gamma))[rows]
     return out
