@@ -4,8 +4,8 @@
         [--maps=albedo,normal,roughness,metallic,irradiance] [--repeats=2] [--json=FILE]
 
 What the main job's "per-view estimates" phase does, in one process: every view's photo encoded,
-then every (map, view) pair sampled (`--steps` DDIM steps) and decoded in calls of a fixed
-number of pairs, the last one padded, and written as PNGs into a fresh folder. Each batch size
+then every (map, view) pair sampled (`--steps` DDIM steps) and decoded in calls of at most
+each size of `--batches` (shared evenly over the calls, the last one padded), and written as PNGs into a fresh folder. Each batch size
 of `--batches` runs once to compile, then the sizes alternate `--repeats` times. Default: the
 shipped model on the embedded bedroom at `configs/bedroom.cfg`'s render size (128x96; 48 views x
 5 maps = 240 pairs). Prints the median seconds per size, the seconds per pair, and each size's
@@ -53,11 +53,10 @@ def main(argv=None) -> int:
     pairs = len(photos) * len(maps)
 
     def run(batch: int) -> float:
-        estimates.BATCH, estimates.BATCH_LATENT_PIXELS = batch, 0        # exactly `batch` pairs a call
         with tempfile.TemporaryDirectory() as folder:
             start = time.perf_counter()
             estimates.estimate_views(model, photos, maps, height, width, Path(folder), steps=args.steps,
-                                     progress=False)
+                                     progress=False, max_batch=batch)
             return time.perf_counter() - start
 
     first = {b: run(b) for b in batches}                                  # compiles each size's programs
@@ -69,8 +68,9 @@ def main(argv=None) -> int:
     print(f"{scene.name}: {len(photos)} views x {len(maps)} maps = {pairs} pairs at {width}x{height}, "
           f"{args.steps} DDIM steps, {jax.device_count()} {jax.default_backend()} device(s)")
     for b in batches:
-        calls = -(-pairs // b)
-        print(f"  {b:4d} pairs a call ({calls} calls, {calls * b - pairs} padded): first {first[b]:7.2f} s, "
+        size = estimates.batch_size(0, pairs, b)
+        calls = -(-pairs // size)
+        print(f"  {b:4d} pairs a call at most ({calls} calls of {size}, {calls * size - pairs} padded): first {first[b]:7.2f} s, "
               f"median {medians[b]:7.2f} s, {medians[b] / pairs * 1e3:6.1f} ms a pair, "
               f"ratio to {batches[0]}: {medians[b] / medians[batches[0]]:.3f}")
     if args.json:

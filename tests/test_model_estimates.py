@@ -113,9 +113,8 @@ def test_estimates_in_padded_batches_of_mixed_maps_equal_one_batch_of_each_map(r
         return sample(prior, image_latents, map_name, x_T, *args, **kwargs)
 
     monkeypatch.setattr(rgbx, "estimate_batch", spy)
-    monkeypatch.setattr(model_estimates, "BATCH", 5)
-    monkeypatch.setattr(model_estimates, "BATCH_LATENT_PIXELS", 0)
-    model_estimates.estimate_views(model, photos, maps, 24, 32, tmp_path / "est", steps=2, seed=3, progress=False)
+    model_estimates.estimate_views(model, photos, maps, 24, 32, tmp_path / "est", steps=2, seed=3, progress=False,
+                                   max_batch=5)
     # 9 pairs, at most 5 a call: two calls of 5, the maps meeting inside each, the last repeating its last pair
     assert calls == [(5, ["albedo"] * 3 + ["roughness"] * 2), (5, ["roughness"] + ["irradiance"] * 4)]
     key = jax.random.key(3)
@@ -144,6 +143,7 @@ def test_estimate_batches_are_as_few_and_as_even_as_the_cap_allows():
     size = model_estimates.batch_size
     assert [size(16 * 12, n) for n in (240, 120, 50, 20, 1)] == [48, 40, 25, 20, 1]
     assert size(64 * 48, 240) == size(32 * 24, 240) == 16 and size(64 * 48, 20) == 10
+    assert size(16 * 12, 9, cap=5) == 5 and size(16 * 12, 240, cap=16) == 16      # a cap given: 2 calls; 15 calls
 
 
 def test_concurrent_runs_sharing_the_cache_never_mix_their_folders(tmp_path, monkeypatch):

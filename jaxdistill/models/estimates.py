@@ -37,11 +37,11 @@ BATCH_LATENT_PIXELS = 9216   # and up to this many latent pixels a call: 48 at t
                              # (scripts/bench_estimates.py, docs/benchmarks.md §7)
 
 
-def batch_size(latent_pixels: int, items: int) -> int:
-    """(map, view) pairs per sampling call: as few calls as a cap of `BATCH_LATENT_PIXELS` latent
-    pixels a call (at least `BATCH` pairs) allows, shared evenly, so the last call's padding is
-    less than one pair per call; at most `items`."""
-    cap = max(BATCH, BATCH_LATENT_PIXELS // max(latent_pixels, 1), 1)
+def batch_size(latent_pixels: int, items: int, cap: int | None = None) -> int:
+    """(map, view) pairs per sampling call: as few calls as `cap` pairs a call allows (default: as
+    many as fill `BATCH_LATENT_PIXELS` latent pixels, at least `BATCH`), shared evenly, so the last
+    call's padding is less than one pair per call; at most `items`."""
+    cap = max(cap or max(BATCH, BATCH_LATENT_PIXELS // max(latent_pixels, 1)), 1)
     calls = max(1, -(-items // cap))
     return max(1, -(-items // calls))
 
@@ -67,9 +67,10 @@ def cache_key(model_folder: Path, photos: Sequence[tuple[str, Path, float]], hei
 
 def estimate_views(model: rgbx.RgbxPrior, photos: Sequence[tuple[str, Path, float]], maps: Sequence[str],
                    height: int, width: int, folder: Path, *, steps: int = ESTIMATE_STEPS, seed: int = 0,
-                   progress: bool = True) -> dict:
+                   progress: bool = True, max_batch: int | None = None) -> dict:
     """Writes folder/<map>/<view>.png for every photo (name, path, exposure in stops) resized to
-    height x width; returns the summary also written to folder/estimate.json."""
+    height x width; returns the summary also written to folder/estimate.json. `max_batch`: at most
+    this many (map, view) pairs a sampling call (default `batch_size`'s)."""
     key = jax.random.key(seed)
     factor = model.networks.vae.config.downsampling_factor
     latent_shape = (1, height // factor, width // factor, 4)
@@ -82,7 +83,7 @@ def estimate_views(model: rgbx.RgbxPrior, photos: Sequence[tuple[str, Path, floa
     # every (map, view) in batches of one size (the last padded by repeating its last item), each
     # sample with its own prompt: one compiled sampling program per run, whatever the view count
     items = [(m, v) for m in maps for v in range(len(photos))]
-    size = batch_size(latent_shape[1] * latent_shape[2], len(items))
+    size = batch_size(latent_shape[1] * latent_shape[2], len(items), max_batch)
     with tqdm(total=len(items), desc="model's per-view estimates", unit="map", disable=not progress,
               dynamic_ncols=True) as bar:
         for i in range(0, len(items), size):
