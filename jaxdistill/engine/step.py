@@ -35,6 +35,7 @@ import optax
 
 from jaxdistill.engine import gains as align_lib, photo as photo_lib
 from jaxdistill.engine.config import DistillConfig
+from jaxdistill.engine.optimizer import gated_step, learning_rate, make_optimizer  # noqa: F401 (the step's API)
 from jaxdistill.engine.priors import Prior
 from jaxdistill.scene.maps import MapChannels
 from jaxdistill.render.gather_plan import GatherPlan
@@ -96,21 +97,6 @@ class StepSettings:
         return cls(channels=channels, height=height, width=width, total_steps=config.steps,
                    num_train_timesteps=num_train_timesteps, photo_height=photo_shape[0], photo_width=photo_shape[1],
                    **shared)
-
-
-def learning_rate(lr: float, schedule: str = "constant", total_steps: int = 1):
-    """The thesis's constant rate, or a cosine decay from lr to 0 over the run."""
-    if schedule == "constant":
-        return lr
-    if schedule == "cosine":
-        return optax.cosine_decay_schedule(lr, max(total_steps, 1))
-    raise ValueError(f"unknown learning-rate schedule {schedule!r}")
-
-
-def make_optimizer(lr: float, weight_decay: float, schedule: str = "constant",
-                   total_steps: int = 1) -> optax.GradientTransformation:
-    """optax AdamW (thesis: lr 0.01, constant)."""
-    return optax.adamw(learning_rate=learning_rate(lr, schedule, total_steps), weight_decay=weight_decay)
 
 
 def init_state(texels: np.ndarray, optimizer: optax.GradientTransformation, seed: int,
@@ -255,18 +241,16 @@ def make_step(prior: Prior, settings: StepSettings, optimizer: optax.GradientTra
             loss = loss + settings.photo_weight * photo_value
             grad = grad + settings.photo_weight * photo_grad
         (grad,) = pyramid_pullback(grad)
-        updates, opt_state = optimizer.update(grad, state.opt_state, state.texels)
-        texels = optax.apply_updates(state.texels, updates)
         finite = jnp.isfinite(loss) & jnp.all(jnp.isfinite(grad)) & jnp.all(jnp.isfinite(grad_gains))
         ok = finite & ~state.halted            # after a non-finite step, nothing moves any more
         keep_new = functools.partial(jnp.where, ok)
+        texels, opt_state = gated_step(optimizer, grad, state.opt_state, state.texels, ok)
         new_align = state.align
         if aligned:
             gain_updates, gain_opt = align_optimizer.update(grad_gains, state.align["opt"], log_gains)
             new_align = jax.tree.map(keep_new, {"log_gains": optax.apply_updates(log_gains, gain_updates),
                                                 "opt": gain_opt}, state.align)
-        new_state = DistillState(texels=keep_new(texels, state.texels),
-                                 opt_state=jax.tree.map(keep_new, opt_state, state.opt_state),
+        new_state = DistillState(texels=texels, opt_state=opt_state,
                                  step=state.step + ok.astype(jnp.int32), key=state.key,
                                  halted=state.halted | ~finite,
                                  reused=(jax.tree.map(keep_new, reused, state.reused) if settings.reuse_steps > 1
