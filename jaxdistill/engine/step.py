@@ -197,8 +197,12 @@ def make_step(prior: Prior, settings: StepSettings, optimizer: optax.GradientTra
     def step(state: DistillState, batch: dict, frozen: dict):
         key = jax.random.fold_in(state.key, state.step)
         k_features, k_t, k_prior, k_keep = jax.random.split(key, 4)
-        # one mip pyramid for the renders and the photos, so one transpose of it in the gradient
-        pyramid, pyramid_pullback = jax.vjp(lambda x: build_pyramid(x, frozen["chain"]), state.texels)
+        # one mip pyramid for the renders and the photos, so one transpose of it in the gradient; split
+        # (texels + the entries above them, `SplitPyramid`): no copy of the texels, and its cotangent's
+        # level 0 is their gradient, one texel array less than a concatenated pyramid in the step's
+        # memory for a second gather, and no slower (docs/benchmarks.md §10)
+        pyramid, pyramid_pullback = jax.vjp(
+            lambda x: build_pyramid(x, frozen["chain"], split=True), state.texels)
         features_of = _features_fn(prior, settings, batch, frozen, k_features)
         features, pullback = jax.vjp(features_of, pyramid)
         num_views = batch["pixel_weight"].shape[0]
@@ -239,7 +243,7 @@ def make_step(prior: Prior, settings: StepSettings, optimizer: optax.GradientTra
             (photo_value, photo_metrics), photo_grad = jax.value_and_grad(
                 _photo_of_pyramid(settings, batch, frozen), has_aux=True)(pyramid)
             loss = loss + settings.photo_weight * photo_value
-            grad = grad + settings.photo_weight * photo_grad
+            grad = jax.tree.map(lambda g, p: g + settings.photo_weight * p, grad, photo_grad)   # pyramid-shaped
         (grad,) = pyramid_pullback(grad)
         finite = jnp.isfinite(loss) & jnp.all(jnp.isfinite(grad)) & jnp.all(jnp.isfinite(grad_gains))
         ok = finite & ~state.halted            # after a non-finite step, nothing moves any more
@@ -282,7 +286,7 @@ def _photo_fn(settings: StepSettings, batch: dict, frozen: dict) -> Callable:
     """texels → (L_photo, metrics) of the batch's photos (`photo.photo_loss`), rendered through
     the photo-sized gather plans."""
     photo_of = _photo_of_pyramid(settings, batch, frozen)
-    return lambda texels: photo_of(build_pyramid(texels, frozen["chain"]))
+    return lambda texels: photo_of(build_pyramid(texels, frozen["chain"], split=True))
 
 
 def _photo_of_pyramid(settings: StepSettings, batch: dict, frozen: dict) -> Callable:
@@ -314,7 +318,7 @@ def initial_reused(prior, settings: StepSettings, texels, batch: dict, frozen: d
     if settings.reuse_steps <= 1:
         return None
     features_of = _features_fn(prior, settings, batch, frozen, jax.random.PRNGKey(0))
-    features = jax.eval_shape(lambda x: features_of(build_pyramid(x, frozen["chain"])),
+    features = jax.eval_shape(lambda x: features_of(build_pyramid(x, frozen["chain"], split=True)),
                               jax.ShapeDtypeStruct(texels.shape, texels.dtype))
     t = jax.ShapeDtypeStruct((batch["pixel_weight"].shape[0], len(settings.channels.maps)), jnp.int32)
     reused = {"targets": prior.target_struct(features), "sample_weights": jax.ShapeDtypeStruct(t.shape, jnp.float32),

@@ -8,6 +8,8 @@ transpose of the gather (a scatter-add), through the mip chain when the plan is 
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import jax.numpy as jnp
 import numpy as np
 
@@ -16,10 +18,22 @@ from jaxdistill.render.gather_plan import (GatherPlan, MipChain, TexelSpace, bui
 from jaxdistill.render.layout import TextureLayout
 
 
-def build_pyramid(texels: jnp.ndarray, chain: MipChain) -> jnp.ndarray:
+class SplitPyramid(NamedTuple):
+    """A pyramid as its two parts: the texels themselves (level 0, rows [0, N) of the index) and
+    the entries above them (rows N and up). `sample` reads each from its own array, so building
+    it copies no texel and its cotangent's level 0 is the texels' gradient itself: one array of
+    the texels' size less in a step's memory than the concatenated pyramid, for a second gather
+    (`build_pyramid(split=True)`)."""
+
+    texels: jnp.ndarray
+    coarse: jnp.ndarray
+
+
+def build_pyramid(texels: jnp.ndarray, chain: MipChain, *, split: bool = False):
     """(N_pyramid, C): in-tile levels 0..k of the compact texels (dense 2x2 means inside each
     tile), then the coarse entries above one tile (means of 4 entries of the level below).
-    One concatenation at the end: no level is copied more than once."""
+    One concatenation at the end: no level is copied more than once. With `split` (and any level
+    above the texels) a `SplitPyramid` of the same entries instead, with no concatenation."""
     b, channels = chain.tile, texels.shape[-1]
     level = texels.reshape(-1, b, b, channels)
     parts = [texels]
@@ -31,7 +45,11 @@ def build_pyramid(texels: jnp.ndarray, chain: MipChain) -> jnp.ndarray:
     for children in chain.children:
         below = jnp.mean(below[children], axis=1)
         parts.append(below)
-    return jnp.concatenate(parts, axis=0) if len(parts) > 1 else texels
+    if len(parts) == 1:
+        return texels
+    if split:
+        return SplitPyramid(texels, jnp.concatenate(parts[1:], axis=0) if len(parts) > 2 else parts[1])
+    return jnp.concatenate(parts, axis=0)
 
 
 def render(texels: jnp.ndarray, plan: GatherPlan) -> jnp.ndarray:
@@ -42,12 +60,20 @@ def render(texels: jnp.ndarray, plan: GatherPlan) -> jnp.ndarray:
     return sample(build_pyramid(texels, plan.chain), plan)
 
 
-def sample(pyramid: jnp.ndarray, plan: GatherPlan) -> jnp.ndarray:
+def sample(pyramid, plan: GatherPlan) -> jnp.ndarray:
     """`render` from a pyramid already built (`build_pyramid` with the plan's chain): plans that
-    share a chain (a step's renders and its photos) share one pyramid, and one transpose of it."""
-    values = pyramid[plan.index]                                   # (..., P, T, C)
+    share a chain (a step's renders and its photos) share one pyramid, and one transpose of it.
+    A `SplitPyramid` is read tap by tap from the part its row lies in (the other part's read is
+    out of bounds and gives 0; its transpose drops it)."""
+    if isinstance(pyramid, SplitPyramid):
+        n, n_coarse = pyramid.texels.shape[0], pyramid.coarse.shape[0]
+        fine = plan.index < n
+        values = (pyramid.texels.at[jnp.where(fine, plan.index, n)].get(mode="fill", fill_value=0)
+                  + pyramid.coarse.at[jnp.where(fine, n_coarse, plan.index - n)].get(mode="fill", fill_value=0))
+    else:
+        values = pyramid[plan.index]                               # (..., P, T, C)
     image = jnp.einsum("...pt,...ptc->...pc", plan.weight.astype(values.dtype), values)
-    return image.reshape(*plan.index.shape[:-2], plan.height, plan.width, pyramid.shape[-1])
+    return image.reshape(*plan.index.shape[:-2], plan.height, plan.width, values.shape[-1])
 
 
 def _tile_view(page: np.ndarray, b: int) -> np.ndarray:
