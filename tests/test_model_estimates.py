@@ -208,3 +208,21 @@ def test_cache_key_names_the_fused_attention_only_when_it_is_used(tmp_path):
     st = photo.stat()
     h.update(f"view_0:{photo.resolve()}:{st.st_size}:{st.st_mtime_ns}:0.0".encode())
     assert chunked == h.hexdigest()[:20]
+
+
+def test_auto_estimate_steps_are_the_shipped_models_own_and_the_demos_otherwise(tmp_path):
+    """--estimate_steps=0 (auto): 10 for the shipped model (chosen on the validation rooms), the
+    RGB↔X demo's 50 for weights a user brings and for a model a user trained with our scripts
+    (its info file, in another folder): nothing was measured for those."""
+    import shutil
+
+    from jaxdistill.models import shipped
+
+    assert model_estimates.default_steps(shipped.SHIPPED_DIR) == model_estimates.SHIPPED_ESTIMATE_STEPS == 10
+    assert model_estimates.default_steps(tmp_path) == model_estimates.ESTIMATE_STEPS == 50      # user weights
+    assert model_estimates.default_steps(None) == 50
+    trained = tmp_path / "trained"
+    trained.mkdir()
+    shutil.copy(shipped.SHIPPED_DIR / shipped.INFO_FILE, trained / shipped.INFO_FILE)
+    assert json.loads((trained / shipped.INFO_FILE).read_text())["name"]
+    assert model_estimates.default_steps(trained) == 50

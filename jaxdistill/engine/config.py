@@ -77,7 +77,7 @@ class DistillConfig:
     align: str = "none"
     align_strength: float = 0.01
     anchor: str = "auto"
-    estimate_steps: int = 50                 # models.estimates.ESTIMATE_STEPS, the default of `jaxdistill estimate`
+    estimate_steps: int = 0                  # 0: auto, models.estimates.default_steps (10 shipped model, 50 otherwise)
     photo_weight: float = 0.0
     photo_size: int = 0
     photo_space: str = "log"
@@ -170,7 +170,8 @@ def define_flags(fv: flags.FlagValues = flags.FLAGS, *, main_module: bool = Fals
                        "weight (--align=gain)", **where)
     flags.DEFINE_integer("estimate_steps", d.estimate_steps, "rgbx prior: DDIM steps of the model's own per-view "
                          "estimates after the loop, the baseline the run is scored against and (--anchor=auto, "
-                         "unless the photos' traced light is used) the overall scale it is anchored to; fewer is faster and coarser (50: RGB<->X's demo)", **where)
+                         "unless the photos' traced light is used) the overall scale it is anchored to; 0 (auto): 10 with the shipped model (chosen on the validation "
+                         "rooms), 50 (RGB<->X's demo) with weights you give", **where)
     flags.DEFINE_enum("anchor", d.anchor, ANCHOR_MODES, "overall scale of the distilled albedo and irradiance: "
                       "estimates (after the loop, one gain per channel sets the renders' sRGB mean over the views to "
                       "the per-view estimates': the model's own with the rgbx prior, the scene's targets with views), "
@@ -315,8 +316,8 @@ def validate(config: DistillConfig) -> DistillConfig:
             bad(name, f"must be >= 0, got {getattr(c, name)}")
     if c.log_every == 0:
         bad("log_every", "must be >= 1")
-    if c.estimate_steps < 1:
-        bad("estimate_steps", f"must be >= 1, got {c.estimate_steps}")
+    if c.estimate_steps < 0:
+        bad("estimate_steps", f"must be >= 1, or 0 for auto, got {c.estimate_steps}")
     if c.anchor not in ANCHOR_MODES:
         bad("anchor", f"must be one of {', '.join(ANCHOR_MODES)}, got {c.anchor!r}")
     if c.view_data not in VIEW_DATA:

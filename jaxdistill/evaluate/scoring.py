@@ -94,11 +94,12 @@ def per_view_baseline(config: DistillConfig, problem: Problem, shapes: list[tupl
     if problem.rgbx_model is None:
         return Baseline(evaluation.read_baseline(scene, channels.maps, shapes, lazy),
                         "the scene's per-view target images")
+    steps = config.estimate_steps or model_estimates.default_steps(problem.choice.folder)
     folder = model_estimates.cached_estimates(
         problem.rgbx_model, [(v.name, v.photo, v.exposure) for v in scene.views], channels.maps, problem.height,
-        problem.width, dtype=config.prior_dtype, steps=config.estimate_steps, seed=config.seed)
+        problem.width, dtype=config.prior_dtype, steps=steps, seed=config.seed)
     views = model_estimates.read_estimates(folder, [v.name for v in scene.views], channels.maps, shapes, lazy)
-    return Baseline(views, f"the model's own per-view estimates ({config.estimate_steps} DDIM steps, "
+    return Baseline(views, f"the model's own per-view estimates ({steps} DDIM steps, "
                     f"{folder})", folder)
 
 

@@ -26,15 +26,28 @@ from tqdm.auto import tqdm
 from jaxdistill.io import images as imageio
 from jaxdistill.models import prior as rgbx
 from jaxdistill.models.layers import FUSED_CUDNN
+from jaxdistill.models.shipped import model_info
 from jaxdistill.render.fragments import default_cache_dir
 from jaxdistill.io.view_images import read_target, resize
 from jaxdistill.io.view_rows import LazyViews
 
-ESTIMATE_STEPS = 50          # the authors' demo
+ESTIMATE_STEPS = 50          # the authors' demo: weights a user brings
+SHIPPED_ESTIMATE_STEPS = 10  # the shipped model's: chosen on the validation rooms (README "The model's own estimates
+                             # in fewer steps"), where 50 / 20 / 10 / 5 / 2 steps gave estimates of albedo 14.91 /
+                             # 15.07 / 15.26 / 15.59 / 16.18 dB and anchored runs of 17.474 / 17.470 / 17.461 /
+                             # 17.443 / 17.411 dB
 BATCH = 16                   # (map, view) pairs per sampling call, at least
 BATCH_LATENT_PIXELS = 9216   # and up to this many latent pixels a call: 48 at the shipped model's 16 x 12 latents,
                              # where the bedroom's 240 estimates took 0.94x the time of 16 a call
                              # (scripts/bench_estimates.py, docs/benchmarks.md §7)
+
+
+def default_steps(folder: str | Path | None) -> int:
+    """DDIM steps of the model's own estimates when --estimate_steps is 0 (auto): the shipped
+    model's `SHIPPED_ESTIMATE_STEPS`, else the demo's 50 (weights a user brings, or a model a user
+    trained: nothing was measured for them)."""
+    shipped = folder is not None and model_info(folder)["source"] == "shipped"
+    return SHIPPED_ESTIMATE_STEPS if shipped else ESTIMATE_STEPS
 
 
 def batch_size(latent_pixels: int, items: int, cap: int | None = None) -> int:
