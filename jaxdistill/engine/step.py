@@ -83,6 +83,7 @@ class StepSettings:
     albedo_smoothness: float = 0.0         # the photo-guided albedo smoothness (photo.py); needs batch["photo_guide"]
     photo_height: int = 0
     photo_width: int = 0
+    split_pyramid: bool = True             # the step's pyramid as `sampler.SplitPyramid` (False: concatenated)
 
     @classmethod
     def from_config(cls, config: DistillConfig, channels: MapChannels, height: int, width: int,
@@ -202,7 +203,7 @@ def make_step(prior: Prior, settings: StepSettings, optimizer: optax.GradientTra
         # level 0 is their gradient, one texel array less than a concatenated pyramid in the step's
         # memory for a second gather, and no slower (docs/benchmarks.md §10)
         pyramid, pyramid_pullback = jax.vjp(
-            lambda x: build_pyramid(x, frozen["chain"], split=True), state.texels)
+            lambda x: build_pyramid(x, frozen["chain"], split=settings.split_pyramid), state.texels)
         features_of = _features_fn(prior, settings, batch, frozen, k_features)
         features, pullback = jax.vjp(features_of, pyramid)
         num_views = batch["pixel_weight"].shape[0]
@@ -286,7 +287,7 @@ def _photo_fn(settings: StepSettings, batch: dict, frozen: dict) -> Callable:
     """texels → (L_photo, metrics) of the batch's photos (`photo.photo_loss`), rendered through
     the photo-sized gather plans."""
     photo_of = _photo_of_pyramid(settings, batch, frozen)
-    return lambda texels: photo_of(build_pyramid(texels, frozen["chain"], split=True))
+    return lambda texels: photo_of(build_pyramid(texels, frozen["chain"], split=settings.split_pyramid))
 
 
 def _photo_of_pyramid(settings: StepSettings, batch: dict, frozen: dict) -> Callable:
@@ -318,8 +319,8 @@ def initial_reused(prior, settings: StepSettings, texels, batch: dict, frozen: d
     if settings.reuse_steps <= 1:
         return None
     features_of = _features_fn(prior, settings, batch, frozen, jax.random.PRNGKey(0))
-    features = jax.eval_shape(lambda x: features_of(build_pyramid(x, frozen["chain"], split=True)),
-                              jax.ShapeDtypeStruct(texels.shape, texels.dtype))
+    pyramid_of = functools.partial(build_pyramid, chain=frozen["chain"], split=settings.split_pyramid)
+    features = jax.eval_shape(lambda x: features_of(pyramid_of(x)), jax.ShapeDtypeStruct(texels.shape, texels.dtype))
     t = jax.ShapeDtypeStruct((batch["pixel_weight"].shape[0], len(settings.channels.maps)), jnp.int32)
     reused = {"targets": prior.target_struct(features), "sample_weights": jax.ShapeDtypeStruct(t.shape, jnp.float32),
               "t": t}

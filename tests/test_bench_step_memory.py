@@ -1,0 +1,36 @@
+"""`scripts/bench_step_memory.py` as a user runs it: the step's three forms on a tiny scene with
+the re-rendering term on, XLA's memory of each, steps of each side by side, and the same texels."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+from tiny_scene import write_tiny_scene
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_the_benchmark_gives_each_forms_memory_and_steps_with_the_same_texels(tmp_path):
+    scene = write_tiny_scene(tmp_path / "scene", views=3)
+    out = tmp_path / "bench.json"
+    done = subprocess.run([sys.executable, "scripts/bench_step_memory.py", f"--scene={scene}", "--prior=views",
+                           "--views_per_step=2", "--sampler=trilinear", "--photo_weight=1", "--steps=4",
+                           f"--out_dir={tmp_path / 'out'}", "--bench_steps=3", "--bench_repeats=1",
+                           f"--bench_json={out}"],
+                          cwd=REPO, capture_output=True, text=True, timeout=600,
+                          env={**os.environ, "JAXDISTILL_CACHE": str(tmp_path / "cache")})
+    assert done.returncode == 0, done.stderr[-3000:]
+    doc = json.loads(out.read_text())
+    forms = doc["forms"]
+    assert list(forms) == ["optax_where_concat", "gated_concat", "gated_split"]
+    assert all(f["temp"]["gb"] > 0 and f["argument"]["arrays"] >= 3 for f in forms.values())   # texels, mu, nu
+    assert all(f["prior_s"] > 0 and f["texels_max_rel_diff"] <= 1e-5 for f in forms.values())
+    assert forms["optax_where_concat"]["texels_max_rel_diff"] == 0.0
+    assert "gated_split" in done.stdout and "temporaries" in done.stdout
+    bad = subprocess.run([sys.executable, "scripts/bench_step_memory.py", f"--scene={scene}", "--bench_repeats=0"],
+                         cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert bad.returncode != 0 and "--bench_repeats" in bad.stderr
