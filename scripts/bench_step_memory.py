@@ -50,6 +50,7 @@ def main(argv) -> int:
 
     from jaxdistill.engine import distributed, loop
     from jaxdistill.engine.problem import build_problem
+    from jaxdistill.engine.step import init_state
 
     fv = flags.FLAGS
     if fv.bench_steps < 0 or fv.bench_repeats < 1:
@@ -66,24 +67,28 @@ def main(argv) -> int:
         optimizer = loop.make_optimizer(config.lr, config.weight_decay, config.lr_schedule, config.steps)
         stepper = loop.setup_step(config, problem, first, optimizer=optax.chain(optimizer) if plain else optimizer,
                                   settings=dataclasses.replace(base, split_pyramid=split))
-        initial = jax.device_get(stepper.state)
-        state = jax.device_put(initial, stepper.replicated)
         frozen = jax.device_put(problem.frozen, stepper.replicated)
         batch = distributed.place_batch(problem.batch, loop.batch_views(problem, config, 0), stepper.by_view)
-        compiled = stepper.step_fn.lower(state, batch, frozen).compile()
+        compiled = stepper.step_fn.lower(jax.device_put(stepper.state, stepper.replicated), batch, frozen).compile()
         analysis = compiled.memory_analysis()
         rows[name] = {key: {"gb": getattr(analysis, f"{key}_size_in_bytes") / 2 ** 30,
                             "arrays": getattr(analysis, f"{key}_size_in_bytes") / array}
                       for key in ("argument", "temp")}
-        forms[name] = (stepper, initial, compiled, frozen)
-        del state
+
+        def initial(optimizer=stepper.optimizer, placed=stepper.replicated, reused=stepper.state.reused,
+                    align=stepper.state.align):
+            """A fresh step-0 state (each run donates its own), not one held for every form."""
+            return jax.device_put(init_state(problem.initial_texels(), optimizer, config.seed, reused, align), placed)
+
+        forms[name] = (stepper.by_view, initial, compiled, frozen)
+        stepper = None                                 # its state: three texel-sized arrays
     seconds = {name: {"prior": [], "reused": []} for name in forms}
     texels = {}
     for repeat in range(fv.bench_repeats if fv.bench_steps else 0):
-        for name, (stepper, initial, compiled, frozen) in forms.items():
-            state = jax.device_put(initial, stepper.replicated)
+        for name, (by_view, initial, compiled, frozen) in forms.items():
+            state = initial()
             for step in range(fv.bench_steps):
-                batch = distributed.place_batch(problem.batch, loop.batch_views(problem, config, step), stepper.by_view)
+                batch = distributed.place_batch(problem.batch, loop.batch_views(problem, config, step), by_view)
                 jax.block_until_ready(batch)
                 start = time.perf_counter()
                 state, _ = compiled(state, batch, frozen)
