@@ -42,6 +42,8 @@ def main(argv=None) -> int:
         parser.error("--batches and --steps are comma-separated integers")
     if not batches or min(batches) < 1 or args.repeats < 1 or min(step_counts) < 1:
         parser.error("--batches, --repeats and --steps must be positive")
+    if len(set(batches)) < len(batches) or len(set(step_counts)) < len(step_counts):
+        parser.error("--batches and --steps must not repeat a value")
     cases = [(b, s) for s in step_counts for b in batches]
     label = {c: str(c[0]) if len(step_counts) == 1 else f"{c[0]}x{c[1]}" for c in cases}
 

@@ -1,7 +1,8 @@
 """The step's memory in three forms, and their seconds per step, side by side on one problem.
 
     python scripts/bench_step_memory.py --flagfile=configs/bedroom.cfg [main-job flags, e.g.
-        --max_texture_size=2048 or --scene=DIR] [--bench_steps=8] [--bench_repeats=3] [--bench_json=FILE]
+        --max_texture_size=2048 or --scene=DIR] [--bench_steps=8] [--bench_repeats=3] [--bench_loop]
+        [--bench_json=FILE]
 
 Builds the main job's problem once (`build_problem` with the given flags), then the jitted step
 (`loop.setup_step`) in three forms:
@@ -12,7 +13,13 @@ Builds the main job's problem once (`build_problem` with the given flags), then 
                        gate), the pyramid concatenated (7037c6b);
   gated_split          the same with the pyramid split (`sampler.SplitPyramid`): the main job.
 
-For each: XLA's own buffer assignment of the compiled step (`memory_analysis`: arguments, i.e.
+With --bench_loop it first runs the main job's set-up and loop as `pipeline.run` does (the
+evaluation context built, the fragments let go, --steps steps with the evaluation every
+--eval_every, no checkpoint), with the step as the main job builds it, and reports the peak RSS by
+the loop's end (the operating system's accounting) and the loop's seconds: the figure
+`metrics.json` records as `peak_host_memory_gb["loop"]`, without the outputs after it.
+
+For each form: XLA's own buffer assignment of the compiled step (`memory_analysis`: arguments, i.e.
 texels, AdamW's two moments and the batch, and temporaries), in GB and in arrays of the texels'
 size (N x C float32). With --bench_steps > 0 the forms then alternate --bench_repeats times, each
 running --bench_steps steps from the same initial state (the first repeat's first two steps not
@@ -25,6 +32,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import resource
 import statistics
 import sys
 import time
@@ -39,7 +47,13 @@ FORMS = (("optax_where_concat", True, False), ("gated_concat", False, False), ("
 config_lib.define_flags(flags.FLAGS, main_module=True)
 flags.DEFINE_integer("bench_steps", 8, "steps per form and repeat (0: memory analysis only)")
 flags.DEFINE_integer("bench_repeats", 3, "times the forms alternate")
+flags.DEFINE_boolean("bench_loop", False, "first run the main job's set-up and loop; report their peak RSS")
 flags.DEFINE_string("bench_json", None, "write the table as JSON here")
+
+
+def peak_rss_gb() -> float:
+    """This process's peak resident memory so far, in units of 2^30 bytes (as metrics.json)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20
 
 
 def main(argv) -> int:
@@ -51,12 +65,27 @@ def main(argv) -> int:
     from jaxdistill.engine import distributed, loop
     from jaxdistill.engine.problem import build_problem
     from jaxdistill.engine.step import init_state
+    from jaxdistill.evaluate import scoring
 
     fv = flags.FLAGS
     if fv.bench_steps < 0 or fv.bench_repeats < 1:
         raise app.UsageError("--bench_steps must be >= 0 and --bench_repeats >= 1")
     config = config_lib.config_from_flags(fv)
+    start = time.perf_counter()
     problem = build_problem(config)
+    loop_run = {"setup_s": time.perf_counter() - start, "setup_peak_gb": peak_rss_gb()}
+    if fv.bench_loop:
+        context = scoring.evaluation_context(config, problem)
+        problem = problem.without_fragments()
+        evaluate = (lambda state: scoring.quick_psnr(state, problem, context)) if context.gt_maps is not None else None
+        start = time.perf_counter()
+        result = loop.run_loop(config, problem, loop.recorded_config(config, problem.choice.kind), None,
+                               evaluate=evaluate, progress=False, hooks=loop.LoopHooks(checkpoints=False))
+        loop_run.update(loop_s=time.perf_counter() - start, loop_peak_gb=peak_rss_gb(),
+                        loss=result.history["loss"][-1], albedo_psnr=result.history["albedo_psnr"])
+        result = None
+        print(f"set-up {loop_run['setup_s']:.1f} s (peak RSS {loop_run['setup_peak_gb']:.2f} GB), loop of "
+              f"{config.steps} steps {loop_run['loop_s']:.1f} s: peak RSS {loop_run['loop_peak_gb']:.2f} GB", flush=True)
     n, c = problem.space.num_texels, problem.channels.num_channels
     array = n * c * 4
     first = problem.batch(loop.batch_views(problem, config, 0))
@@ -75,8 +104,8 @@ def main(argv) -> int:
                             "arrays": getattr(analysis, f"{key}_size_in_bytes") / array}
                       for key in ("argument", "temp")}
 
-        def initial(optimizer=stepper.optimizer, placed=stepper.replicated, reused=stepper.state.reused,
-                    align=stepper.state.align):
+        def initial(optimizer=stepper.optimizer, placed=stepper.replicated, reused=jax.device_get(stepper.state.reused),
+                    align=jax.device_get(stepper.state.align)):          # on the host: each run donates its copy
             """A fresh step-0 state (each run donates its own), not one held for every form."""
             return jax.device_put(init_state(problem.initial_texels(), optimizer, config.seed, reused, align), placed)
 
@@ -114,7 +143,7 @@ def main(argv) -> int:
     if fv.bench_json:
         with open(fv.bench_json, "w") as f:
             json.dump({"texels": n, "channels": c, "array_gb": array / 2 ** 30, "views": problem.num_views,
-                       "command": " ".join(sys.argv), "forms": rows}, f, indent=1)
+                       "command": " ".join(sys.argv), "main_job": loop_run, "forms": rows}, f, indent=1)
     return 0
 
 

@@ -62,7 +62,8 @@ RENDER_SIZE = 128
 
 # main-job settings shared by the rows (configs/bedroom.cfg's, at the model's resolution)
 COMMON = dict(maps=MAPS, render_size=RENDER_SIZE, texture_size="auto", max_texture_size=512, sampler="trilinear",
-              log_every=10, eval_every=0, renders=False, contact_views=4, ckpt_every=0)
+              log_every=10, eval_every=0, renders=False, contact_views=4, ckpt_every=0,
+              estimate_steps=model_estimates.ESTIMATE_STEPS)   # the table's 50, as its estimates row
 RUNS = {
     "fusion": dict(prior="views", steps=100, views_per_step=32, lr=0.05, lr_schedule="cosine"),
     # the thesis's settings (configs/thesis.cfg) but for the number of steps: batch 1, lr 0.01

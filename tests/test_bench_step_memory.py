@@ -1,5 +1,7 @@
-"""`scripts/bench_step_memory.py` as a user runs it: the step's three forms on a tiny scene with
-the re-rendering term on, XLA's memory of each, steps of each side by side, and the same texels."""
+"""`scripts/bench_step_memory.py` as a user runs it: the step's three forms on a tiny scene with a
+tiny RGB↔X model, x̂0 reused every second step (as configs/bedroom.cfg) and the re-rendering term
+on: XLA's memory of each, steps of each side by side (the state donated, run after run), and the
+same texels."""
 
 from __future__ import annotations
 
@@ -14,12 +16,13 @@ from tiny_scene import write_tiny_scene
 REPO = Path(__file__).resolve().parents[1]
 
 
-def test_the_benchmark_gives_each_forms_memory_and_steps_with_the_same_texels(tmp_path):
+def test_the_benchmark_gives_each_forms_memory_and_steps_with_the_same_texels(run_rgbx_dir, tmp_path):
     scene = write_tiny_scene(tmp_path / "scene", views=3)
     out = tmp_path / "bench.json"
-    done = subprocess.run([sys.executable, "scripts/bench_step_memory.py", f"--scene={scene}", "--prior=views",
+    done = subprocess.run([sys.executable, "scripts/bench_step_memory.py", f"--scene={scene}", "--prior=rgbx",
+                           f"--rgbx_dir={run_rgbx_dir}", "--maps=albedo,irradiance", "--render_size=32", "--reuse_steps=2",
                            "--views_per_step=2", "--sampler=trilinear", "--photo_weight=1", "--steps=4",
-                           f"--out_dir={tmp_path / 'out'}", "--bench_steps=3", "--bench_repeats=1",
+                           f"--out_dir={tmp_path / 'out'}", "--bench_steps=4", "--bench_repeats=2", "--bench_loop",
                            f"--bench_json={out}"],
                           cwd=REPO, capture_output=True, text=True, timeout=600,
                           env={**os.environ, "JAXDISTILL_CACHE": str(tmp_path / "cache")})
@@ -28,9 +31,13 @@ def test_the_benchmark_gives_each_forms_memory_and_steps_with_the_same_texels(tm
     forms = doc["forms"]
     assert list(forms) == ["optax_where_concat", "gated_concat", "gated_split"]
     assert all(f["temp"]["gb"] > 0 and f["argument"]["arrays"] >= 3 for f in forms.values())   # texels, mu, nu
-    assert all(f["prior_s"] > 0 and f["texels_max_rel_diff"] <= 1e-5 for f in forms.values())
-    assert forms["optax_where_concat"]["texels_max_rel_diff"] == 0.0
+    assert all(f["prior_s"] > 0 and f["reused_s"] > 0 for f in forms.values())     # both kinds of step ran
+    assert forms["gated_concat"]["texels_max_rel_diff"] <= 1e-6                    # optax's arithmetic
+    assert forms["gated_split"]["texels_max_rel_diff"] <= 1e-6                     # the same gather, split
     assert "gated_split" in done.stdout and "temporaries" in done.stdout
+    main_job = doc["main_job"]                           # --bench_loop: the main job's set-up and loop first
+    assert main_job["loop_peak_gb"] >= main_job["setup_peak_gb"] > 0 and main_job["loop_s"] > 0
+    assert main_job["loss"] > 0
     bad = subprocess.run([sys.executable, "scripts/bench_step_memory.py", f"--scene={scene}", "--bench_repeats=0"],
                          cwd=REPO, capture_output=True, text=True, timeout=300)
     assert bad.returncode != 0 and "--bench_repeats" in bad.stderr

@@ -326,16 +326,22 @@ def test_auto_prior_uses_rgbx_weights_end_to_end(tiny_scene, run_rgbx_dir, tmp_p
         pipeline.run(tiny_config(tiny_scene, views_run, prior="auto", steps=2, maps=("albedo", "roughness"),
                               resume=True), progress=False)
     out = tmp_path / "rgbx"
+    # --estimate_steps=0 (auto, the default) asks models.estimates.default_steps for the model's count: for weights
+    # a user brings that is the demo's 50 (below), for the shipped model its 10 (chosen on the validation rooms);
+    # here it answers 4, since what is sampled is not the point
+    asked = []
+    monkeypatch.setattr(model_estimates, "default_steps", lambda folder: asked.append(folder) or 4)
+    assert DistillConfig.estimate_steps == 0
     pipeline.run(tiny_config(tiny_scene, out, prior="auto", steps=2, maps=("albedo", "roughness"), renders=False,
-                          eval_every=0, estimate_steps=4), progress=False)
+                          eval_every=0, estimate_steps=0), progress=False)
+    monkeypatch.undo()
     doc = json.loads((out / "metrics.json").read_text())
     assert doc["prior"]["kind"] == "rgbx" and "JAXDISTILL_RGBX_DIR" in doc["prior"]["reason"]
     assert doc["prior"]["model"] == {"name": "rgb-to-x", "source": "user", "folder": str(run_rgbx_dir)}
-    # scored against the model's own per-view estimates (4 DDIM steps: what is sampled is not the point here), not
-    # the scene's targets; unless told, a run samples them in the demo's 50 with weights a user brings, in the
-    # shipped model's 10 with it (chosen on the validation rooms)
+    # scored against the model's own per-view estimates, not the scene's targets, in the count auto resolved to
+    assert [str(f) for f in asked] == [str(run_rgbx_dir)]
     assert doc["baseline_source"].startswith("the model's own per-view estimates (4 DDIM steps")
-    assert DistillConfig.estimate_steps == 0                                              # auto
+    assert doc["baseline_estimate_steps"] == 4 and doc["config"]["estimate_steps"] == 0
     assert model_estimates.default_steps(run_rgbx_dir) == model_estimates.default_steps(None) == 50
     assert doc["anchor"]["to"] == doc["baseline_source"] and list(doc["anchor"]["gains"]) == ["albedo"]  # auto
     assert doc["baseline_per_view_estimates"]["albedo_psnr"] != json.loads(

@@ -73,10 +73,12 @@ def setup_step(config: DistillConfig, problem: Problem, first_batch: dict, *,
     the shapes the step is traced for and the state's reused x_pred (--reuse_steps) is shaped by.
     `optimizer` and `settings` replace the config's (a benchmark comparing forms of the step)."""
     mesh = data_mesh(jax.devices())
-    optimizer = optimizer or make_optimizer(config.lr, config.weight_decay, config.lr_schedule, config.steps)
+    if optimizer is None:
+        optimizer = make_optimizer(config.lr, config.weight_decay, config.lr_schedule, config.steps)
     align_optimizer = (make_optimizer(config.lr, 0.0, config.lr_schedule, config.steps) if config.align == "gain"
                        else None)
-    settings = settings or step_settings(config, problem)
+    if settings is None:
+        settings = step_settings(config, problem)
     texels = problem.initial_texels()
     state = init_state(texels, optimizer, config.seed,
                        initial_reused(problem.prior, settings, texels, first_batch, problem.frozen),

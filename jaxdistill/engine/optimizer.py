@@ -1,15 +1,17 @@
 """The texels' optimizer: optax's AdamW, with an update that the step applies in place.
 
 `make_optimizer` returns a `GatedAdamW`: an optax `GradientTransformation` whose `init` and
-`update` are `optax.adamw`'s own (same state tree, so checkpoints and every optax combinator work
-as before), plus `gated_update(grads, state, params, ok)`, the step's whole AdamW step behind its
-finite gate (`ok` false: params and state come back unchanged).
+`update` are `optax.adamw`'s own (same state tree, so checkpoints and optax's combinators work as
+before), plus `gated_update(grads, state, params, ok)`, the step's whole AdamW step behind its
+finite gate (`ok` false: params and state come back unchanged). Wrapped in a combinator (e.g.
+`optax.chain`) it loses `gated_update`, and the step falls back to the `where` form below.
 
 Why a second form of the same update: written as `optimizer.update`, `apply_updates` and a
 `where(ok, new, old)` per leaf, XLA recomputes the new first moment inside the texels' update
 while writing it over the old one in place, so it keeps a copy of the old moment: one more array
-of the texels' size for the whole step (measured in the step's buffer assignment; at the
-capture-sized room's 32.5M texels × 11 channels, 1.4 GB). `gated_update` gates the two moments
+of the texels' size in the step's temporaries (XLA's buffer assignment of the default step at
+19.3M texels: 0.79 GB; at the capture room's 32.5M texels the temporaries fell by 0.58 of an array,
+docs/benchmarks.md §10). `gated_update` gates the two moments
 first, makes XLA materialise them (`lax.optimization_barrier`) in their own donated buffers, and
 only then derives the texels' update from them: the same arithmetic as optax's AdamW (tested
 against it, `tests/test_optimizer.py`), with no copy.

@@ -84,6 +84,7 @@ class Baseline:
     views: Sequence[dict] | None      # a list, or `LazyViews` with --view_data on disk
     source: str
     folder: Path | None = None
+    steps: int | None = None          # the model's DDIM steps (--estimate_steps resolved), None for targets
 
 
 def per_view_baseline(config: DistillConfig, problem: Problem, shapes: list[tuple[int, int]]) -> Baseline:
@@ -100,7 +101,7 @@ def per_view_baseline(config: DistillConfig, problem: Problem, shapes: list[tupl
         problem.width, dtype=config.prior_dtype, steps=steps, seed=config.seed)
     views = model_estimates.read_estimates(folder, [v.name for v in scene.views], channels.maps, shapes, lazy)
     return Baseline(views, f"the model's own per-view estimates ({steps} DDIM steps, "
-                    f"{folder})", folder)
+                    f"{folder})", folder, steps)
 
 
 def improvement(ours: dict, baseline: dict) -> dict:
@@ -128,6 +129,8 @@ def score(pred: list[dict], problem: Problem, ctx: EvalContext, baseline: Baseli
         if base is not None:
             result["baseline_per_view_estimates"] = base.result()
             result["baseline_source"] = baseline.source
+            if baseline.steps is not None:
+                result["baseline_estimate_steps"] = baseline.steps
             result["improvement"] = improvement(result["ours"], result["baseline_per_view_estimates"])
             same = ([] if problem.rgbx_model is not None
                     else evaluation.targets_are_ground_truth(problem.scene, channels.maps))

@@ -33,7 +33,7 @@ from jaxdistill.io.view_rows import LazyViews
 
 ESTIMATE_STEPS = 50          # the authors' demo: weights a user brings
 SHIPPED_ESTIMATE_STEPS = 10  # the shipped model's: chosen on the validation rooms (README "The model's own estimates
-                             # in fewer steps"), where 50 / 20 / 10 / 5 / 2 steps gave estimates of albedo 14.91 /
+                             # in 10 steps"), where 50 / 20 / 10 / 5 / 2 steps gave estimates of albedo 14.91 /
                              # 15.07 / 15.26 / 15.59 / 16.18 dB and anchored runs of 17.474 / 17.470 / 17.461 /
                              # 17.443 / 17.411 dB
 BATCH = 16                   # (map, view) pairs per sampling call, at least
