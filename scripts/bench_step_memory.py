@@ -135,7 +135,10 @@ def main(argv) -> int:
         for kind, values in seconds[name].items():
             row[f"{kind}_s"] = statistics.median(values) if values else None
         if reference is not None:
-            row["texels_max_rel_diff"] = float(np.abs(texels[name] - reference).max() / np.abs(reference).max())
+            scale = np.abs(reference).max()
+            row["texels_max_rel_diff"] = float(np.abs(texels[name] - reference).max() / scale)
+            row["texels_p999_rel_diff"] = float(np.quantile(np.abs(texels[name] - reference), 0.999) / scale)
+            row["texels_changed_share"] = float(np.mean(texels[name] != reference))
         fmt = lambda v: f"{v:9.3f}" if v is not None else f"{'-':>9s}"
         print(f"{name:20s} {row['argument']['gb']:7.2f} GB {row['argument']['arrays']:5.2f} arr "
               f"{row['temp']['gb']:7.2f} GB {row['temp']['arrays']:5.2f} arr  {fmt(row.get('prior_s'))}  "

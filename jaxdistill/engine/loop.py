@@ -37,10 +37,14 @@ class NonFiniteLoss(RuntimeError):
 
 
 def step_settings(config: DistillConfig, problem: Problem) -> StepSettings:
-    """The step's static settings for this problem (`StepSettings.from_config`)."""
-    return StepSettings.from_config(config, problem.channels, problem.height, problem.width,
-                                    problem.prior.num_train_timesteps, problem.photo_shape,
-                                    problem.photos.scale if problem.photos is not None else None)
+    """The step's static settings for this problem (`StepSettings.from_config`). The mip pyramid is
+    split on the CPU only: there it saves a texel-sized array and is no slower; on an H200 the split
+    step took 2.2-2.7x the time, and with XLA's deterministic GPU scatter more memory, not less
+    (docs/benchmarks.md §10)."""
+    settings = StepSettings.from_config(config, problem.channels, problem.height, problem.width,
+                                        problem.prior.num_train_timesteps, problem.photo_shape,
+                                        problem.photos.scale if problem.photos is not None else None)
+    return dataclasses.replace(settings, split_pyramid=jax.default_backend() == "cpu")
 
 
 def batch_views(problem: Problem, config: DistillConfig, step: int) -> np.ndarray:

@@ -83,7 +83,7 @@ class StepSettings:
     albedo_smoothness: float = 0.0         # the photo-guided albedo smoothness (photo.py); needs batch["photo_guide"]
     photo_height: int = 0
     photo_width: int = 0
-    split_pyramid: bool = True             # the step's pyramid as `sampler.SplitPyramid` (False: concatenated)
+    split_pyramid: bool = True             # the pyramid as `sampler.SplitPyramid` (False: concatenated; loop.step_settings)
 
     @classmethod
     def from_config(cls, config: DistillConfig, channels: MapChannels, height: int, width: int,
@@ -201,7 +201,7 @@ def make_step(prior: Prior, settings: StepSettings, optimizer: optax.GradientTra
         # one mip pyramid for the renders and the photos, so one transpose of it in the gradient; split
         # (texels + the entries above them, `SplitPyramid`): no copy of the texels, and its cotangent's
         # level 0 is their gradient, one texel array less than a concatenated pyramid in the step's
-        # memory for a second gather, and no slower (docs/benchmarks.md §10)
+        # memory for a second gather, and on the CPU no slower (docs/benchmarks.md §10; `loop.step_settings`)
         pyramid, pyramid_pullback = jax.vjp(
             lambda x: build_pyramid(x, frozen["chain"], split=settings.split_pyramid), state.texels)
         features_of = _features_fn(prior, settings, batch, frozen, k_features)
