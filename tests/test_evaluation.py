@@ -143,3 +143,27 @@ def test_the_run_lets_the_fragments_go_once_the_evaluation_context_is_built(tiny
     metrics = pipeline.run(config, progress=False)
     assert len(refs) == 4 and checked == [[True] * 4], checked       # 2 views at render size, 2 at native size
     assert metrics["steps"] == 2 and "rerender" in metrics      # scored and re-rendered without them
+
+
+def test_quick_psnr_renders_only_the_albedo_and_gives_the_full_renders_figure(tiny, tmp_path, monkeypatch):
+    """The loop's --eval_every figure renders the albedo's channels alone: the same PSNR as the
+    albedo of a render of every map (the render is per channel), from a 3-channel render."""
+    import types
+
+    from jaxdistill.engine.problem import build_problem
+    from jaxdistill.evaluate import scoring
+
+    config = config_lib.validate(DistillConfig(scene=str(tiny), out_dir=str(tmp_path / "run"), steps=2,
+                                               views_per_step=2, prior="views", render_size=16))
+    problem = build_problem(config, cache_dir=tmp_path / "cache")
+    ctx = scoring.evaluation_context(config, problem)
+    texels = np.random.default_rng(0).uniform(-1, 1, (problem.space.num_texels, problem.channels.num_channels))
+    state = types.SimpleNamespace(texels=texels.astype(np.float32))
+    full = evaluation.render_views(state.texels, ctx.plan, ctx.cameras, problem.channels)
+    expected = evaluation.albedo_psnr(full, ctx.gt_maps, ctx.masks)
+    assert problem.channels.num_channels > 3 and np.isfinite(expected)
+    widths, render = [], evaluation.render_views
+    monkeypatch.setattr(evaluation, "render_views",
+                        lambda texels, *a, **k: (widths.append(np.shape(texels)[1]), render(texels, *a, **k))[1])
+    np.testing.assert_allclose(scoring.quick_psnr(state, problem, ctx), expected, rtol=1e-6)
+    assert widths == [3]
