@@ -400,3 +400,31 @@ def test_4096_pages_of_single_texel_tiles_keep_bookkeeping_of_the_tiles_read(roo
     reads = np.asarray(plan.index)[np.asarray(plan.weight) > 0]
     assert reads.min() >= 0 and reads.max() < space.num_texels
     assert np.unique(reads).size == space.num_texels            # every tile is read, none is missing
+
+
+@pytest.mark.parametrize("sampler,tile_size", [("bilinear", 1), ("trilinear", 4)])
+def test_texel_space_and_plans_built_in_threads_equal_one_thread(room, sampler, tile_size, monkeypatch):
+    """The views' taps are worked out two at a time (`threads.ordered_map`), merged in view order:
+    the same tiles, mip children, coarse grids and plans as in one thread."""
+    import functools
+
+    from jaxdistill import threads
+
+    mesh, frags = room
+    layout = make_layout(len(mesh.object_names), "pages", 32, frags, mipmaps=sampler == "trilinear",
+                         tile_size=tile_size)
+    built = {}
+    for workers in (2, 1):
+        monkeypatch.setattr(gather_plan, "ordered_map", functools.partial(threads.ordered_map, workers=workers))
+        space = build_texel_space(frags, layout, sampler)
+        built[workers] = space, build_gather_plans(frags, space, sampler)
+    (two, plan_two), (one, plan_one) = built[2], built[1]
+    for name in ("tile_page", "tile_row", "tile_col"):
+        np.testing.assert_array_equal(getattr(two, name), getattr(one, name))
+    for a, b in zip(two.children, one.children):
+        np.testing.assert_array_equal(a, b)
+    for a, b in zip(two.coarse_maps, one.coarse_maps):
+        assert len(a) == len(b) and all(np.array_equal(x.dense(), y.dense()) for x, y in zip(a, b))
+    for name in ("index", "weight", "hit"):
+        np.testing.assert_array_equal(np.asarray(getattr(plan_two, name)), np.asarray(getattr(plan_one, name)))
+    assert np.asarray(plan_one.weight).any()

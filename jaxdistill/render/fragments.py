@@ -25,6 +25,7 @@ from jaxdistill.errors import InputError
 from jaxdistill.io.cache import default_cache_dir  # noqa: F401  (fr.default_cache_dir: callers read it from here)
 from jaxdistill.scene.cameras import Camera
 from jaxdistill.scene.model import Mesh
+from jaxdistill.threads import ordered_map
 
 CACHE_VERSION = 1
 RAYS_PER_CALL = 1 << 20
@@ -261,7 +262,6 @@ def compute_fragments(mesh: Mesh, cameras: Sequence[Camera], *, cache_dir: Path 
     paths = [cache / f"{view_key(geometry_key, c)}.npz" if cache else None for c in cameras]
     if cache is not None:
         check_cache_space(cache, [c for c, p in zip(cameras, paths) if not p.is_file()])
-    caster = None
     out = []
     if empty is not None:
         sizes = {(c.height, c.width) for c in cameras}
@@ -270,21 +270,28 @@ def compute_fragments(mesh: Mesh, cameras: Sequence[Camera], *, cache_dir: Path 
         shape = sizes.pop()
         out = FragmentRows({name: empty(f"fragments_{name}", (len(cameras),) + shape + extra, dtype)
                             for name, (extra, dtype) in FRAGMENT_FIELDS.items()}, shape)
-    bar = tqdm(cameras, desc="fragments", unit="view", disable=not progress, dynamic_ncols=True)
-    for v, (camera, path) in enumerate(zip(bar, paths)):
+    caster = None
+
+    def cast(camera, path):
+        nonlocal caster
         if path is not None and path.is_file():
             with np.load(path) as data:
-                cast = data["triangle"], data["barycentric"], data["distance"]
-        else:
-            if caster is None:
-                caster = RayCaster(mesh)
-            cast = cast_view(caster, camera)
-            if path is not None:
-                path.parent.mkdir(parents=True, exist_ok=True)
-                tmp = path.with_name(path.name + f".{os.getpid()}.tmp.npz")
-                np.savez(tmp, triangle=cast[0], barycentric=cast[1], distance=cast[2])
-                os.replace(tmp, path)
-        frag = derive_fragments(mesh, camera, *cast)
+                return camera, (data["triangle"], data["barycentric"], data["distance"])
+        if caster is None:
+            caster = RayCaster(mesh)
+        hits = cast_view(caster, camera)
+        if path is not None:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_name(path.name + f".{os.getpid()}.tmp.npz")
+            np.savez(tmp, triangle=hits[0], barycentric=hits[1], distance=hits[2])
+            os.replace(tmp, path)
+        return camera, hits
+
+    # the casts (and cache reads) in this thread, a view at a time; the fragments derived from them
+    # in two threads (NumPy), taken in view order
+    bar = tqdm(cameras, desc="fragments", unit="view", disable=not progress, dynamic_ncols=True)
+    casts = (cast(camera, path) for camera, path in zip(bar, paths))
+    for v, frag in enumerate(ordered_map(lambda c: derive_fragments(mesh, c[0], *c[1]), casts)):
         if empty is None:
             out.append(frag)
         else:

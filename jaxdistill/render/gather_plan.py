@@ -29,6 +29,7 @@ import numpy as np
 
 from jaxdistill.render.fragments import Fragments
 from jaxdistill.render.layout import TextureLayout, pixel_footprint
+from jaxdistill.threads import ordered_map
 
 SAMPLERS = ("bilinear", "trilinear")
 TAPS = {"bilinear": 4, "trilinear": 8}        # texel reads per pixel
@@ -209,10 +210,8 @@ def view_taps(frag: Fragments, layout: TextureLayout, sampler: str):
     hit = frag.object_id.ravel() >= 0
     taps = TAPS[sampler]
     shape = (hit.size, taps)
-    page_out, level_out, row_out, col_out = (np.zeros(shape, np.int64) for _ in range(4))
-    weight = np.zeros(shape, np.float32)
     if not hit.any():
-        return page_out, level_out, row_out, col_out, weight
+        return tuple(np.zeros(shape, np.int64) for _ in range(4)) + (np.zeros(shape, np.float32),)
     page = np.asarray(layout.object_page)[frag.object_id.ravel()[hit]]
     uv = frag.uv.reshape(-1, 2)[hit].astype(np.float64)
     size = np.asarray(layout.page_sizes, np.int64)[page]
@@ -229,6 +228,10 @@ def view_taps(frag: Fragments, layout: TextureLayout, sampler: str):
         frac[base >= levels - 1] = 0.0
         base = np.minimum(base, levels - 1)
         plan = [(base, 1.0 - frac), (np.minimum(base + 1, levels - 1), frac)]
+    # the hit pixels' taps (n, T), tap j = 4 * slot + corner, written into the (P, T) arrays once
+    level_hit = np.repeat(np.stack([level for level, _ in plan], axis=1), 4, axis=1)
+    row_hit, col_hit = np.empty(level_hit.shape, np.int64), np.empty(level_hit.shape, np.int64)
+    weight_hit = np.empty(level_hit.shape, np.float32)
     for slot, (level, level_weight) in enumerate(plan):
         side = size >> level
         x = uv[:, 0] * side - 0.5
@@ -239,14 +242,18 @@ def view_taps(frag: Fragments, layout: TextureLayout, sampler: str):
         corners = ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy), (1, 1, fx * fy))
         for k, (dx, dy, w) in enumerate(corners):
             j = 4 * slot + k
-            page_out[hit, j], level_out[hit, j] = page, level
-            col_out[hit, j] = np.clip(x0 + dx, 0, side - 1)
-            row_out[hit, j] = np.clip(y0 + dy, 0, side - 1)
-            weight[hit, j] = w * level_weight
-    unused = weight == 0
-    for a in (page_out, level_out, row_out, col_out):
+            col_hit[:, j] = np.clip(x0 + dx, 0, side - 1)
+            row_hit[:, j] = np.clip(y0 + dy, 0, side - 1)
+            weight_hit[:, j] = w * level_weight
+    page_hit = np.repeat(page[:, None], taps, axis=1)
+    unused = weight_hit == 0
+    out = []
+    for a in (page_hit, level_hit, row_hit, col_hit, weight_hit):
         a[unused] = 0
-    return page_out, level_out, row_out, col_out, weight
+        full = np.zeros(shape, a.dtype)
+        full[hit] = a
+        out.append(full)
+    return tuple(out)
 
 
 def _upsample(mask: np.ndarray) -> np.ndarray:
@@ -260,20 +267,22 @@ def build_texel_space(fragments: Sequence[Fragments], layout: TextureLayout, sam
     # need[p][j]: bool grid of level k+j entries of page p (j = 0: the tile grid).
     need = [[np.zeros((s >> (k + j), s >> (k + j)), bool) for j in range(layout.num_levels(p) - k if layout.mipmaps else 1)]
             for p, s in enumerate(layout.page_sizes)]
-    for frag in fragments:
+
+    def marks(frag):          # per (page, j) the entries of need[page][j] that the view's taps read
         page, level, row, col, weight = view_taps(frag, layout, sampler)
-        used = weight > 0
-        page, level, row, col = page[used], level[used], row[used], col[used]
+        used = np.flatnonzero(weight.reshape(-1) > 0)
+        page, level, row, col = (a.reshape(-1)[used] for a in (page, level, row, col))
         fine = level <= k
-        coarse = ~fine
-        shift = np.where(fine, k - level, 0)
-        for p in np.unique(page):
-            sel = page == p
-            grid = need[p][0]
-            grid[row[sel & fine] >> shift[sel & fine], col[sel & fine] >> shift[sel & fine]] = True
-            for lv in np.unique(level[sel & coarse]):
-                s2 = sel & coarse & (level == lv)
-                need[p][lv - k][row[s2], col[s2]] = True
+        shift = np.where(fine, k - level, 0)                 # level <= k: the tile of the entry
+        j = np.where(fine, 0, level - k)
+        out = []
+        for group in _groups(page * (int(j.max(initial=0)) + 1) + j):
+            out.append((int(page[group[0]]), int(j[group[0]]), row[group] >> shift[group], col[group] >> shift[group]))
+        return out
+
+    for view_marks in ordered_map(marks, fragments):
+        for p, j, rows, cols in view_marks:
+            need[p][j][rows, cols] = True
     for grids in need:  # a needed coarse entry needs its 4 children, down to the tiles
         for j in range(len(grids) - 1, 0, -1):
             grids[j - 1] |= _upsample(grids[j])
@@ -313,25 +322,39 @@ def build_texel_space(fragments: Sequence[Fragments], layout: TextureLayout, sam
                       coarse_maps=tuple(tuple(m) for m in coarse_maps), children=tuple(children))
 
 
+def _groups(key: np.ndarray) -> list[np.ndarray]:
+    """The positions of each distinct value of the small non-negative int `key`, ascending by
+    value, each group in position order: one stable sort (a counting sort for int16 keys)."""
+    if not len(key):
+        return []
+    order = np.argsort(key.astype(np.int16) if key.max() < 2 ** 15 else key, kind="stable")
+    return np.split(order, np.flatnonzero(np.diff(key[order])) + 1)
+
+
 def tap_indices(space: TexelSpace, page, level, row, col, weight) -> np.ndarray:
-    """Compact pyramid index of each tap (0 where weight is 0)."""
+    """Compact pyramid index of each tap (0 where weight is 0). The used taps are grouped by
+    (page, level) (`_groups`), so each group's lookup reads only its own taps."""
     b = space.tile
     k = int(np.log2(b))
-    out = np.zeros(page.shape, np.int64)
-    used = weight > 0
-    for p in np.unique(page[used]):
-        for lv in np.unique(level[used & (page == p)]):
-            sel = used & (page == p) & (level == lv)
-            r, c = row[sel], col[sel]
-            if lv <= k:
-                side = b >> lv
-                t = space.tile_map[p][r // side, c // side].astype(np.int64)
-                out[sel] = space.level_offset(lv) + (t * side + r % side) * side + c % side
-            else:
-                entry = space.coarse_maps[p][lv - k - 1][r, c].astype(np.int64)
-                out[sel] = np.where(entry >= 0, space.coarse_offset(lv - k) + entry, -1)
-    if (out[used] < 0).any():
+    out = np.zeros(np.shape(page), np.int64)
+    used = np.flatnonzero(np.asarray(weight).ravel() > 0)
+    if not used.size:
+        return out
+    page, level, row, col = (np.asarray(a).ravel()[used] for a in (page, level, row, col))
+    values = np.empty(len(used), np.int64)
+    for group in _groups(page * (int(level.max()) + 1) + level):
+        p, lv = int(page[group[0]]), int(level[group[0]])
+        r, c = row[group], col[group]
+        if lv <= k:
+            side = b >> lv
+            t = space.tile_map[p][r // side, c // side].astype(np.int64)
+            values[group] = space.level_offset(lv) + (t * side + r % side) * side + c % side
+        else:
+            entry = space.coarse_maps[p][lv - k - 1][r, c].astype(np.int64)
+            values[group] = np.where(entry >= 0, space.coarse_offset(lv - k) + entry, -1)
+    if (values < 0).any():
         raise AssertionError("a tap reads a texel outside the compact space (plan and space disagree)")
+    out.reshape(-1)[used] = values
     return out
 
 
@@ -353,11 +376,13 @@ def build_gather_plans(fragments: Sequence[Fragments], space: TexelSpace, sample
     empty = empty or (lambda name, shape, dtype: np.empty(shape, dtype))
     index, weight = empty("plan_index", shape, np.int32), empty("plan_weight", shape, np.float32)
     hit = np.empty(shape[:2], bool)
-    for v, frag in enumerate(fragments):
+
+    def plan_view(frag):
         page, level, row, col, w = view_taps(frag, space.layout, sampler)
-        index[v] = tap_indices(space, page, level, row, col, w).astype(np.int32)
-        weight[v] = w
-        hit[v] = frag.object_id.ravel() >= 0
+        return tap_indices(space, page, level, row, col, w).astype(np.int32), w, frag.object_id.ravel() >= 0
+
+    for v, (view_index, view_weight, view_hit) in enumerate(ordered_map(plan_view, fragments)):   # in order
+        index[v], weight[v], hit[v] = view_index, view_weight, view_hit
     chain = MipChain(children=tuple(jnp.asarray(c) for c in space.children), tile=space.tile,
                      in_tile_levels=space.in_tile_levels)
     return GatherPlan(index=index, weight=weight, hit=hit, chain=chain, height=height, width=width)
