@@ -21,7 +21,7 @@ from absl import logging
 from jaxdistill.engine import distributed, gains as align_lib
 from jaxdistill.engine.config import DistillConfig, check_views_per_step
 from jaxdistill.engine import loop as loop_lib
-from jaxdistill.engine.problem import build_problem, check_evidence_space, choose_prior
+from jaxdistill.engine.problem import build_problem, choose_prior
 from jaxdistill.evaluate import ground_truth as evaluation, scoring
 from jaxdistill.evaluate.rerender import rerender_scores
 from jaxdistill.evaluate.summary import summary_table
@@ -54,7 +54,6 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
     run_files.write_texel_space(out, problem.space, trust, problem.channels.maps, json_safe(recorded))
     ctx = scoring.evaluation_context(config, problem)
     problem = problem.without_fragments()         # read by nothing after the evaluation context
-    check_evidence_space(problem)                 # before the loop: what the evidence writes after it
     peaks = {"set-up": peak_host_memory_gb()}
     evaluate = (lambda state: scoring.quick_psnr(state, problem, ctx)) if ctx.gt_maps is not None else None
     loop = loop_lib.run_loop(config, problem, recorded, latest, evaluate=evaluate, progress=progress)

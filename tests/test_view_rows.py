@@ -134,43 +134,6 @@ def test_the_set_up_checks_the_files_and_the_ray_casts_together_before_any_cast(
     assert fr.uncached_bytes(views.mesh, cameras, False) == 0
 
 
-def test_the_evidence_reads_are_checked_by_their_exact_size_before_the_loop(tmp_path, monkeypatch):
-    """The evidence's per-view reads are written after the loop. Their bytes (from the plans' view
-    counts) are checked once the evaluation context is built and the fragments' files closed, as
-    the main job does: the size checked is the size of the file the evidence then writes, and a
-    disk that cannot hold it is refused naming the folder."""
-    from jaxdistill.engine.problem import check_evidence_space
-    from jaxdistill.evaluate import scoring
-    from jaxdistill.render.visibility import read_dtypes, view_reads
-
-    scene = write_tiny_scene(tmp_path / "scene", views=3)
-    config = config_lib.validate(DistillConfig(scene=str(scene), out_dir=str(tmp_path / "out"), steps=2,
-                                               views_per_step=2, prior="views", view_data="disk", render_size=16))
-    problem = build_problem(config, cache_dir=tmp_path / "cache")
-    scoring.evaluation_context(config, problem)
-    fragments = problem.fragments.arrays["triangle"]
-    assert isinstance(fragments, ViewRows)
-    problem = problem.without_fragments()
-    with pytest.raises(ValueError, match="closed"):                 # their disk space is free now
-        fragments[0]
-    checks, real = [], ViewFolder.check_space
-    monkeypatch.setattr(ViewFolder, "check_space", lambda self, nbytes, what: (checks.append((what, nbytes)),
-                                                                                real(self, nbytes, what)))
-    check_evidence_space(problem)
-    ((what, nbytes),) = checks
-    assert what == "the evidence's per-view texel reads of 3 views (written after the loop)"
-    store = problem.view_folder.ragged("evidence_reads", read_dtypes(problem.space.num_texels))
-    view_reads(scoring.training_plan(problem), problem.space.num_texels, store)
-    assert nbytes == store.nbytes > 0
-
-    usage = namedtuple("usage", "total used free")
-    monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(1 << 40, 0, view_rows.DISK_HEADROOM + nbytes - 1))
-    with pytest.raises(InputError) as err:
-        check_evidence_space(problem)
-    assert "the evidence's per-view texel reads of 3 views" in str(err.value)
-    assert str(tmp_path / "cache" / "view_rows") in str(err.value)
-
-
 @pytest.fixture(scope="module")
 def tiny_scene(tmp_path_factory):
     return write_tiny_scene(tmp_path_factory.mktemp("view_rows"), views=4)
@@ -224,9 +187,9 @@ def test_a_problem_on_disk_reads_the_batches_and_scores_of_one_in_memory(tiny_sc
 
 
 def test_a_run_with_its_per_view_arrays_on_disk_writes_what_one_in_memory_writes(tiny_scene, tmp_path):
-    """The main job end to end, --view_data=memory and =disk (baselines and renders then lazy, the
-    evidence's read weights in a file): the same scores and re-rendering figures, and the same map
-    and evidence pages and renders bit for bit."""
+    """The main job end to end, --view_data=memory and =disk (baselines and renders then lazy):
+    the same scores and re-rendering figures, and the same map and evidence pages and renders bit
+    for bit."""
     from jaxdistill import pipeline
     from jaxdistill.io import images as imageio
 
@@ -252,24 +215,3 @@ def test_a_run_with_its_per_view_arrays_on_disk_writes_what_one_in_memory_writes
     for render in renders:                          # rendered a chunk at a time when asked for: the same pixels
         np.testing.assert_array_equal(imageio.read_image(tmp_path / "memory" / render),
                                       imageio.read_image(tmp_path / "disk" / render))
-
-
-def test_ragged_rows_read_back_each_views_arrays(tmp_path):
-    rng = np.random.default_rng(2)
-    rows = ViewFolder(tmp_path).ragged("reads", (np.int32, np.float32))
-    views = [(rng.integers(0, 1000, n).astype(np.int32), rng.random(n).astype(np.float32)) for n in (5, 0, 17, 1)]
-    for seen, weight in views:
-        rows.append((seen, weight))
-    assert len(rows) == 4 and rows.nbytes == sum(a.nbytes + b.nbytes for a, b in views)
-    for v in (2, 0, 3, 1, -1):
-        for got, expected in zip(rows[v], views[v]):
-            assert got.dtype == expected.dtype
-            np.testing.assert_array_equal(got, expected)
-    with pytest.raises(ValueError, match="1-D of one length"):
-        rows.append((np.zeros(3, np.int32), np.zeros(2, np.float32)))
-    with pytest.raises(TypeError, match="int64 as int32"):                  # would wrap: refused
-        rows.append((np.zeros(3, np.int64), np.zeros(3, np.float32)))
-    folder = ViewFolder(tmp_path)
-    counted = folder.ragged("reads", (np.int32,))
-    counted.append((np.arange(10, dtype=np.int32),))
-    assert folder.nbytes == 40 == counted.nbytes                           # metrics.json's disk_bytes count them

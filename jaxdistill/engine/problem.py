@@ -31,7 +31,7 @@ from jaxdistill.scene.maps import INITIAL_VALUE, MapChannels, file_to_model
 from jaxdistill.render import fragments as fr
 from jaxdistill.render.gather_plan import TAPS, TexelSpace, build_gather_plans, build_texel_space
 from jaxdistill.render.layout import make_layout
-from jaxdistill.render.visibility import (check_coverage, hit_fractions, pixel_weights, read_dtypes, texel_evidence,
+from jaxdistill.render.visibility import (check_coverage, hit_fractions, pixel_weights, texel_evidence,
                                          view_counts)
 from jaxdistill.scene.model import Scene
 from jaxdistill.scene.paths import resolve_scene_path  # noqa: F401  (--scene as a path; scripts use it from here)
@@ -424,21 +424,6 @@ def _view_data_folder(config: DistillConfig, scene: Scene, choice: PriorChoice, 
                                                if casts else ""))
     logging.info("%s: %.2f GB on disk in %s, read a batch at a time", what, nbytes / 2 ** 30, folder.root)
     return folder
-
-
-def check_evidence_space(problem: Problem) -> None:
-    """With the per-view arrays on disk, an InputError naming the folder when its disk cannot hold
-    what the evidence writes there after the loop: a texel id and a weight for every texel each
-    view's plan reads (`visibility.view_reads`), as many as the plans' view counts per texel add up
-    to (`counts`: the same test of the same plans), so their size is exact before the loop. Call it
-    once the evaluation context is built and the fragments let go (`Problem.without_fragments`),
-    as the main job does: the disk then holds what it will hold when the evidence is written."""
-    if problem.view_folder is None:
-        return
-    reads = int(problem.counts.sum(dtype=np.int64)) * sum(np.dtype(d).itemsize
-                                                            for d in read_dtypes(problem.space.num_texels))
-    problem.view_folder.check_space(reads, f"the evidence's per-view texel reads of {problem.num_views} views "
-                                    "(written after the loop)")
 
 
 def _cameras_cast(config: DistillConfig, scene: Scene, render: tuple[int, int]) -> list[Camera]:

@@ -6,6 +6,7 @@ import contextlib
 import os
 import resource
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -22,8 +23,11 @@ from jaxdistill.io import images as imageio
 from jaxdistill.io.view_images import resize
 from jaxdistill.render import charts
 from jaxdistill.render.sampler import expand
-from jaxdistill.render.visibility import read_dtypes, texel_view_statistics, view_reads
+from jaxdistill.render.visibility import texel_view_statistics
 from jaxdistill.scene.cameras import rgbx_camera_rotation
+
+
+MAP_FILES_BESIDE_BYTES = 1 << 30     # `map_files_beside`: one map's full pages up to 1 GiB (30 pages of 2048²: 1.4 GiB)
 
 
 class OutputPhases:
@@ -113,10 +117,6 @@ def write_evidence(out: Path, problem: Problem, ctx: EvalContext, baseline: list
     pages = {"visibility": expand(problem.counts.astype(np.float32)[:, None], space, 0.0, dilation=0)}
     if baseline:
         plan = training_plan(problem)
-        # the views' read weights, the same for every map (with --view_data on disk, in a file)
-        store = (problem.view_folder.ragged("evidence_reads", read_dtypes(space.num_texels))
-                 if problem.view_folder else None)
-        reads = view_reads(plan, space.num_texels, store)
 
         def view_images(m):                 # one view at a time, at the render size
             for camera, per_view in zip(ctx.cameras, baseline):
@@ -126,7 +126,7 @@ def write_evidence(out: Path, problem: Problem, ctx: EvalContext, baseline: list
                 yield image
 
         for m in channels.maps:             # per map: dense work arrays of 1-3 channels, not all 11
-            count, _, variance = texel_view_statistics(plan, view_images(m), space.num_texels, reads)
+            count, _, variance = texel_view_statistics(plan, view_images(m), space.num_texels)
             spread = np.where(count >= 2, np.sqrt(variance.sum(axis=1)), np.nan).astype(np.float32)
             del variance
             pages[f"disagreement_{m}"] = expand(spread[:, None], space, np.nan, dilation=0)
@@ -169,21 +169,39 @@ def write_outputs(config: DistillConfig, problem: Problem, texels: np.ndarray, h
     baseline: what the run is scored against (`scoring.per_view_baseline`); phases times each part."""
     out = Path(config.out_dir)
     phases = phases or OutputPhases()
-    with phases("maps, glTF, USD"):
-        written = write_map_files(out, problem, texels, trust)
-    with phases("renders of every view"):
-        pred = evaluation.render_views(texels, ctx.plan, ctx.cameras, problem.channels,
-                                       lazy=problem.views_on_disk)   # on disk: rendered when asked for
-        if config.renders:
-            evaluation.write_renders(out / "renders", [v.name for v in problem.scene.views], pred)
-    result = {"estimates_folder": str(baseline.folder)} if baseline.folder is not None else {}
-    with phases("evidence"):
-        written += write_evidence(out, problem, ctx, baseline.views)
-    result["maps_written"] = [str(p.relative_to(out)) for p in written]
-    with phases("scores"):
-        result.update(scoring.score(pred, problem, ctx, baseline))
-    with phases("plots and contact sheets"):
-        write_loss_plot(out, problem, history)
-        write_contact_sheets(out, config, problem, pred, ctx, baseline.views)
+
+    def map_files() -> list[Path]:
+        with phases("maps, glTF, USD"):
+            return write_map_files(out, problem, texels, trust)
+
+    beside = map_files_beside(problem)
+    with ThreadPoolExecutor(max_workers=1) as pool:      # the map files beside the renders, evidence and scores
+        maps_job = pool.submit(map_files) if beside else None
+        written = [] if beside else map_files()
+        with phases("renders of every view"):
+            pred = evaluation.render_views(texels, ctx.plan, ctx.cameras, problem.channels,
+                                           lazy=problem.views_on_disk)   # on disk: rendered when asked for
+            if config.renders:
+                evaluation.write_renders(out / "renders", [v.name for v in problem.scene.views], pred)
+        result = {"estimates_folder": str(baseline.folder)} if baseline.folder is not None else {}
+        with phases("evidence"):
+            evidence = write_evidence(out, problem, ctx, baseline.views)
+        with phases("scores"):
+            result.update(scoring.score(pred, problem, ctx, baseline))
+        with phases("plots and contact sheets"):
+            write_loss_plot(out, problem, history)
+            write_contact_sheets(out, config, problem, pred, ctx, baseline.views)
+        if maps_job is not None:
+            written = maps_job.result()
+            phases.record["maps, glTF, USD"]["beside"] = "renders, evidence, scores, plots"
+    result["maps_written"] = [str(p.relative_to(out)) for p in written + evidence]
     result["history"] = history
     return result
+
+
+def map_files_beside(problem: Problem) -> bool:
+    """Whether the map files are written in a thread beside the renders, evidence and scores:
+    when one map's full float pages (3 channels, 4 bytes a value) stay under
+    `MAP_FILES_BESIDE_BYTES`, so holding them beside the other outputs' arrays costs little
+    memory. A capture of 4096² pages writes them first, alone, as before."""
+    return problem.space.layout.full_size() * 3 * 4 <= MAP_FILES_BESIDE_BYTES

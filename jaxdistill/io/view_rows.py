@@ -148,61 +148,6 @@ class ViewRows:
         self._finalizer()
 
 
-class RaggedRows(Sequence):
-    """Per view a tuple of 1-D arrays (one length per view, any length), appended to a file in
-    view order as they are made (`rows.append((a, b))`) and read back by view (`rows[v]`); the
-    file is unlinked when opened, like `ViewRows`'s. For what differs in size from view to view,
-    such as the texels a view reads."""
-
-    def __init__(self, path: Path, dtypes: Sequence, on_write: Callable[[int], None] | None = None):
-        self.path, self.dtypes = Path(path), tuple(np.dtype(d) for d in dtypes)
-        self._on_write = on_write                           # told the bytes of every append
-        fd = _open_unlinked(self.path)
-        self._fd, self._end, self._spans = fd, 0, []       # per view: (offset, length)
-        self._finalizer = weakref.finalize(self, os.close, fd)
-
-    @property
-    def nbytes(self) -> int:
-        return self._end
-
-    def __len__(self) -> int:
-        return len(self._spans)
-
-    def append(self, arrays) -> None:
-        arrays = [np.asarray(a) for a in arrays]
-        unsafe = [f"{a.dtype} as {d}" for a, d in zip(arrays, self.dtypes, strict=True) if not np.can_cast(a.dtype, d)]
-        if unsafe:                                          # (int64 texels as int32 would wrap silently)
-            raise TypeError(f"{self.path.name}: cannot store {', '.join(unsafe)} without loss")
-        arrays = [np.ascontiguousarray(a, d) for a, d in zip(arrays, self.dtypes)]
-        length = len(arrays[0])
-        if any(a.shape != (length,) for a in arrays):
-            raise ValueError(f"{self.path.name}: a view's arrays must be 1-D of one length, got "
-                             f"{[a.shape for a in arrays]}")
-        offset = self._end
-        for a in arrays:
-            try:
-                written = os.pwrite(self._fd, a.data.cast("B"), self._end) if a.nbytes else 0
-            except OSError as err:
-                if err.errno not in DISK_FULL:
-                    raise
-                raise _disk_full(self.path, f"{self.path.name.split('-')[0]} does not fit") from err
-            if written != a.nbytes:
-                raise OSError(f"wrote {written} of {a.nbytes} bytes to {self.path}")
-            self._end += a.nbytes
-            if self._on_write is not None:
-                self._on_write(a.nbytes)
-        self._spans.append((offset, length))
-
-    def __getitem__(self, v):
-        offset, length = self._spans[v]
-        out = tuple(np.empty(length, d) for d in self.dtypes)
-        for a in out:
-            if a.nbytes and os.preadv(self._fd, [a.data.cast("B")], offset) != a.nbytes:
-                raise OSError(f"short read of view {v} from {self.path}")
-            offset += a.nbytes
-        return out
-
-
 class ViewFolder:
     """Where `ViewRows` files are opened: `cache`/view_rows (created on first use)."""
 
@@ -235,14 +180,6 @@ class ViewFolder:
         rows = ViewRows(self._path(name), shape, dtype)
         self.nbytes += rows.nbytes
         return rows
-
-    def ragged(self, name: str, dtypes: Sequence) -> RaggedRows:
-        """A new `RaggedRows` file here (its bytes counted in `nbytes` as they are written; no space
-        is reserved ahead: a full disk is an InputError when it happens)."""
-        def written(nbytes: int) -> None:
-            self.nbytes += nbytes
-
-        return RaggedRows(self._path(name), dtypes, on_write=written)
 
 
 def view_array(name: str, shape: tuple[int, ...], dtype, folder: ViewFolder | None):

@@ -12,6 +12,7 @@ an InputError (a camera convention or units mix-up), before anything is jitted.
 
 from __future__ import annotations
 
+import functools
 import logging
 from pathlib import Path
 from typing import Iterable, Sequence
@@ -69,68 +70,55 @@ def texel_evidence(plan: GatherPlan, num_texels: int) -> np.ndarray:
     return total.astype(np.float32)
 
 
-@jax.jit
-def _splat(plan: GatherPlan, images: jnp.ndarray, num_texels_like: jnp.ndarray) -> jnp.ndarray:
-    """(N, C): the transpose of the single-view `plan`'s render applied to `images` (H, W, C) on
-    its hit pixels, i.e. per texel the gather-weighted sum of the values of the pixels that read it
-    (`_evidence` is the same sum of weights)."""
-    _, transpose = jax.vjp(lambda t: render(t, plan), num_texels_like)
-    (value,) = transpose(images * plan.hit.reshape(plan.height, plan.width, 1).astype(jnp.float32))
-    return value
-
-
-def read_dtypes(num_texels: int) -> tuple[type, type]:
-    """The dtypes of `view_reads`' (texels, weights): int32 texel ids where they fit, float32 weights."""
-    return (np.int32 if num_texels < 2 ** 31 else np.int64), np.float32
-
-
-def view_reads(plan: GatherPlan, num_texels: int, store=None) -> Sequence[tuple[np.ndarray, np.ndarray]]:
-    """Per view of `plan`: (the texels it reads, (K,) int32; their summed read weight, (K,) float32,
-    as the transpose of the render sums them), what `texel_view_statistics` divides by. The same for
-    every image of a view, so a caller that asks per map computes it once (a view reads a small
-    share of the texels: sparse). `store`: where they go, anything with `append((seen, weight))`
-    and `store[v]` (a list by default; `io.view_rows.RaggedRows` keeps them in a file)."""
-    zeros_1 = jnp.zeros((num_texels, 1), jnp.float32)
-    reads = [] if store is None else store
-    index = read_dtypes(num_texels)[0]
-    for v in range(plan.num_views):
-        weight = np.asarray(_evidence(plan.select(v), zeros_1))
-        seen = np.flatnonzero(weight > 0)
-        reads.append((seen.astype(index), weight[seen]))
-    return reads
-
-
-def texel_view_statistics(plan: GatherPlan, images: Iterable[np.ndarray], num_texels: int,
-                          reads: Sequence[tuple[np.ndarray, np.ndarray]] | None = None
+def texel_view_statistics(plan: GatherPlan, images: Iterable[np.ndarray], num_texels: int
                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """What the views say about each texel: (count (N,) int32 of views that read it, mean (N, C)
     and variance (N, C) float32 of their values across those views; 0 where none reads it).
     A view's value at a texel is the gather-weighted mean of the pixels of its image (H, W, C)
     that read the texel (through the transpose of `render`), so every view counts once.
-    `images` (one per view of `plan`, in order) may be a generator: one view's image is in
-    memory at a time, and the dense work arrays are (N, C), so a caller with many channels can
-    ask per map and hold a few channels at once; `reads` (`view_reads(plan, num_texels)`) spares
-    each such call the views' read weights."""
-    count = np.zeros(num_texels, np.int32)
-    first = second = zeros = None
-    reads = view_reads(plan, num_texels) if reads is None else reads
+    `images` (one per view of `plan`, in order) may be a generator: one view's image is in memory
+    at a time. The statistics are kept on the device as Welford's running mean and sum of squared
+    deviations (float32, stable where the views agree closely), updated a view at a time by one
+    compiled function (`_accumulate`); the work arrays are (C, N), so a caller with many channels
+    asks per map and holds a few channels at once."""
+    state = None
     for v, image in enumerate(images):
-        if first is None:
-            channels = np.asarray(image).shape[-1]
-            zeros = jnp.zeros((num_texels, channels), jnp.float32)
-            first = np.zeros((num_texels, channels), np.float64)
-            second = np.zeros((num_texels, channels), np.float64)
-        seen, weight = reads[v]
-        value = np.asarray(_splat(plan.select(v), jnp.asarray(image, jnp.float32), zeros))[seen].astype(np.float64)
-        mean = value / weight.astype(np.float64)[:, None]
-        count[seen] += 1
-        first[seen] += mean
-        second[seen] += mean ** 2
-    if first is None:
+        image = jnp.asarray(image, jnp.float32)
+        if state is None:
+            channels = image.shape[-1]
+            state = (jnp.zeros(num_texels, jnp.int32), jnp.zeros((channels, num_texels), jnp.float32),
+                     jnp.zeros((channels, num_texels), jnp.float32))
+        state = _accumulate(state, plan.select(v), image)
+    if state is None:
         raise ValueError("texel_view_statistics: no images")
-    views = np.maximum(count, 1)[:, None]
-    mean = first / views
-    return count, mean.astype(np.float32), np.maximum(second / views - mean ** 2, 0.0).astype(np.float32)
+    count, mean, squares = (np.asarray(a) for a in jax.device_get(state))
+    variance = np.maximum(squares, 0.0) / np.maximum(count, 1)      # rounding can leave -ulp where views agree
+    return count, np.ascontiguousarray(mean.T), np.ascontiguousarray(variance.T)
+
+
+@functools.partial(jax.jit, donate_argnums=(0,))
+def _accumulate(state, plan: GatherPlan, image: jnp.ndarray):
+    """One view's update of (count (N,), mean (C, N), sum of squared deviations (C, N)): the
+    transpose of the single-view `plan`'s render applied to the hit mask (the read weight w) and
+    to each channel of `image` (H, W, C) on hit pixels (the weighted sum s), a channel at a time
+    (an (N, 1) transpose is several times faster per channel than an (N, C) one on the CPU); the
+    view's value s / w joins the texels with w > 0."""
+    count, mean, squares = state
+    hit = plan.hit.reshape(plan.height, plan.width).astype(jnp.float32)
+    planes = jnp.concatenate([hit[None], jnp.moveaxis(image, -1, 0) * hit], axis=0)      # (1 + C, H, W)
+
+    def transpose(plane):
+        _, pull = jax.vjp(lambda t: render(t, plan), jnp.zeros((count.shape[0], 1), jnp.float32))
+        return pull(plane[..., None])[0][:, 0]
+
+    sums = jax.lax.map(transpose, planes)
+    weight, seen = sums[0], sums[0] > 0
+    value = sums[1:] / jnp.where(seen, weight, 1.0)
+    count = count + seen
+    delta = value - mean
+    mean = mean + jnp.where(seen, delta / jnp.maximum(count, 1), 0.0)
+    squares = squares + jnp.where(seen, delta * (value - mean), 0.0)
+    return count, mean, squares
 
 
 def pixel_weights(plan: GatherPlan, counts: np.ndarray, out=None) -> np.ndarray:
