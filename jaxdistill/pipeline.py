@@ -12,6 +12,7 @@ import dataclasses
 import json
 import resource
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import jax
@@ -50,13 +51,20 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
         loop = loop_lib.run_loop(config, problem, recorded, latest, progress=False)
         return {"process_id": jax.process_index(), "step": int(jax.device_get(loop.state.step)),
                 "stopped_by": loop.stopped_by, "exit_status": loop.exit_status}
-    trust = texel_trust(problem)                   # once: the texel space file and the exported pages
-    run_files.write_texel_space(out, problem.space, trust, problem.channels.maps, json_safe(recorded))
-    ctx = scoring.evaluation_context(config, problem)
+    with ThreadPoolExecutor(max_workers=1) as pool:   # the step compiled beside the evaluation's set-up
+        preparing = pool.submit(loop_lib.prepare_step, config, problem)
+        trust = texel_trust(problem)               # once: the texel space file and the exported pages
+        run_files.write_texel_space(out, problem.space, trust, problem.channels.maps, json_safe(recorded))
+        ctx = scoring.evaluation_context(config, problem)
+        waited = time.perf_counter()
+        prepared = preparing.result()
     problem = problem.without_fragments()         # read by nothing after the evaluation context
+    problem.timings.update(step_compiled_s=round(prepared.seconds, 2),
+                           step_compile_waited_s=round(time.perf_counter() - waited, 2))
     peaks = {"set-up": peak_host_memory_gb()}
     evaluate = (lambda state: scoring.quick_psnr(state, problem, ctx)) if ctx.gt_maps is not None else None
-    loop = loop_lib.run_loop(config, problem, recorded, latest, evaluate=evaluate, progress=progress)
+    loop = loop_lib.run_loop(config, problem, recorded, latest, evaluate=evaluate, progress=progress,
+                             prepared=prepared)
     if loop.stopped_by:
         return {"stopped_by": loop.stopped_by, "step": int(jax.device_get(loop.state.step)),
                 "exit_status": loop.exit_status}

@@ -167,3 +167,29 @@ def test_quick_psnr_renders_only_the_albedo_and_gives_the_full_renders_figure(ti
                         lambda texels, *a, **k: (widths.append(np.shape(texels)[1]), render(texels, *a, **k))[1])
     np.testing.assert_allclose(scoring.quick_psnr(state, problem, ctx), expected, rtol=1e-6)
     assert widths == [3]
+
+
+def test_a_step_compiled_ahead_runs_the_loop_as_the_jitted_step_does(tiny, tmp_path):
+    """`loop.prepare_step` (what the main job compiles beside the evaluation's set-up) traces the
+    step once and gives, step for step, the texels and losses of the loop's own jitted step."""
+    import jax
+
+    from jaxdistill.engine.problem import build_problem
+
+    results = {}
+    for name in ("jitted", "prepared"):
+        config = config_lib.validate(DistillConfig(scene=str(tiny), out_dir=str(tmp_path / name), steps=3,
+                                                   views_per_step=2, prior="views", render_size=16))
+        problem = build_problem(config, cache_dir=tmp_path / "cache")
+        prepared = loop.prepare_step(config, problem) if name == "prepared" else None
+        if prepared is not None:
+            assert prepared.stepper.traces.traces == 1 and prepared.seconds > 0
+        result = loop.run_loop(config, problem, loop.recorded_config(config, "views"), None, progress=False,
+                               prepared=prepared)
+        results[name] = (np.asarray(jax.device_get(result.state.texels)), result.history["loss"], result.traces)
+    (texels_a, loss_a, traces_a), (texels_b, loss_b, traces_b) = results["jitted"], results["prepared"]
+    np.testing.assert_array_equal(texels_a, texels_b)
+    assert loss_a == loss_b and len(loss_a) == 3 and traces_a == traces_b == 1
+    with pytest.raises(ValueError, match="a prepared step and a before_steps hook"):
+        loop.run_loop(config, problem, loop.recorded_config(config, "views"), None, progress=False,
+                      prepared=prepared, hooks=loop.LoopHooks(before_steps=lambda *a: a[0]))

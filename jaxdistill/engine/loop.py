@@ -5,7 +5,8 @@ for a step are a function of (seed, step); the host assembles that batch while t
 the previous step (JAX dispatch is asynchronous); metrics are fetched every --log_every steps,
 before an evaluation and before a checkpoint. `setup_step` is what it steps with (settings,
 optimizers, the step-0 state, the jitted step), for benchmarks that time the step alone;
-`LoopHooks` lets a benchmark time the loop itself (scripts/speed_vs_error.py) without a copy of it.
+`prepare_step` sets it up and compiles the step ahead (the main job does so in a thread beside
+the evaluation's set-up); `LoopHooks` lets a benchmark time the loop itself (scripts/speed_vs_error.py) without a copy of it.
 """
 
 from __future__ import annotations
@@ -92,6 +93,36 @@ def setup_step(config: DistillConfig, problem: Problem, first_batch: dict, *,
     return Stepper(settings, optimizer, align_optimizer, state, step_fn, traces,
                    jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()),
                    jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("data")))
+
+
+@dataclasses.dataclass
+class PreparedStep:
+    """A run's `Stepper` and its step compiled ahead for the run's shapes (`prepare_step`)."""
+
+    stepper: Stepper
+    compiled: Callable
+    seconds: float               # what setting up, tracing and compiling took
+
+
+def prepare_step(config: DistillConfig, problem: Problem) -> PreparedStep:
+    """What `run_loop` does before its first step (`setup_step`), and the step traced and compiled
+    for the shardings and shapes of the run's state, batches and constants (`lower().compile()`
+    on their abstract values: nothing is placed on the devices). The main job calls it in a
+    thread while the evaluation context is built: XLA's compilation (most of the first step's
+    time with the rgbx prior) holds no Python lock, so it runs beside that NumPy work."""
+    start = time.perf_counter()
+    first = problem.batch(batch_views(problem, config, 0))
+    stepper = setup_step(config, problem, first)
+
+    def abstract(value, sharding):
+        return jax.ShapeDtypeStruct(np.shape(value), value.dtype, sharding=sharding,
+                                    weak_type=bool(getattr(value, "weak_type", False)))
+
+    lowered = stepper.step_fn.lower(jax.tree.map(lambda x: abstract(x, stepper.replicated), stepper.state),
+                                    jax.tree.map(lambda x: abstract(x, stepper.by_view), first),
+                                    jax.tree.map(lambda x: abstract(x, stepper.replicated), problem.frozen))
+    compiled = lowered.compile()
+    return PreparedStep(stepper, compiled, time.perf_counter() - start)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -272,20 +303,25 @@ def _empty_history() -> dict:
 
 def run_loop(config: DistillConfig, problem: Problem, recorded: dict, latest: int | None, *,
              evaluate: Callable[[DistillState], float] | None = None, progress: bool = True,
-             hooks: LoopHooks | None = None) -> LoopResult:
+             hooks: LoopHooks | None = None, prepared: PreparedStep | None = None) -> LoopResult:
     """Steps from `latest` (a checkpoint step, None for a fresh run) to --steps, checkpointing every
     --ckpt_every steps and at the end; `evaluate(state)` (albedo PSNR) every --eval_every steps.
     SIGINT/SIGTERM stop it after the current step with a checkpoint (`LoopResult.stopped_by`).
-    `hooks` (`LoopHooks`) let a benchmark time it; None runs it as the main job does."""
+    `hooks` (`LoopHooks`) let a benchmark time it; None runs it as the main job does. `prepared`
+    (`prepare_step` of the same config and problem): the step set up and compiled already."""
     hooks = hooks or LoopHooks()
-    first = problem.batch(batch_views(problem, config, 0))
-    stepper = setup_step(config, problem, first)
+    if prepared is not None and hooks.before_steps is not None:
+        raise ValueError("run_loop: a prepared step and a before_steps hook: give one")
+    stepper = (prepared.stepper if prepared is not None
+               else setup_step(config, problem, problem.batch(batch_views(problem, config, 0))))
     checkpoints = _Checkpoints(config, Path(config.out_dir), recorded, enabled=hooks.checkpoints)
     history = _empty_history()
     state = stepper.state
     if latest is not None:
         state, history = checkpoints.restore(latest, state)
     step_fn, traces, by_view = stepper.step_fn, stepper.traces, stepper.by_view
+    if prepared is not None:
+        step_fn = prepared.compiled
     state = jax.device_put(state, stepper.replicated)
     frozen = jax.device_put(problem.frozen, stepper.replicated)
     if hooks.before_steps is not None:
