@@ -52,15 +52,17 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
         return {"process_id": jax.process_index(), "step": int(jax.device_get(loop.state.step)),
                 "stopped_by": loop.stopped_by, "exit_status": loop.exit_status}
     with ThreadPoolExecutor(max_workers=1) as pool:   # the step compiled beside the evaluation's set-up
-        preparing = pool.submit(loop_lib.prepare_step, config, problem)
+        steps_left = latest is None or latest < config.steps
+        preparing = pool.submit(loop_lib.prepare_step, config, problem) if steps_left else None
         trust = texel_trust(problem)               # once: the texel space file and the exported pages
         run_files.write_texel_space(out, problem.space, trust, problem.channels.maps, json_safe(recorded))
         ctx = scoring.evaluation_context(config, problem)
         waited = time.perf_counter()
-        prepared = preparing.result()
+        prepared = preparing.result() if preparing is not None else None
     problem = problem.without_fragments()         # read by nothing after the evaluation context
-    problem.timings.update(step_compiled_s=round(prepared.seconds, 2),
-                           step_compile_waited_s=round(time.perf_counter() - waited, 2))
+    if prepared is not None:
+        problem.timings.update(step_compiled_s=round(prepared.seconds, 2),
+                               step_compile_waited_s=round(time.perf_counter() - waited, 2))
     peaks = {"set-up": peak_host_memory_gb()}
     evaluate = (lambda state: scoring.quick_psnr(state, problem, ctx)) if ctx.gt_maps is not None else None
     loop = loop_lib.run_loop(config, problem, recorded, latest, evaluate=evaluate, progress=progress,

@@ -6,7 +6,7 @@ import contextlib
 import os
 import resource
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -174,33 +174,48 @@ def write_outputs(config: DistillConfig, problem: Problem, texels: np.ndarray, h
         with phases("maps, glTF, USD"):
             return write_map_files(out, problem, texels, trust)
 
+    def scores(pred) -> dict:
+        with phases("scores"):
+            return scoring.score(pred, problem, ctx, baseline)
+
+    # two lines of work: the map files, then the scores, in a thread (`map_files_beside`); the
+    # renders, evidence, plots here. Without the thread, the same in this order.
     beside = map_files_beside(problem)
-    with ThreadPoolExecutor(max_workers=1) as pool:      # the map files beside the renders, evidence and scores
-        maps_job = pool.submit(map_files) if beside else None
-        written = [] if beside else map_files()
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        later = pool.submit if beside else _done
+        maps_job = later(map_files)
         with phases("renders of every view"):
             pred = evaluation.render_views(texels, ctx.plan, ctx.cameras, problem.channels,
                                            lazy=problem.views_on_disk)   # on disk: rendered when asked for
             if config.renders:
                 evaluation.write_renders(out / "renders", [v.name for v in problem.scene.views], pred)
-        result = {"estimates_folder": str(baseline.folder)} if baseline.folder is not None else {}
+        scores_job = later(scores, pred)
         with phases("evidence"):
             evidence = write_evidence(out, problem, ctx, baseline.views)
-        with phases("scores"):
-            result.update(scoring.score(pred, problem, ctx, baseline))
         with phases("plots and contact sheets"):
             write_loss_plot(out, problem, history)
             write_contact_sheets(out, config, problem, pred, ctx, baseline.views)
-        if maps_job is not None:
-            written = maps_job.result()
-            phases.record["maps, glTF, USD"]["beside"] = "renders, evidence, scores, plots"
+        written, scored = maps_job.result(), scores_job.result()
+    if beside:
+        for name in ("maps, glTF, USD", "scores"):
+            phases.record[name]["beside"] = "renders, evidence, plots"
+    result = {"estimates_folder": str(baseline.folder)} if baseline.folder is not None else {}
+    result.update(scored)
     result["maps_written"] = [str(p.relative_to(out)) for p in written + evidence]
     result["history"] = history
     return result
 
 
+def _done(fn, *args) -> Future:
+    """fn(*args) run now, as a finished Future (the outputs' work without the thread)."""
+    future = Future()
+    future.set_result(fn(*args))
+    return future
+
+
 def map_files_beside(problem: Problem) -> bool:
-    """Whether the map files are written in a thread beside the renders, evidence and scores:
+    """Whether the map files and then the scores are written in a thread beside the renders,
+    evidence and plots:
     when one map's full float pages (3 channels, 4 bytes a value) stay under
     `MAP_FILES_BESIDE_BYTES`, so holding them beside the other outputs' arrays costs little
     memory. A capture of 4096² pages writes them first, alone, as before."""
