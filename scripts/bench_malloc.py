@@ -1,0 +1,126 @@
+"""The main job's steps with glibc's malloc as it comes and with `jaxdistill.allocator`'s settings,
+side by side, each in its own process.
+
+    python scripts/bench_malloc.py [--flagfile=configs/bedroom.cfg] [--steps=20] [--repeats=2]
+        [--set=flag=value ...] [--json=FILE]
+
+Each child process (`--child=system` or `--child=keep`; the parent alternates them, `--repeats`
+times each) builds the config's problem as the main job does, compiles its step ahead
+(`loop.prepare_step`), runs 2 steps to warm up, then times `--steps` more steps: wall seconds,
+user and system CPU seconds, minor page faults (`getrusage`), and the process's peak RSS. With
+`keep` the settings are applied first thing, as `python -m jaxdistill.main` does. Both forms
+compute the same arithmetic: the child reports a checksum of its final texels, which must match.
+Prints each form's medians and the ratios keep / system; `--json` writes the runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+from pathlib import Path
+
+FORMS = ("system", "keep")
+
+
+def child(form: str, flagfile: str, steps: int, sets: list[str]) -> dict:
+    if form == "keep":
+        from jaxdistill import allocator
+        if not allocator.keep_freed_memory():
+            raise SystemExit("bench_malloc: glibc's mallopt is not available here: nothing to compare")
+    import hashlib
+    import resource
+    import tempfile
+    import time
+
+    import jax
+    import numpy as np
+    from absl import flags
+
+    from jaxdistill.engine import config as config_lib, distributed, loop
+    from jaxdistill.engine.problem import build_problem
+
+    fv = flags.FlagValues()
+    config_lib.define_flags(fv)
+    with tempfile.TemporaryDirectory() as out:
+        fv(["bench_malloc", f"--flagfile={flagfile}", f"--out_dir={out}", *[f"--{s}" for s in sets]])
+        config = config_lib.config_from_flags(fv)
+        problem = build_problem(config)
+        prepared = loop.prepare_step(config, problem)
+        stepper = prepared.stepper
+        state = jax.device_put(stepper.state, stepper.replicated)
+        frozen = jax.device_put(problem.frozen, stepper.replicated)
+
+        def run(first: int, count: int):
+            nonlocal state
+            for step in range(first, first + count):
+                batch = distributed.place_batch(problem.batch, loop.batch_views(problem, config, step), stepper.by_view)
+                state, _ = prepared.compiled(state, batch, frozen)
+            jax.block_until_ready(state)
+
+        run(0, 2)
+        before, start = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
+        run(2, steps)
+        after, wall = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter() - start
+        texels = np.asarray(jax.device_get(state.texels))
+    return {"form": form, "steps": steps, "wall_s": wall, "user_s": after.ru_utime - before.ru_utime,
+            "system_s": after.ru_stime - before.ru_stime, "minor_faults": after.ru_minflt - before.ru_minflt,
+            "peak_rss_gb": after.ru_maxrss / 2 ** 20, "texels_sha1": hashlib.sha1(texels.tobytes()).hexdigest()}
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--flagfile", default="configs/bedroom.cfg", help="the main job's flags")
+    parser.add_argument("--set", action="append", default=[], metavar="FLAG=VALUE",
+                        help="a flag on top of --flagfile (repeatable), e.g. --set=views_per_step=4")
+    parser.add_argument("--steps", type=int, default=20, help="steps timed after 2 warm-up steps")
+    parser.add_argument("--repeats", type=int, default=2, help="runs of each form, alternated")
+    parser.add_argument("--json", type=Path, default=None)
+    parser.add_argument("--child", choices=FORMS, default=None, help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.steps < 1 or args.repeats < 1:
+        parser.error("--steps and --repeats must be positive")
+    if args.child:
+        print(json.dumps(child(args.child, args.flagfile, args.steps, args.set)))
+        return 0
+    runs = []
+    for _ in range(args.repeats):
+        for form in FORMS:
+            command = [sys.executable, os.path.abspath(__file__), f"--child={form}", f"--flagfile={args.flagfile}",
+                       f"--steps={args.steps}", *[f"--set={s}" for s in args.set]]
+            done = subprocess.run(command, capture_output=True, text=True)
+            if done.returncode:
+                sys.stderr.write(done.stderr[-4000:])
+                raise SystemExit(f"bench_malloc: the {form} child failed (exit {done.returncode})")
+            runs.append(json.loads(done.stdout.strip().splitlines()[-1]))
+            print(f"  {form:6s}: {runs[-1]['wall_s']:.2f} s wall, {runs[-1]['system_s']:.2f} s system, "
+                  f"{runs[-1]['minor_faults']} minor faults", flush=True)
+    medians = {f: {k: statistics.median(r[k] for r in runs if r["form"] == f)
+                   for k in ("wall_s", "user_s", "system_s", "minor_faults", "peak_rss_gb")} for f in FORMS}
+    same = len({r["texels_sha1"] for r in runs}) == 1
+    print(f"{args.flagfile}, {args.steps} steps timed, medians of {args.repeats} runs each:")
+    for f in FORMS:
+        m = medians[f]
+        print(f"  {f:6s}: wall {m['wall_s']:7.2f} s ({m['wall_s'] / args.steps:.3f} s/step), user {m['user_s']:7.2f} s, "
+              f"system {m['system_s']:6.2f} s, minor faults {m['minor_faults']:9.0f}, peak RSS {m['peak_rss_gb']:.2f} GB")
+    ratio = {k: medians["keep"][k] / medians["system"][k] if medians["system"][k] else None
+             for k in ("wall_s", "user_s", "system_s", "minor_faults", "peak_rss_gb")}
+    shown = {k: "n/a" if v is None else f"{v:.3f}" for k, v in ratio.items()}
+    print(f"  keep / system: wall {shown['wall_s']}, system time {shown['system_s']}, "
+          f"peak RSS {shown['peak_rss_gb']}; final texels {'identical' if same else 'DIFFER'}")
+    if args.json:
+        from jaxdistill import allocator
+        args.json.write_text(json.dumps({"flagfile": args.flagfile, "set": args.set, "steps": args.steps,
+                                         "keep_settings": {"M_ARENA_MAX": allocator.SETTINGS[0][1],
+                                                           "M_MMAP_THRESHOLD": allocator.SETTINGS[1][1],
+                                                           "M_TRIM_THRESHOLD": allocator.SETTINGS[2][1]},
+                                         "runs": runs, "median": medians, "ratio_keep_over_system": ratio,
+                                         "texels_identical": same}, indent=1))
+    return 0 if same else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
