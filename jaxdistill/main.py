@@ -17,7 +17,6 @@ from pathlib import Path
 
 from absl import app, flags, logging
 
-from jaxdistill import allocator
 from jaxdistill.engine import config as config_lib
 from jaxdistill.errors import InputError
 
@@ -33,7 +32,6 @@ class QuietLibraries(std_logging.Filter):
 
 
 def main(argv) -> None:
-    allocator.keep_freed_memory()          # before XLA's threads allocate (allocator.py says why)
     logging.get_absl_handler().addFilter(QuietLibraries())
     if len(argv) > 1:
         raise app.UsageError(f"unexpected arguments {argv[1:]}; every setting is a --flag")

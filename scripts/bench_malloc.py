@@ -1,5 +1,6 @@
-"""The main job's steps with glibc's malloc as it comes and with `jaxdistill.allocator`'s settings,
-side by side, each in its own process.
+"""The main job's steps with glibc's malloc as it comes and with freed memory kept in the process
+(`mallopt`: one arena, blocks up to 1 GiB from the heap, the heap's free top kept up to 2 GiB),
+side by side, each in its own process: tried for the main job and not kept (docs/benchmarks.md §7).
 
     python scripts/bench_malloc.py [--flagfile=configs/bedroom.cfg] [--steps=20] [--repeats=2]
         [--set=flag=value ...] [--json=FILE]
@@ -8,7 +9,7 @@ Each child process (`--child=system` or `--child=keep`; the parent alternates th
 times each) builds the config's problem as the main job does, compiles its step ahead
 (`loop.prepare_step`), runs 2 steps to warm up, then times `--steps` more steps: wall seconds,
 user and system CPU seconds, minor page faults (`getrusage`), and the process's peak RSS. With
-`keep` the settings are applied first thing, as `python -m jaxdistill.main` does. Both forms
+`keep` the settings are applied first thing, before XLA starts its threads. Both forms
 compute the same arithmetic: the child reports a checksum of its final texels, which must match.
 Prints each form's medians and the ratios keep / system; `--json` writes the runs.
 """
@@ -24,12 +25,33 @@ import sys
 from pathlib import Path
 
 FORMS = ("system", "keep")
+M_TRIM_THRESHOLD, M_MMAP_THRESHOLD, M_ARENA_MAX = -1, -3, -8       # glibc's mallopt parameters (malloc.h)
+KEEP = ((M_ARENA_MAX, 1), (M_MMAP_THRESHOLD, 1 << 30), (M_TRIM_THRESHOLD, (1 << 31) - 1))
+
+
+def glibc():
+    """The process's C library when it is glibc (it has `mallopt`), else None."""
+    import ctypes
+    import ctypes.util
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+    except OSError:
+        return None
+    if not (hasattr(libc, "gnu_get_libc_version") and hasattr(libc, "mallopt")):
+        return None
+    libc.mallopt.argtypes, libc.mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
+    return libc
+
+
+def keep_freed_memory() -> bool:
+    """`KEEP` applied with mallopt; True when glibc accepted every parameter."""
+    libc = glibc()
+    return libc is not None and all(libc.mallopt(name, value) == 1 for name, value in KEEP)
 
 
 def child(form: str, flagfile: str, steps: int, sets: list[str]) -> dict:
     if form == "keep":
-        from jaxdistill import allocator
-        if not allocator.keep_freed_memory():
+        if not keep_freed_memory():
             raise SystemExit("bench_malloc: glibc's mallopt is not available here: nothing to compare")
     import hashlib
     import resource
@@ -112,11 +134,9 @@ def main(argv=None) -> int:
     print(f"  keep / system: wall {shown['wall_s']}, system time {shown['system_s']}, "
           f"peak RSS {shown['peak_rss_gb']}; final texels {'identical' if same else 'DIFFER'}")
     if args.json:
-        from jaxdistill import allocator
         args.json.write_text(json.dumps({"flagfile": args.flagfile, "set": args.set, "steps": args.steps,
-                                         "keep_settings": {"M_ARENA_MAX": allocator.SETTINGS[0][1],
-                                                           "M_MMAP_THRESHOLD": allocator.SETTINGS[1][1],
-                                                           "M_TRIM_THRESHOLD": allocator.SETTINGS[2][1]},
+                                         "keep_settings": {"M_ARENA_MAX": KEEP[0][1], "M_MMAP_THRESHOLD": KEEP[1][1],
+                                                           "M_TRIM_THRESHOLD": KEEP[2][1]},
                                          "runs": runs, "median": medians, "ratio_keep_over_system": ratio,
                                          "texels_identical": same}, indent=1))
     return 0 if same else 1

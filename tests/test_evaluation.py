@@ -193,3 +193,26 @@ def test_a_step_compiled_ahead_runs_the_loop_as_the_jitted_step_does(tiny, tmp_p
     with pytest.raises(ValueError, match="a prepared step and a before_steps hook"):
         loop.run_loop(config, problem, loop.recorded_config(config, "views"), None, progress=False,
                       prepared=prepared, hooks=loop.LoopHooks(before_steps=lambda *a: a[0]))
+
+
+def test_the_outputs_made_in_two_threads_equal_those_made_in_one(tiny, tmp_path, monkeypatch):
+    """The map files and scores beside the renders, evidence and plots (`outputs.map_files_beside`)
+    give the files and metrics of the same outputs made one after the other."""
+    from jaxdistill.export import outputs
+
+    runs = {}
+    for beside in (True, False):
+        monkeypatch.setattr(outputs, "map_files_beside", lambda problem, beside=beside: beside)
+        out = tmp_path / f"beside_{beside}"
+        config = config_lib.validate(DistillConfig(scene=str(tiny), out_dir=str(out), steps=2, views_per_step=2,
+                                                   prior="views", render_size=16))
+        metrics = pipeline.run(config, progress=False)
+        files = sorted(p.relative_to(out) for p in out.rglob("*") if p.is_file() and p.suffix in (".exr", ".png"))
+        runs[beside] = metrics, files, out
+    (m2, files2, out2), (m1, files1, out1) = runs[True], runs[False]
+    assert files1 == files2 and any(f.parts[0] == "maps" for f in files1) and any(f.parts[0] == "evidence" for f in files1)
+    assert m1["ours"] == m2["ours"] and m1["maps_written"] == m2["maps_written"]
+    assert "beside" in m2["output_timings"]["maps, glTF, USD"] and "beside" not in m1["output_timings"]["scores"]
+    for f in files1:
+        if f.suffix == ".exr":
+            np.testing.assert_array_equal(imageio.read_image(out1 / f), imageio.read_image(out2 / f))

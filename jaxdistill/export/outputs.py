@@ -214,9 +214,8 @@ def _done(fn, *args) -> Future:
 
 
 def map_files_beside(problem: Problem) -> bool:
-    """Whether the map files and then the scores are written in a thread beside the renders,
-    evidence and plots:
-    when one map's full float pages (3 channels, 4 bytes a value) stay under
+    """Whether the map files and then the scores are made in a thread beside the renders, evidence
+    and plots: when one map's full float pages (3 channels, 4 bytes a value) stay under
     `MAP_FILES_BESIDE_BYTES`, so holding them beside the other outputs' arrays costs little
-    memory. A capture of 4096² pages writes them first, alone, as before."""
+    memory. A capture of 4096² pages makes them one after the other, the map files first."""
     return problem.space.layout.full_size() * 3 * 4 <= MAP_FILES_BESIDE_BYTES
