@@ -59,14 +59,16 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
         ctx = scoring.evaluation_context(config, problem)
         waited = time.perf_counter()
         prepared = preparing.result() if preparing is not None else None
+        waited = time.perf_counter() - waited
+        preparing = None
     problem = problem.without_fragments()         # read by nothing after the evaluation context
     if prepared is not None:
-        problem.timings.update(step_compiled_s=round(prepared.seconds, 2),
-                               step_compile_waited_s=round(time.perf_counter() - waited, 2))
+        problem.timings.update(step_compiled_s=round(prepared.seconds, 2), step_compile_waited_s=round(waited, 2))
     peaks = {"set-up": peak_host_memory_gb()}
     evaluate = (lambda state: scoring.quick_psnr(state, problem, ctx)) if ctx.gt_maps is not None else None
     loop = loop_lib.run_loop(config, problem, recorded, latest, evaluate=evaluate, progress=progress,
                              prepared=prepared)
+    prepared = None                               # its step-0 state (a resumed run's, never donated) goes now
     if loop.stopped_by:
         return {"stopped_by": loop.stopped_by, "step": int(jax.device_get(loop.state.step)),
                 "exit_status": loop.exit_status}

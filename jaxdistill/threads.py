@@ -1,7 +1,7 @@
 """Per-view NumPy work in a few threads: `ordered_map`, a bounded, in-order `map`.
 
-The set-up's gather plans and texel space, and the outputs' per-view work, are NumPy on one view
-at a time: large array operations release the GIL, so two threads use two cores. Unlike
+The set-up's fragments, texel space and gather plans are NumPy on one view at a time: large array
+operations release the GIL, so two threads use two cores. Unlike
 `ThreadPoolExecutor.map`, which submits every item at once, `ordered_map` keeps at most
 `workers + ahead` items in flight: a capture's views, read from files a view at a time, are
 not all brought into memory together.
@@ -22,8 +22,9 @@ WORKERS = min(2, os.cpu_count() or 1)        # this project's machines: 2 cores;
 
 def ordered_map(fn: Callable[[T], R], items: Iterable[T], *, workers: int = WORKERS, ahead: int = 1) -> Iterator[R]:
     """fn(item) for each item, in order, computed by `workers` threads with at most
-    `workers + ahead` items submitted and not yet yielded (one worker: in the calling thread). An exception of fn is raised where its item's result is yielded; the items
-    after it are not started."""
+    `workers + ahead` items submitted and not yet yielded (one worker: in the calling thread). An
+    exception of fn is raised where its item's result is yielded; no item is submitted after it
+    (those already running finish first)."""
     if workers <= 1:
         yield from map(fn, items)
         return

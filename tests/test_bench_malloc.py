@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import platform
 import subprocess
 import sys
 from pathlib import Path
@@ -17,9 +18,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def test_the_benchmark_times_both_forms_with_the_same_texels(tmp_path):
-    sys.path.insert(0, str(REPO / "scripts"))
-    import bench_malloc
-    if bench_malloc.glibc() is None:
+    if platform.libc_ver()[0] != "glibc":
         pytest.skip("not glibc: there is no second form to compare")
     scene = write_tiny_scene(tmp_path / "scene", views=3)
     flagfile = tmp_path / "tiny.cfg"
@@ -33,6 +32,6 @@ def test_the_benchmark_times_both_forms_with_the_same_texels(tmp_path):
     assert done.returncode == 0, done.stderr[-3000:]
     doc = json.loads(out.read_text())
     assert [r["form"] for r in doc["runs"]] == ["system", "keep"] and doc["texels_identical"]
-    assert all(r["wall_s"] > 0 and r["minor_faults"] >= 0 and r["peak_rss_gb"] > 0 for r in doc["runs"])
+    assert all(r["wall_s"] > 0 and isinstance(r["minor_faults"], int) and r["peak_rss_gb"] > 0 for r in doc["runs"])
     assert doc["keep_settings"]["M_ARENA_MAX"] == 1 and doc["set"] == ["lr=0.1"]
     assert "keep / system" in done.stdout and "identical" in done.stdout

@@ -105,9 +105,9 @@ class PreparedStep:
 
 
 def prepare_step(config: DistillConfig, problem: Problem) -> PreparedStep:
-    """What `run_loop` does before its first step (`setup_step`), and the step traced and compiled
-    for the shardings and shapes of the run's state, batches and constants (`lower().compile()`
-    on their abstract values: nothing is placed on the devices). The main job calls it in a
+    """What `run_loop` does before its first step (`setup_step`, which makes the step-0 state), and
+    the step traced and compiled for the shardings and shapes of the run's state, batches and
+    constants (`lower().compile()` on their abstract values). The main job calls it in a
     thread while the evaluation context is built: XLA's compilation (most of the first step's
     time with the rgbx prior) holds no Python lock, so it runs beside that NumPy work."""
     start = time.perf_counter()

@@ -142,6 +142,8 @@ def write_contact_sheets(out: Path, config: DistillConfig, problem: Problem, pre
     if not len(picks):
         return
     photos = [imageio.read_photo_srgb(scene.views[i].photo, scene.views[i].exposure) for i in picks]
+    pred = {i: pred[i] for i in picks}           # each picked view once (lazy views render or read a chunk)
+    baseline = {i: baseline[i] for i in picks} if baseline else None
     for m in problem.channels.maps:
         rows = []
         for j, i in enumerate(picks):
@@ -184,18 +186,12 @@ def write_outputs(config: DistillConfig, problem: Problem, texels: np.ndarray, h
     with ThreadPoolExecutor(max_workers=1) as pool:
         later = pool.submit if beside else _done
         maps_job = later(map_files)
-        with phases("renders of every view"):
-            pred = evaluation.render_views(texels, ctx.plan, ctx.cameras, problem.channels,
-                                           lazy=problem.views_on_disk)   # on disk: rendered when asked for
-            if config.renders:
-                evaluation.write_renders(out / "renders", [v.name for v in problem.scene.views], pred)
-        scores_job = later(scores, pred)
-        with phases("evidence"):
-            evidence = write_evidence(out, problem, ctx, baseline.views)
-        with phases("plots and contact sheets"):
-            write_loss_plot(out, problem, history)
-            write_contact_sheets(out, config, problem, pred, ctx, baseline.views)
-        written, scored = maps_job.result(), scores_job.result()
+        try:
+            written, evidence, scored = _main_line(config, problem, texels, history, ctx, baseline, phases, out,
+                                                   lambda pred: later(scores, pred), maps_job)
+        except BaseException:                   # the queued scores are not started; the map files finish
+            pool.shutdown(wait=False, cancel_futures=True)
+            raise
     if beside:
         for name in ("maps, glTF, USD", "scores"):
             phases.record[name]["beside"] = "renders, evidence, plots"
@@ -204,6 +200,23 @@ def write_outputs(config: DistillConfig, problem: Problem, texels: np.ndarray, h
     result["maps_written"] = [str(p.relative_to(out)) for p in written + evidence]
     result["history"] = history
     return result
+
+
+def _main_line(config, problem, texels, history, ctx, baseline, phases, out, score_later, maps_job):
+    """`write_outputs`' own line of work: renders, (the scores queued), evidence, plots; then waits
+    for the map files and the scores: (map files written, evidence files written, scores)."""
+    with phases("renders of every view"):
+        pred = evaluation.render_views(texels, ctx.plan, ctx.cameras, problem.channels,
+                                       lazy=problem.views_on_disk)   # on disk: rendered when asked for
+        if config.renders:
+            evaluation.write_renders(out / "renders", [v.name for v in problem.scene.views], pred)
+    scores_job = score_later(pred)
+    with phases("evidence"):
+        evidence = write_evidence(out, problem, ctx, baseline.views)
+    with phases("plots and contact sheets"):
+        write_loss_plot(out, problem, history)
+        write_contact_sheets(out, config, problem, pred, ctx, baseline.views)
+    return maps_job.result(), evidence, scores_job.result()
 
 
 def _done(fn, *args) -> Future:

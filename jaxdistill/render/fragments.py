@@ -68,7 +68,8 @@ BYTES_PER_PIXEL = sum(4 * int(np.prod(shape)) for shape, _ in FRAGMENT_FIELDS.va
 class FragmentRows(Sequence):
     """Every view's fragments (one resolution) in per-view arrays, one per field (NumPy, or files
     read a view at a time: `io.view_rows`): `rows[v]` is view v's `Fragments`, read when asked
-    for, so a caller that goes through the views holds one view's fragments at a time."""
+    for, so a caller that goes through the views holds a few views' fragments at a time (the set-up's
+    two threads, `threads.ordered_map`: at most three)."""
 
     def __init__(self, arrays: dict, shape: tuple[int, int]):
         self.arrays, self.shape = arrays, shape
@@ -255,7 +256,8 @@ def compute_fragments(mesh: Mesh, cameras: Sequence[Camera], *, cache_dir: Path 
     cache_dir: a folder, None for `default_cache_dir()`, or False to disable caching.
     empty: None returns a list; else `empty(name, shape, dtype)` allocates a (V, H, W, ...) array
     per field (all cameras of one resolution), filled a view at a time, and a `FragmentRows` over
-    them is returned (with file-backed arrays, no more than one view is ever in memory).
+    them is returned (with file-backed arrays, a few views are in memory at once: the one being
+    cast and at most three being derived).
     """
     cache = None if cache_dir is False else Path(cache_dir or default_cache_dir()) / "fragments"
     geometry_key = mesh_key(mesh)

@@ -88,10 +88,10 @@ def texel_view_statistics(plan: GatherPlan, images: Iterable[np.ndarray], num_te
             channels = image.shape[-1]
             state = (jnp.zeros(num_texels, jnp.int32), jnp.zeros((channels, num_texels), jnp.float32),
                      jnp.zeros((channels, num_texels), jnp.float32))
-        state = _accumulate(state, plan.select(v), image)
+        state = jax.block_until_ready(_accumulate(state, plan.select(v), image))   # one view's inputs at a time
     if state is None:
         raise ValueError("texel_view_statistics: no images")
-    count, mean, squares = (np.asarray(a) for a in jax.device_get(state))
+    count, mean, squares = (np.array(a) for a in jax.device_get(state))
     variance = np.maximum(squares, 0.0) / np.maximum(count, 1)      # rounding can leave -ulp where views agree
     return count, np.ascontiguousarray(mean.T), np.ascontiguousarray(variance.T)
 
