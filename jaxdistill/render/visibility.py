@@ -50,12 +50,18 @@ def view_counts(plan: GatherPlan, num_texels: int) -> np.ndarray:
     return counts
 
 
+def _transposed(plan: GatherPlan, plane: jnp.ndarray, num_texels: int) -> jnp.ndarray:
+    """(N,) float32: the transpose of the single-view `plan`'s render applied to one (H, W) image
+    plane: per texel, the gather-weighted sum of the plane's values at the pixels that read it."""
+    _, transpose = jax.vjp(lambda t: render(t, plan), jnp.zeros((num_texels, 1), jnp.float32))
+    (grad,) = transpose(plane.reshape(plan.height, plan.width, 1).astype(jnp.float32))
+    return grad[:, 0]
+
+
 @jax.jit
 def _evidence(plan: GatherPlan, num_texels_like: jnp.ndarray) -> jnp.ndarray:
     """(N,) float32: the transpose of the single-view `plan` applied to its hit mask."""
-    _, transpose = jax.vjp(lambda t: render(t, plan), num_texels_like)
-    (grad,) = transpose(plan.hit.reshape(plan.height, plan.width, 1).astype(jnp.float32))
-    return grad[:, 0]
+    return _transposed(plan, plan.hit, num_texels_like.shape[0])
 
 
 def texel_evidence(plan: GatherPlan, num_texels: int) -> np.ndarray:
@@ -107,11 +113,7 @@ def _accumulate(state, plan: GatherPlan, image: jnp.ndarray):
     hit = plan.hit.reshape(plan.height, plan.width).astype(jnp.float32)
     planes = jnp.concatenate([hit[None], jnp.moveaxis(image, -1, 0) * hit], axis=0)      # (1 + C, H, W)
 
-    def transpose(plane):
-        _, pull = jax.vjp(lambda t: render(t, plan), jnp.zeros((count.shape[0], 1), jnp.float32))
-        return pull(plane[..., None])[0][:, 0]
-
-    sums = jax.lax.map(transpose, planes)
+    sums = jax.lax.map(lambda plane: _transposed(plan, plane, count.shape[0]), planes)
     weight, seen = sums[0], sums[0] > 0
     value = sums[1:] / jnp.where(seen, weight, 1.0)
     count = count + seen
