@@ -15,6 +15,11 @@ height must be multiples of 8. Noise is seeded per view and map (fold_in of --se
 
 from __future__ import annotations
 
+from jaxdistill import huge_pages
+
+if __name__ == "__main__":      # before JAX is imported: glibc reads its tunables at start-up
+    huge_pages.run_again_with_huge_pages()
+
 import dataclasses
 import json
 import time

@@ -11,6 +11,11 @@ checkpoint and exit with 130/143, so a scheduler can tell a stopped run from a f
 
 from __future__ import annotations
 
+from jaxdistill import huge_pages
+
+if __name__ == "__main__":      # before JAX is imported: glibc reads its tunables at start-up
+    huge_pages.run_again_with_huge_pages()
+
 import logging as std_logging
 import sys
 from pathlib import Path

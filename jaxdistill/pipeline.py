@@ -19,6 +19,7 @@ import jax
 import numpy as np
 from absl import logging
 
+from jaxdistill import huge_pages
 from jaxdistill.engine import distributed, gains as align_lib
 from jaxdistill.engine.config import DistillConfig, check_views_per_step
 from jaxdistill.engine import loop as loop_lib
@@ -120,6 +121,7 @@ def run_record(config: DistillConfig, problem, loop, wall_start: float) -> dict:
         "device": {"backend": jax.default_backend(), "devices": [str(d) for d in devices],
                    "kind": devices[0].device_kind, "processes": jax.process_count()},
         "peak_host_memory_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+        "huge_pages": huge_pages.status(),       # how large host arrays are faulted in (huge_pages.py)
         "view_data": {"flag": config.view_data, "where": "disk" if problem.views_on_disk else "memory",
                       "disk_bytes": problem.view_folder.nbytes if problem.view_folder else 0},
         "peak_device_memory_mb": _peak_device_memory_mb(jax.local_devices()),     # this process's

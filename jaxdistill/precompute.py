@@ -12,6 +12,11 @@ Everything is also what the distillation step consumes; this command lets you in
 
 from __future__ import annotations
 
+from jaxdistill import huge_pages
+
+if __name__ == "__main__":      # before JAX is imported: glibc reads its tunables at start-up
+    huge_pages.run_again_with_huge_pages()
+
 import dataclasses
 import json
 import time

@@ -1,5 +1,6 @@
-"""`scripts/bench_malloc.py` as a user runs it: both malloc forms in their own processes on a tiny
-scene, their steps timed with their page faults, and the same texels."""
+"""`scripts/bench_malloc.py` as a user runs it: the three malloc forms in their own processes on a
+tiny scene (the huge-page tunable in the `huge` child's environment only), their steps timed with
+their page faults, and the same texels."""
 
 from __future__ import annotations
 
@@ -31,7 +32,13 @@ def test_the_benchmark_times_both_forms_with_the_same_texels(tmp_path):
                           env={**os.environ, "JAXDISTILL_CACHE": str(tmp_path / "cache")})
     assert done.returncode == 0, done.stderr[-3000:]
     doc = json.loads(out.read_text())
-    assert [r["form"] for r in doc["runs"]] == ["system", "keep"] and doc["texels_identical"]
+    assert [r["form"] for r in doc["runs"]] == ["system", "keep", "huge"] and doc["texels_identical"]
+    tunables = {r["form"]: r["glibc_tunables"] for r in doc["runs"]}
+    assert tunables["huge"] == "glibc.malloc.hugetlb=1" and "hugetlb" not in tunables["system"] + tunables["keep"]
     assert all(r["wall_s"] > 0 and isinstance(r["minor_faults"], int) and r["peak_rss_gb"] > 0 for r in doc["runs"])
     assert doc["keep_settings"]["M_ARENA_MAX"] == 1 and doc["set"] == ["lr=0.1"]
-    assert "keep / system" in done.stdout and "identical" in done.stdout
+    assert set(doc["ratio_to_first"]) == {"keep", "huge"} and doc["ratio_to_first"]["huge"]["wall_s"] > 0
+    assert "keep / system" in done.stdout and "huge / system" in done.stdout and "identical" in done.stdout
+    bad = subprocess.run([sys.executable, "scripts/bench_malloc.py", "--forms=system,tiny"], cwd=REPO,
+                         capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "--forms=system,tiny" in bad.stderr

@@ -89,8 +89,10 @@ def test_no_import_cycle_in_the_package():
 # The stages, lowest first (docs/design.md "Layers"). A module may import its own stage and the
 # stages below it, never one above: data flows scene → fragments → gather plans → step → outputs.
 LAYERS = (
-    ("jaxdistill", "jaxdistill.scenes", "jaxdistill.errors", "jaxdistill.xla_flags", "jaxdistill.threads"),
-    # constants, the embedded scene's data, errors, the XLA flags set on import, the per-view thread map
+    ("jaxdistill", "jaxdistill.scenes", "jaxdistill.errors", "jaxdistill.xla_flags", "jaxdistill.threads",
+     "jaxdistill.huge_pages"),
+    # constants, the embedded scene's data, errors, the XLA flags set on import, the per-view thread map,
+    # glibc's huge-page tunable
     ("jaxdistill.io",),            # images, checkpoints, per-view image files, exposure
     ("jaxdistill.scene",),         # cameras, mesh, scene objects and paths, the scene model, the maps
     ("jaxdistill.render",),        # ray casts into fragments, texel layout, gather plans, sampler, visibility, unwrap
