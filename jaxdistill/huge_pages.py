@@ -7,19 +7,26 @@ page faults a step in the default run). With the tunable, glibc marks its mapped
 `madvise(MADV_HUGEPAGE)`, so the kernel faults them in 2 MiB at a time (docs/benchmarks.md §7).
 
 Tunables are read by the dynamic loader when a process starts, so a process cannot set them for
-itself: the commands that compute (`python -m jaxdistill.main`, `.estimate`, `.precompute`, and
-`jaxdistill distill|estimate|precompute`) run themselves once more with the tunable added to
-`GLIBC_TUNABLES` (`os.execv`: the same process id, interpreter options and arguments), before
+itself: the commands that compute, started as commands (`python -m jaxdistill.main`, `.estimate`,
+`.precompute`, `python -m jaxdistill distill|estimate|precompute`, the `jaxdistill` script, or
+one of those modules' files run as a script), run themselves once more with the tunable added to
+`GLIBC_TUNABLES` (`os.execve`: the same process id, interpreter options and arguments), before
 anything but this package's `__init__` is imported. Nothing is done, and nothing re-run, when:
 
+- the process was started by another program that runs the module (a notebook's `%run -m`,
+  `python -m cProfile -m jaxdistill.main`, `runpy` in a script of yours, `python -c`): its
+  command line is not this package's command, so it is left alone (set the tunable yourself);
 - the system is not Linux with glibc 2.35 or newer (older glibc has no such tunable);
 - the kernel's transparent huge pages are not in `madvise` mode (`always`: the kernel uses them
   for every large mapping already; `never`: there are none to use);
 - `GLIBC_TUNABLES` names `glibc.malloc.hugetlb` already (the user's value wins);
-- `JAXDISTILL_HUGE_PAGES=0`.
+- `JAXDISTILL_HUGE_PAGES=0`;
+- the process was run again already (`RAN_AGAIN` in its environment: a loader that clears
+  `GLIBC_TUNABLES`, as glibc does for setuid programs, cannot make it run itself forever).
 
-`status()` says which applies (`metrics.json` records it). Results do not depend on it: the
-same arrays, laid out at other addresses.
+`status()` says which applies (`metrics.json` records it). It reports glibc's malloc: an
+allocator swapped in with `LD_PRELOAD` (tcmalloc, jemalloc) does not read the tunable. Results
+do not depend on it: the same arrays, laid out at other addresses.
 """
 
 from __future__ import annotations
@@ -27,12 +34,17 @@ from __future__ import annotations
 import os
 import re
 import sys
-from typing import Callable, Mapping
+from pathlib import Path
+from typing import Callable, Mapping, Sequence
 
 TUNABLE = "glibc.malloc.hugetlb"
 MIN_GLIBC = (2, 35)            # the first glibc with the tunable
 OFF = "JAXDISTILL_HUGE_PAGES"   # "0": keep glibc's defaults
+RAN_AGAIN = "JAXDISTILL_HUGE_PAGES_RAN_AGAIN"    # set in the process run again: never a second time
 THP_ENABLED = "/sys/kernel/mm/transparent_hugepage/enabled"
+MODULES = ("jaxdistill", "jaxdistill.main", "jaxdistill.estimate", "jaxdistill.precompute")
+_FILES = ("main.py", "estimate.py", "precompute.py", "__main__.py")
+_OPTIONS_WITH_VALUE = ("-X", "-W", "--check-hash-based-pycs")
 
 
 def thp_mode(path: str = THP_ENABLED) -> str | None:
@@ -55,15 +67,38 @@ def glibc_version() -> tuple[int, int] | None:
     return (int(match[1]), int(match[2])) if match else None
 
 
+def is_package_command(argv: Sequence[str]) -> bool:
+    """Whether an interpreter command line (`sys.orig_argv`) runs one of this package's commands:
+    `-m` one of `MODULES`, the `jaxdistill` script, or one of the modules' own files; not `-c`,
+    stdin, or another program that runs the module in turn (`-m cProfile`, `-m ipykernel_launcher`)."""
+    args = list(argv[1:])
+    i = 0
+    while i < len(args):
+        arg = args[i]
+        if arg == "-m" or (arg.startswith("-m") and not arg.startswith("--")):
+            module = args[i + 1] if arg == "-m" and i + 1 < len(args) else arg[2:]
+            return module in MODULES
+        if arg in _OPTIONS_WITH_VALUE:
+            i += 2
+            continue
+        if arg == "-" or (arg.startswith("-") and not arg.startswith("--") and "c" in arg[1:]):
+            return False            # stdin, or -c COMMAND (also in a group of flags such as -Ic)
+        if arg.startswith("-"):
+            i += 1
+            continue
+        script = Path(arg)
+        return script.name == "jaxdistill" or (script.name in _FILES and script.resolve().parent ==
+                                               Path(__file__).resolve().parent)
+    return False
+
+
 def _named(tunables: str) -> dict[str, str]:
     """{name: value} of a `GLIBC_TUNABLES` value ("a.b.c=1:d.e.f=2")."""
-    return dict(item.split("=", 1) for item in tunables.split(":") if "=" in item)
+    return dict(item.strip().split("=", 1) for item in tunables.split(":") if "=" in item)
 
 
-def why_not(environ: Mapping[str, str], glibc: tuple[int, int] | None, mode: str | None) -> str | None:
-    """Why this process does not add the tunable (None: it does, or has it already)."""
-    if environ.get(OFF) == "0":
-        return f"{OFF}=0"
+def _unusable(glibc: tuple[int, int] | None, mode: str | None) -> str | None:
+    """Why glibc's tunable would do nothing here (None: it works)."""
     if glibc is None:
         return "the C library is not glibc"
     if glibc < MIN_GLIBC:
@@ -74,46 +109,70 @@ def why_not(environ: Mapping[str, str], glibc: tuple[int, int] | None, mode: str
     return None
 
 
+def why_not(environ: Mapping[str, str], glibc: tuple[int, int] | None, mode: str | None) -> str | None:
+    """Why this process would not add the tunable (None: it would, or has it already)."""
+    if environ.get(OFF) == "0":
+        return f"{OFF}=0"
+    return _unusable(glibc, mode)
+
+
 def tunables_to_add(environ: Mapping[str, str], glibc: tuple[int, int] | None, mode: str | None) -> str | None:
     """The `GLIBC_TUNABLES` value to run again with, or None when nothing is to change (see the
     module's docstring; a value the user gave for the tunable is kept)."""
-    current = environ.get("GLIBC_TUNABLES", "")
-    if TUNABLE in _named(current) or why_not(environ, glibc, mode):
+    current = environ.get("GLIBC_TUNABLES", "").strip().rstrip(":")
+    if environ.get(RAN_AGAIN) or TUNABLE in _named(current) or why_not(environ, glibc, mode):
         return None
     return f"{current}:{TUNABLE}=1" if current else f"{TUNABLE}=1"
 
 
 def status(environ: Mapping[str, str] = os.environ, glibc: tuple[int, int] | None = ...,
            mode: str | None = ...) -> str:
-    """One line: whether this process's large allocations are faulted in as huge pages, and why."""
+    """One line, "on: ...", "off: ..." or "as given: ...": whether this process's large allocations
+    are faulted in as huge pages, and why."""
     glibc = glibc_version() if glibc is ... else glibc
     mode = thp_mode() if mode is ... else mode
     given = _named(environ.get("GLIBC_TUNABLES", "")).get(TUNABLE)
-    if given is not None and given != "1":
-        return f"off: GLIBC_TUNABLES has {TUNABLE}={given}"
-    if mode == "always":
+    if mode == "always":                  # the kernel's own choice, whatever glibc is told
         return "on: the kernel's transparent huge pages are 'always'"
+    if given == "0":
+        return f"off: GLIBC_TUNABLES has {TUNABLE}=0"
+    if given is not None and given != "1":             # e.g. 2: hugetlbfs pages the system set aside
+        return f"as given: GLIBC_TUNABLES has {TUNABLE}={given}"
+    if given == "1":
+        reason = _unusable(glibc, mode)
+        return f"off: {reason}" if reason else f"on: {TUNABLE}=1 with transparent huge pages in 'madvise' mode"
     reason = why_not(environ, glibc, mode)
     if reason:
         return f"off: {reason}"
-    return f"on: {TUNABLE}=1 with transparent huge pages in 'madvise' mode" if given == "1" else \
-        f"off: {TUNABLE} is not set (the process was not started through a command that sets it)"
+    if environ.get(RAN_AGAIN):
+        return f"off: run again with {TUNABLE}=1, but GLIBC_TUNABLES was cleared at start-up (a setuid or " \
+               "capability-raised interpreter, or a wrapper that resets the environment)"
+    return f"off: {TUNABLE} is not set (the process was not started as a jaxdistill command that sets it)"
+
+
+def _flush() -> None:
+    for stream in (sys.stdout, sys.stderr, sys.__stdout__, sys.__stderr__):
+        try:
+            if stream is not None:
+                stream.flush()
+        except (OSError, ValueError):
+            pass
 
 
 def run_again_with_huge_pages(environ: Mapping[str, str] = os.environ,
                               execve: Callable[[str, list[str], dict], None] = os.execve) -> bool:
     """Runs this process's command again, with the tunable added to `environ` (never returns
-    then); False when nothing is to change, or when the new process could not be started (a
-    warning on stderr; this one goes on without)."""
+    then); False when nothing is to change, when the process is not a jaxdistill command
+    (`is_package_command`), or when the new process could not be started (a warning on stderr;
+    this one goes on without)."""
     value = tunables_to_add(environ, glibc_version(), thp_mode())
     argv = getattr(sys, "orig_argv", None)
-    if value is None or not argv or not sys.executable:
+    if value is None or not argv or not sys.executable or not is_package_command(argv):
         return False
-    sys.stdout.flush()
-    sys.stderr.flush()
+    _flush()
     try:
-        execve(sys.executable, [sys.executable, *argv[1:]], {**environ, "GLIBC_TUNABLES": value})
-    except OSError as err:
+        execve(sys.executable, [sys.executable, *argv[1:]], {**environ, "GLIBC_TUNABLES": value, RAN_AGAIN: "1"})
+    except (OSError, ValueError) as err:
         print(f"warning: could not run again with {TUNABLE}=1 ({err}); going on without huge pages "
               f"(set {OFF}=0 to skip this)", file=sys.stderr)
         return False

@@ -1,7 +1,8 @@
 """The main job's steps under three settings of glibc's malloc, side by side, each in its own
 process (docs/benchmarks.md §7):
 
-  system  glibc's defaults (no huge pages: `JAXDISTILL_HUGE_PAGES=0`, no `glibc.malloc.hugetlb`);
+  system  glibc's defaults (`glibc.malloc.hugetlb` not set, `JAXDISTILL_HUGE_PAGES=0`; the
+          kernel's own transparent huge page mode applies, recorded per child);
   keep    freed memory kept in the process (`mallopt`: one arena, blocks up to 1 GiB from the
           heap, the heap's free top kept up to 2 GiB): tried for the main job and not kept;
   huge    `GLIBC_TUNABLES=glibc.malloc.hugetlb=1`: glibc's mapped blocks marked for transparent
@@ -69,6 +70,8 @@ def child(form: str, flagfile: str, steps: int, sets: list[str]) -> dict:
     import numpy as np
     from absl import flags
 
+    from jaxdistill import huge_pages
+
     from jaxdistill.engine import config as config_lib, distributed, loop
     from jaxdistill.engine.problem import build_problem
 
@@ -98,7 +101,7 @@ def child(form: str, flagfile: str, steps: int, sets: list[str]) -> dict:
     return {"form": form, "steps": steps, "wall_s": wall, "user_s": after.ru_utime - before.ru_utime,
             "system_s": after.ru_stime - before.ru_stime, "minor_faults": after.ru_minflt - before.ru_minflt,
             "peak_rss_gb": after.ru_maxrss / 2 ** 20, "texels_sha1": hashlib.sha1(texels.tobytes()).hexdigest(),
-            "glibc_tunables": os.environ.get("GLIBC_TUNABLES", "")}
+            "glibc_tunables": os.environ.get("GLIBC_TUNABLES", ""), "thp_mode": huge_pages.thp_mode()}
 
 
 def main(argv=None) -> int:

@@ -18,7 +18,7 @@ from tiny_scene import write_tiny_scene
 REPO = Path(__file__).resolve().parents[1]
 
 
-def test_the_benchmark_times_both_forms_with_the_same_texels(tmp_path):
+def test_the_benchmark_times_each_form_with_the_same_texels(tmp_path):
     if platform.libc_ver()[0] != "glibc":
         pytest.skip("not glibc: there is no second form to compare")
     scene = write_tiny_scene(tmp_path / "scene", views=3)

