@@ -71,7 +71,6 @@ def child(form: str, flagfile: str, steps: int, sets: list[str]) -> dict:
     from absl import flags
 
     from jaxdistill import huge_pages
-
     from jaxdistill.engine import config as config_lib, distributed, loop
     from jaxdistill.engine.problem import build_problem
 
