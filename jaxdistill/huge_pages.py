@@ -44,7 +44,7 @@ RAN_AGAIN = "JAXDISTILL_HUGE_PAGES_RAN_AGAIN"    # set in the process run again:
 THP_ENABLED = "/sys/kernel/mm/transparent_hugepage/enabled"
 MODULES = ("jaxdistill", "jaxdistill.main", "jaxdistill.estimate", "jaxdistill.precompute")
 _FILES = ("main.py", "estimate.py", "precompute.py", "__main__.py")
-_OPTIONS_WITH_VALUE = ("-X", "-W", "--check-hash-based-pycs")
+_OPTIONS_WITH_VALUE = ("--check-hash-based-pycs",)
 
 
 def thp_mode(path: str = THP_ENABLED) -> str | None:
@@ -70,21 +70,29 @@ def glibc_version() -> tuple[int, int] | None:
 def is_package_command(argv: Sequence[str]) -> bool:
     """Whether an interpreter command line (`sys.orig_argv`) runs one of this package's commands:
     `-m` one of `MODULES`, the `jaxdistill` script, or one of the modules' own files; not `-c`,
-    stdin, or another program that runs the module in turn (`-m cProfile`, `-m ipykernel_launcher`)."""
+    stdin, or another program that runs the module in turn (`-m cProfile`, `-m ipykernel_launcher`).
+    Short options are read as Python reads them: grouped (`-Im`), and `-c`, `-m`, `-W`, `-X` take
+    the rest of their group or the next argument as their value (`-Wdefault`, `-X utf8`)."""
     args = list(argv[1:])
     i = 0
     while i < len(args):
-        arg = args[i]
-        if arg == "-m" or (arg.startswith("-m") and not arg.startswith("--")):
-            module = args[i + 1] if arg == "-m" and i + 1 < len(args) else arg[2:]
-            return module in MODULES
-        if arg in _OPTIONS_WITH_VALUE:
-            i += 2
+        arg, i = args[i], i + 1
+        if arg == "-":
+            return False                        # the program comes from stdin
+        if arg.startswith("--"):
+            i += arg in _OPTIONS_WITH_VALUE     # a long option (its value is the next argument)
             continue
-        if arg == "-" or (arg.startswith("-") and not arg.startswith("--") and "c" in arg[1:]):
-            return False            # stdin, or -c COMMAND (also in a group of flags such as -Ic)
         if arg.startswith("-"):
-            i += 1
+            for j, letter in enumerate(arg[1:], start=1):
+                if letter in "cmWX":
+                    value = arg[j + 1:]
+                    if not value and i < len(args):
+                        value, i = args[i], i + 1
+                    if letter == "c":
+                        return False
+                    if letter == "m":
+                        return value in MODULES
+                    break                       # -W or -X: its value is read
             continue
         script = Path(arg)
         return script.name == "jaxdistill" or (script.name in _FILES and script.resolve().parent ==

@@ -58,9 +58,12 @@ def test_only_the_packages_own_commands_run_again():
     yes = [["python", "-m", "jaxdistill.main", "--steps=3"], ["python", "-X", "utf8", "-u", "-m", "jaxdistill.estimate"],
            ["python", "-mjaxdistill.precompute"], ["python", "-m", "jaxdistill", "distill"],
            ["python", "/usr/local/bin/jaxdistill", "distill", "--config=bedroom"],
-           ["python", str(Path(huge_pages.__file__).with_name("main.py")), "--steps=1"]]
+           ["python", str(Path(huge_pages.__file__).with_name("main.py")), "--steps=1"],
+           ["python", "-Wdefault::DeprecationWarning", "-m", "jaxdistill.main"], ["python", "-Im", "jaxdistill.main"],
+           ["python", "-W", "ignore", "-Xutf8", "--check-hash-based-pycs", "never", "-mjaxdistill.main"]]
     no = [["python", "-m", "cProfile", "-m", "jaxdistill.main"], ["python", "-m", "ipykernel_launcher", "-f", "k.json"],
-          ["python", "-c", "import runpy"], ["python", "-Ic", "import runpy"], ["python", "-"], ["python", "run.py"],
+          ["python", "-c", "import runpy"], ["python", "-Ic", "import runpy"], ["python", "-uc", "import runpy"],
+          ["python", "-W", "ignore", "-c", "import runpy"], ["python", "-"], ["python", "run.py"],
           ["python", "-m", "jaxdistill.view"], ["python"], ["python", "-X"]]
     assert all(huge_pages.is_package_command(argv) for argv in yes), [a for a in yes if not huge_pages.is_package_command(a)]
     assert not any(huge_pages.is_package_command(argv) for argv in no), [a for a in no if huge_pages.is_package_command(a)]
