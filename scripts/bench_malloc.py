@@ -31,8 +31,10 @@ import subprocess
 import sys
 from pathlib import Path
 
+from jaxdistill.huge_pages import OFF, TUNABLE       # light: the package's __init__ and this module
+
 FORMS = ("system", "keep", "huge")
-HUGE = "glibc.malloc.hugetlb=1"
+HUGE = f"{TUNABLE}=1"
 M_TRIM_THRESHOLD, M_MMAP_THRESHOLD, M_ARENA_MAX = -1, -3, -8       # glibc's mallopt parameters (malloc.h)
 KEEP = ((M_ARENA_MAX, 1), (M_MMAP_THRESHOLD, 1 << 30), (M_TRIM_THRESHOLD, (1 << 31) - 1))
 
@@ -125,10 +127,10 @@ def main(argv=None) -> int:
         return 0
     runs = []
     base_env = {k: v for k, v in os.environ.items() if k != "GLIBC_TUNABLES"}
-    others = ":".join(t for t in os.environ.get("GLIBC_TUNABLES", "").split(":") if t and "malloc.hugetlb" not in t)
+    others = ":".join(t for t in os.environ.get("GLIBC_TUNABLES", "").split(":") if t and not t.strip().startswith(TUNABLE))
     for _ in range(args.repeats):
         for form in forms:
-            env = {**base_env, "JAXDISTILL_HUGE_PAGES": "0"}
+            env = {**base_env, OFF: "0"}
             tunables = ":".join(t for t in (others, HUGE if form == "huge" else "") if t)
             if tunables:
                 env["GLIBC_TUNABLES"] = tunables
