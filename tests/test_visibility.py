@@ -157,6 +157,30 @@ def test_texel_view_statistics_of_varying_images_match_a_float64_reference():
     assert np.median(ref_var[many]) > 1e-8                              # the spreads are really there
 
 
+def test_texel_view_statistics_do_not_depend_on_how_the_read_texels_are_chunked(monkeypatch):
+    """Each view updates only the texels it reads, a chunk of them per call (`READ_CHUNK`, the ids
+    padded with an out-of-range id): chunks of 37 texels (many per view, the last one padded)
+    give the same statistics, bit for bit, as one chunk."""
+    from jaxdistill.render import visibility
+
+    mesh, frags = scene_views()
+    layout = make_layout(len(mesh.object_names), "pages", 32, frags, mipmaps=True)
+    space = build_texel_space(frags, layout, "trilinear")
+    plan = build_gather_plans(frags, space, "trilinear")
+    rng = np.random.default_rng(7)
+    images = [rng.uniform(-1, 1, (*f.shape, 3)).astype(np.float32) for f in frags]
+    whole = texel_view_statistics(plan, images, space.num_texels)
+    read = [int((visibility._evidence(plan.select(v), jnp.zeros((space.num_texels, 1))) > 0).sum())
+            for v in range(plan.num_views)]
+    assert max(read) <= visibility.READ_CHUNK                              # one chunk each by default
+    monkeypatch.setattr(visibility, "READ_CHUNK", 37)
+    assert min(read) > 3 * 37 and any(n % 37 for n in read)               # many chunks, a padded last one
+    chunked = texel_view_statistics(plan, images, space.num_texels)
+    for a, b in zip(whole, chunked):
+        np.testing.assert_array_equal(a, b)
+    assert (whole[0] >= 2).sum() > 100 and (whole[0] == 0).sum() < len(whole[0])
+
+
 def test_texel_trust_expands_to_the_page_trust_of_the_expanded_evidence():
     """What texel_space.npz stores per texel (charts.texel_trust) gives, expanded to pages, the
     very trust pages the export weights its push-pull fill with (charts.page_trust)."""

@@ -117,20 +117,23 @@ def write_evidence(out: Path, problem: Problem, ctx: EvalContext, baseline: list
     pages = {"visibility": expand(problem.counts.astype(np.float32)[:, None], space, 0.0, dilation=0)}
     if baseline:
         plan = training_plan(problem)
-
-        def view_images(m):                 # one view at a time, at the render size
-            for camera, per_view in zip(ctx.cameras, baseline):
-                image = resize(per_view[m], problem.height, problem.width)
-                if m == "normal":           # estimates are in RGB<->X camera space; texels are world space
-                    image = image @ rgbx_camera_rotation(camera.c2w).T.astype(np.float32)
-                yield image
-
-        for m in channels.maps:             # per map: dense work arrays of 1-3 channels, not all 11
-            count, _, variance = texel_view_statistics(plan, view_images(m), space.num_texels)
+        for m in channels.maps:             # per map: work arrays of 1-3 channels, not all 11
+            count, _, variance = texel_view_statistics(plan, evidence_images(problem, ctx, baseline, m),
+                                                       space.num_texels)
             spread = np.where(count >= 2, np.sqrt(variance.sum(axis=1)), np.nan).astype(np.float32)
             del variance
             pages[f"disagreement_{m}"] = expand(spread[:, None], space, np.nan, dilation=0)
     return page_files.write_evidence(out, pages, problem.scene.mesh.object_names, space.layout.object_page)
+
+
+def evidence_images(problem: Problem, ctx: EvalContext, baseline: list[dict], m: str):
+    """Map `m` of every view's estimate as the evidence reads it: at the render size, normals
+    turned from RGB<->X camera space into world space (the texels'), one view at a time."""
+    for camera, per_view in zip(ctx.cameras, baseline):
+        image = resize(per_view[m], problem.height, problem.width)
+        if m == "normal":
+            image = image @ rgbx_camera_rotation(camera.c2w).T.astype(np.float32)
+        yield image
 
 
 def write_contact_sheets(out: Path, config: DistillConfig, problem: Problem, pred: list[dict], ctx: EvalContext,

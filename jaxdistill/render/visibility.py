@@ -85,16 +85,25 @@ def texel_view_statistics(plan: GatherPlan, images: Iterable[np.ndarray], num_te
     `images` (one per view of `plan`, in order) may be a generator: one view's image is in memory
     at a time. The statistics are kept on the device as Welford's running mean and sum of squared
     deviations (float32, stable where the views agree closely), updated a view at a time by one
-    compiled function (`_accumulate`); the work arrays are (C, N), so a caller with many channels
-    asks per map and holds a few channels at once."""
+    compiled function (`_accumulate`) on the texels that view reads only (`_read_texels`: a few
+    to a fifth of a room's texels per view), so the update's cost goes with what a view sees,
+    not with the texels; the work arrays are (C, N), so a caller with many channels asks per map
+    and holds a few channels at once."""
     state = None
+    zeros = jnp.zeros((num_texels, 1), jnp.float32)
     for v, image in enumerate(images):
         image = jnp.asarray(image, jnp.float32)
         if state is None:
             channels = image.shape[-1]
             state = (jnp.zeros(num_texels, jnp.int32), jnp.zeros((channels, num_texels), jnp.float32),
                      jnp.zeros((channels, num_texels), jnp.float32))
-        state = jax.block_until_ready(_accumulate(state, plan.select(v), image))   # one view's inputs at a time
+        one = jax.device_put(plan.select(v))              # once for the view's several calls
+        weight = _evidence(one, zeros)                     # the view's read weight w per texel
+        read = _read_texels(np.asarray(weight), num_texels)
+        sums = tuple(_channel_sum(one, image[..., c], num_texels=num_texels) for c in range(image.shape[-1]))
+        for start in range(0, len(read), READ_CHUNK):      # one compiled update for every view
+            state = _accumulate(state, weight, sums, read[start:start + READ_CHUNK])
+        state = jax.block_until_ready(state)              # one view's inputs in memory at a time
     if state is None:
         raise ValueError("texel_view_statistics: no images")
     count, mean, squares = (np.array(a) for a in jax.device_get(state))
@@ -102,25 +111,44 @@ def texel_view_statistics(plan: GatherPlan, images: Iterable[np.ndarray], num_te
     return count, np.ascontiguousarray(mean.T), np.ascontiguousarray(variance.T)
 
 
-@functools.partial(jax.jit, donate_argnums=(0,))
-def _accumulate(state, plan: GatherPlan, image: jnp.ndarray):
-    """One view's update of (count (N,), mean (C, N), sum of squared deviations (C, N)): the
-    transpose of the single-view `plan`'s render applied to the hit mask (the read weight w) and
-    to each channel of `image` (H, W, C) on hit pixels (the weighted sum s), a channel at a time
-    (an (N, 1) transpose is several times faster per channel than an (N, C) one on the CPU); the
-    view's value s / w joins the texels with w > 0."""
-    count, mean, squares = state
-    hit = plan.hit.reshape(plan.height, plan.width).astype(jnp.float32)
-    planes = jnp.concatenate([hit[None], jnp.moveaxis(image, -1, 0) * hit], axis=0)      # (1 + C, H, W)
+READ_CHUNK = 1 << 18     # texels per `_accumulate` call: one compiled shape, whatever a view reads
 
-    sums = jax.lax.map(lambda plane: _transposed(plan, plane, count.shape[0]), planes)
-    weight, seen = sums[0], sums[0] > 0
-    value = sums[1:] / jnp.where(seen, weight, 1.0)
-    count = count + seen
-    delta = value - mean
-    mean = mean + jnp.where(seen, delta / jnp.maximum(count, 1), 0.0)
-    squares = squares + jnp.where(seen, delta * (value - mean), 0.0)
-    return count, mean, squares
+
+def _read_texels(weight: np.ndarray, num_texels: int) -> np.ndarray:
+    """int32 ids of the texels with w > 0, padded with `num_texels` (out of range: reads give 0,
+    writes are dropped) to a multiple of READ_CHUNK."""
+    read = np.flatnonzero(weight > 0).astype(np.int32)
+    return np.pad(read, (0, -len(read) % READ_CHUNK), constant_values=num_texels)
+
+
+@functools.partial(jax.jit, static_argnames=("num_texels",))
+def _channel_sum(plan: GatherPlan, plane: jnp.ndarray, *, num_texels: int) -> jnp.ndarray:
+    """(N,) float32: the transpose of the single-view `plan`'s render applied to one channel (H, W)
+    of an image on the plan's hit pixels: per texel the gather-weighted sum s. One channel per
+    compiled call: on the CPU that is several times faster per channel than an (N, C) transpose,
+    and than C of them in one program."""
+    hit = plan.hit.reshape(plan.height, plan.width)
+    return _transposed(plan, jnp.where(hit, plane, 0.0), num_texels)
+
+
+@functools.partial(jax.jit, donate_argnums=(0,))
+def _accumulate(state, weight: jnp.ndarray, sums: tuple, read: jnp.ndarray):
+    """One view's update of (count (N,), mean (C, N), sum of squared deviations (C, N)) at the
+    texels `read` (a chunk of `_read_texels`), from the view's read weight w (N,) (`_evidence`)
+    and its weighted sums s, C arrays (N,) (`_channel_sum`): the view's value s / w joins the
+    texels with w > 0. The texels outside `read` are left as they are, as a dense update would."""
+    count, mean, squares = state
+    at = lambda a: a.at[..., read].get(mode="fill", fill_value=0)
+    w = at(weight)
+    seen = w > 0
+    value = jnp.stack([at(s) for s in sums]) / jnp.where(seen, w, 1.0)
+    n = at(count) + seen
+    old = at(mean)
+    delta = value - old
+    new = old + jnp.where(seen, delta / jnp.maximum(n, 1), 0.0)
+    squared = at(squares) + jnp.where(seen, delta * (value - new), 0.0)
+    return (count.at[read].set(n, mode="drop"), mean.at[:, read].set(new, mode="drop"),
+            squares.at[:, read].set(squared, mode="drop"))
 
 
 def pixel_weights(plan: GatherPlan, counts: np.ndarray, out=None) -> np.ndarray:
