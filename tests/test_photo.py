@@ -270,7 +270,7 @@ def test_the_gradient_reaches_albedo_and_irradiance_only_where_the_views_see_the
 def test_the_step_adds_the_photo_gradient_to_the_sds_gradient_on_one_shared_pyramid(tiny_scene, tmp_path):
     """The step builds one mip pyramid for the renders and the photos and transposes it once: its
     jaxpr concatenates a pyramid's levels above the texels once (the split pyramid: the texels are
-    never copied into it), and its gradient (read off an SGD step) is the SDS step's
+    never copied into it) and gathers from the texels once for both, and its gradient (read off an SGD step) is the SDS step's
     gradient plus the weighted gradient of `_photo_fn`, which builds its own pyramid from the texels."""
     import optax
 
@@ -303,6 +303,10 @@ def test_the_step_adds_the_photo_gradient_to_the_sds_gradient_on_one_shared_pyra
     rows = [e.outvars[0].aval.shape[0] for e in jaxpr.eqns if e.primitive.name == "concatenate"]
     space = problem.space                        # one pyramid, split: its levels above the texels concatenated
     assert rows.count(space.pyramid_size - space.num_texels) == 1 and space.pyramid_size not in rows   # once
+    # the renders' and the photos' taps read by one gather from the texels (`sampler.sample_many`)
+    assert settings.split_pyramid
+    gathers = [e for e in jaxpr.eqns if e.primitive.name == "gather" and e.invars[0].aval.shape == texels.shape]
+    assert len(gathers) == 1
 
 
 def test_photo_weight_zero_is_todays_step_exactly(tiny_scene, tmp_path):

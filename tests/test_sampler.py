@@ -14,7 +14,8 @@ from jaxdistill.render import fragments as fr
 from jaxdistill.render import gather_plan
 from jaxdistill.render.gather_plan import build_gather_plans, build_texel_space
 from jaxdistill.render.layout import TextureLayout, make_layout
-from jaxdistill.render.sampler import SplitPyramid, build_pyramid, compact, coverage, expand, push_pull, render, sample
+from jaxdistill.render.sampler import (SplitPyramid, build_pyramid, compact, coverage, expand, push_pull, render, sample,
+                                      sample_many)
 
 
 def reference_sample(page, uv):
@@ -171,6 +172,40 @@ def test_split_pyramid_samples_and_transposes_as_the_concatenated_one(room):
     single = build_pyramid(x[:, :1].astype(jnp.float32), gather_plan.MipChain(tile=1, in_tile_levels=1, children=()),
                            split=True)
     assert not isinstance(single, SplitPyramid)       # nothing above the texels: the texels themselves
+
+
+def test_sample_many_reads_several_plans_as_sample_reads_each(room):
+    """One gather of two plans' taps (a step's renders and its photos: views in another order and
+    a batch of another size) gives each plan's image as `sample` does, from either pyramid form
+    (float64), and its transpose is the sum of the two plans' transposes; its jaxpr gathers from
+    the texels once where `sample` per plan gathers twice."""
+    with jax.enable_x64(True):
+        space, plan, plan64, x, y, _ = trilinear_case(room, 3, 6)
+        other = plan64.select(np.array([2, 0]))
+        z = jnp.asarray(np.random.default_rng(7).normal(size=(2, plan.height, plan.width, 3)))
+        for split in (False, True):
+            pyramid = build_pyramid(x, plan.chain, split=split)
+            both = sample_many(pyramid, [plan64, other])
+            np.testing.assert_allclose(both[0], sample(pyramid, plan64), rtol=1e-12, atol=1e-12)
+            np.testing.assert_allclose(both[1], sample(pyramid, other), rtol=1e-12, atol=1e-12)
+            joint = jax.grad(lambda t, s=split: sum(jnp.sum(i * c) for i, c in zip(
+                sample_many(build_pyramid(t, plan.chain, split=s), [plan64, other]), (y, z))))(x)
+            apart = jax.grad(lambda t, s=split: jnp.sum(sample(build_pyramid(t, plan.chain, split=s), plan64) * y)
+                             + jnp.sum(sample(build_pyramid(t, plan.chain, split=s), other) * z))(x)
+            np.testing.assert_allclose(joint, apart, rtol=1e-11, atol=1e-11)
+        (one,) = sample_many(build_pyramid(x, plan.chain), [plan64])
+        np.testing.assert_array_equal(one, sample(build_pyramid(x, plan.chain), plan64))
+
+    def gathers_from_texels(fn):
+        jaxpr = jax.make_jaxpr(fn)(x.astype(jnp.float32))
+        return sum(e.primitive.name == "gather" and e.invars[0].aval.shape == x.shape for e in jaxpr.eqns)
+
+    pair = [plan, plan.select(np.array([2, 0]))]
+    assert gathers_from_texels(lambda t: sample_many(build_pyramid(t, plan.chain, split=True), pair)) == 1
+    assert gathers_from_texels(lambda t: [sample(build_pyramid(t, plan.chain, split=True), p) for p in pair]) == 2
+    with pytest.raises(ValueError, match="taps"):
+        sample_many(build_pyramid(x, plan.chain), [plan, plan.replace(index=plan.index[..., :4],
+                                                                       weight=plan.weight[..., :4])])
 
 
 def test_split_pyramid_keeps_one_texel_array_less_in_a_gradient():

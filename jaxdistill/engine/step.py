@@ -39,7 +39,7 @@ from jaxdistill.engine.optimizer import gated_step, learning_rate, make_optimize
 from jaxdistill.engine.priors import Prior
 from jaxdistill.scene.maps import MapChannels
 from jaxdistill.render.gather_plan import GatherPlan
-from jaxdistill.render.sampler import build_pyramid, render, sample
+from jaxdistill.render.sampler import build_pyramid, render, sample_many
 
 
 @flax.struct.dataclass
@@ -201,11 +201,17 @@ def make_step(prior: Prior, settings: StepSettings, optimizer: optax.GradientTra
         # one mip pyramid for the renders and the photos, so one transpose of it in the gradient; split
         # (texels + the entries above them, `SplitPyramid`): no copy of the texels, and its cotangent's
         # level 0 is their gradient, one texel array less than a concatenated pyramid in the step's
-        # memory for a second gather, and on the CPU no slower (docs/benchmarks.md §10; `loop.step_settings`)
+        # memory for a second gather, and on the CPU no slower (docs/benchmarks.md §10; `loop.step_settings`).
+        # The renders' and the photos' taps are read by one gather, so their gradient is one scatter-add
+        # (`sample_many`; docs/benchmarks.md §7)
         pyramid, pyramid_pullback = jax.vjp(
             lambda x: build_pyramid(x, frozen["chain"], split=settings.split_pyramid), state.texels)
+        plans = [_render_plan(settings, batch, frozen)]
+        if settings.photo_weight > 0:
+            plans.append(_photo_plan(settings, batch, frozen))
+        images, images_pullback = jax.vjp(lambda p: sample_many(p, plans), pyramid)
         features_of = _features_fn(prior, settings, batch, frozen, k_features)
-        features, pullback = jax.vjp(features_of, pyramid)
+        features, pullback = jax.vjp(features_of, images[0])
         num_views = batch["pixel_weight"].shape[0]
 
         def fresh(_):
@@ -238,13 +244,14 @@ def make_step(prior: Prior, settings: StepSettings, optimizer: optax.GradientTra
 
         (loss, terms), (grad_features, grad_gains) = jax.value_and_grad(objective, argnums=(0, 1), has_aux=True)(
             features, log_gains)
-        (grad,) = pullback(grad_features)
+        grads = list(pullback(grad_features))
         photo_metrics = {}
         if settings.photo_weight > 0:       # the photos re-rendered from the texels (photo.py)
             (photo_value, photo_metrics), photo_grad = jax.value_and_grad(
-                _photo_of_pyramid(settings, batch, frozen), has_aux=True)(pyramid)
+                _photo_of_image(settings, batch), has_aux=True)(images[1])
             loss = loss + settings.photo_weight * photo_value
-            grad = jax.tree.map(lambda g, p: g + settings.photo_weight * p, grad, photo_grad)   # pyramid-shaped
+            grads.append(settings.photo_weight * photo_grad)
+        (grad,) = images_pullback(tuple(grads))
         (grad,) = pyramid_pullback(grad)
         finite = jnp.isfinite(loss) & jnp.all(jnp.isfinite(grad)) & jnp.all(jnp.isfinite(grad_gains))
         ok = finite & ~state.halted            # after a non-finite step, nothing moves any more
@@ -270,15 +277,23 @@ def make_step(prior: Prior, settings: StepSettings, optimizer: optax.GradientTra
     return step
 
 
-def _features_fn(prior, settings: StepSettings, batch: dict, frozen: dict, key) -> Callable:
-    """pyramid (`build_pyramid` of the texels) → the prior's features (renders, or their
-    latents) of the batch's views."""
-    plan = GatherPlan(index=batch["index"], weight=batch["weight"], hit=batch["hit"], chain=frozen["chain"],
+def _render_plan(settings: StepSettings, batch: dict, frozen: dict) -> GatherPlan:
+    """The gather plans of the batch's views at the render size."""
+    return GatherPlan(index=batch["index"], weight=batch["weight"], hit=batch["hit"], chain=frozen["chain"],
                       height=settings.height, width=settings.width)
 
-    def features_of(pyramid):
-        images = _rotated_maps(sample(pyramid, plan), batch["normal_rotation"], settings.channels)
-        return prior.features(frozen["prior"], images, key)
+
+def _photo_plan(settings: StepSettings, batch: dict, frozen: dict) -> GatherPlan:
+    """The gather plans of the batch's photos at the photo size."""
+    return GatherPlan(index=batch["photo_index"], weight=batch["photo_tap_weight"], hit=batch["photo_hit"],
+                      chain=frozen["chain"], height=settings.photo_height, width=settings.photo_width)
+
+
+def _features_fn(prior, settings: StepSettings, batch: dict, frozen: dict, key) -> Callable:
+    """renders (B, H, W, C) of the batch's views → the prior's features (the renders' maps, or
+    their latents)."""
+    def features_of(image):
+        return prior.features(frozen["prior"], _rotated_maps(image, batch["normal_rotation"], settings.channels), key)
 
     return features_of
 
@@ -286,22 +301,20 @@ def _features_fn(prior, settings: StepSettings, batch: dict, frozen: dict, key) 
 def _photo_fn(settings: StepSettings, batch: dict, frozen: dict) -> Callable:
     """texels → (L_photo, metrics) of the batch's photos (`photo.photo_loss`), rendered through
     the photo-sized gather plans."""
-    photo_of = _photo_of_pyramid(settings, batch, frozen)
-    return lambda texels: photo_of(build_pyramid(texels, frozen["chain"], split=settings.split_pyramid))
+    photo_of, plan = _photo_of_image(settings, batch), _photo_plan(settings, batch, frozen)
+    return lambda texels: photo_of(render(texels, plan))
 
 
-def _photo_of_pyramid(settings: StepSettings, batch: dict, frozen: dict) -> Callable:
-    """`_photo_fn` of the texels' pyramid. Every channel is sampled and the photo's maps taken
-    from the images: the photos' taps read whole pyramid rows either way, and a column subset of
-    the pyramid (or the texels) would cost a gather and its scatter-add over every row."""
-    plan = GatherPlan(index=batch["photo_index"], weight=batch["photo_tap_weight"], hit=batch["photo_hit"],
-                      chain=frozen["chain"], height=settings.photo_height, width=settings.photo_width)
+def _photo_of_image(settings: StepSettings, batch: dict) -> Callable:
+    """`_photo_fn` of the photos rendered (B, H_photo, W_photo, C). Every channel is sampled and the
+    photo's maps taken from the images: the photos' taps read whole pyramid rows either way, and a
+    column subset of the pyramid (or the texels) would cost a gather and its scatter-add over every row."""
     hit = batch["photo_hit"].reshape(-1, settings.photo_height, settings.photo_width)
     ratio = settings.height * settings.width / (settings.photo_height * settings.photo_width)
     used = [m for m in ("albedo", "irradiance", "metallic") if m in settings.channels.maps]
 
-    def photo_of(pyramid):
-        rendered = settings.channels.split(sample(pyramid, plan))
+    def photo_of(image):
+        rendered = settings.channels.split(image)
         images = {m: rendered[m] for m in used}          # only the maps the photo is made of
         return photo_lib.photo_loss(images, batch["photo"], batch["photo_pixel_weight"], hit,
                                     loss=settings.photo_loss, space=settings.photo_space, scale=settings.photo_scale,
@@ -319,8 +332,8 @@ def initial_reused(prior, settings: StepSettings, texels, batch: dict, frozen: d
     if settings.reuse_steps <= 1:
         return None
     features_of = _features_fn(prior, settings, batch, frozen, jax.random.PRNGKey(0))
-    pyramid_of = functools.partial(build_pyramid, chain=frozen["chain"], split=settings.split_pyramid)
-    features = jax.eval_shape(lambda x: features_of(pyramid_of(x)), jax.ShapeDtypeStruct(texels.shape, texels.dtype))
+    plan = _render_plan(settings, batch, frozen)
+    features = jax.eval_shape(lambda x: features_of(render(x, plan)), jax.ShapeDtypeStruct(texels.shape, texels.dtype))
     t = jax.ShapeDtypeStruct((batch["pixel_weight"].shape[0], len(settings.channels.maps)), jnp.int32)
     reused = {"targets": prior.target_struct(features), "sample_weights": jax.ShapeDtypeStruct(t.shape, jnp.float32),
               "t": t}

@@ -65,13 +65,41 @@ def sample(pyramid, plan: GatherPlan) -> jnp.ndarray:
     share a chain (a step's renders and its photos) share one pyramid, and one transpose of it.
     A `SplitPyramid` is read tap by tap from the part its row lies in (the other part's read is
     out of bounds and gives 0; its transpose drops it)."""
+    return _weighted(plan, _taps(pyramid, plan.index))
+
+
+def sample_many(pyramid, plans) -> tuple:
+    """`sample` of each of several plans that share the pyramid's chain, their taps read by one
+    gather: its transpose is one scatter-add into the pyramid (into each part of a split one),
+    where a gather per plan would leave a cotangent of the pyramid's size per plan, all of them
+    added up by every reader of the gradient. One plan: `sample` itself."""
+    if len(plans) == 1:
+        return (sample(pyramid, plans[0]),)
+    taps = [p.index.shape[-1] for p in plans]
+    if len(set(taps)) != 1:
+        raise ValueError(f"sample_many: the plans read {taps} taps a pixel; one gather needs the same count")
+    rows = [int(np.prod(p.index.shape[:-1])) for p in plans]
+    values = _taps(pyramid, jnp.concatenate([p.index.reshape(n, -1) for p, n in zip(plans, rows)]))  # (sum P, T, C)
+    images, start = [], 0
+    for plan, n in zip(plans, rows):
+        part = values[start:start + n].reshape(*plan.index.shape, values.shape[-1])
+        images.append(_weighted(plan, part))
+        start += n
+    return tuple(images)
+
+
+def _taps(pyramid, index: jnp.ndarray) -> jnp.ndarray:
+    """(..., T, C): the pyramid's rows at `index` (..., T)."""
     if isinstance(pyramid, SplitPyramid):
         n, n_coarse = pyramid.texels.shape[0], pyramid.coarse.shape[0]
-        fine = plan.index < n
-        values = (pyramid.texels.at[jnp.where(fine, plan.index, n)].get(mode="fill", fill_value=0)
-                  + pyramid.coarse.at[jnp.where(fine, n_coarse, plan.index - n)].get(mode="fill", fill_value=0))
-    else:
-        values = pyramid[plan.index]                               # (..., P, T, C)
+        fine = index < n
+        return (pyramid.texels.at[jnp.where(fine, index, n)].get(mode="fill", fill_value=0)
+                + pyramid.coarse.at[jnp.where(fine, n_coarse, index - n)].get(mode="fill", fill_value=0))
+    return pyramid[index]
+
+
+def _weighted(plan: GatherPlan, values: jnp.ndarray) -> jnp.ndarray:
+    """The plan's image (..., H, W, C) from its taps' values (..., P, T, C)."""
     image = jnp.einsum("...pt,...ptc->...pc", plan.weight.astype(values.dtype), values)
     return image.reshape(*plan.index.shape[:-2], plan.height, plan.width, values.shape[-1])
 
