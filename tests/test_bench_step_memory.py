@@ -33,7 +33,10 @@ def test_the_benchmark_gives_each_forms_memory_and_steps_with_the_same_texels(ru
     assert all(f["temp"]["gb"] > 0 and f["argument"]["arrays"] >= 3 for f in forms.values())   # texels, mu, nu
     assert all(f["prior_s"] > 0 and f["reused_s"] > 0 for f in forms.values())     # both kinds of step ran
     assert forms["gated_concat"]["texels_max_rel_diff"] <= 1e-6                    # optax's arithmetic
-    assert forms["gated_split"]["texels_max_rel_diff"] <= 1e-6                     # the same gather, split
+    # the same gather, split: the same sums in float32, their order as XLA fuses each form (the renders'
+    # and photos' taps in one gather, sampler.sample_many, leave 5e-6 after these 8 steps); a wrong
+    # tap or weight would be off by the texels' own scale
+    assert forms["gated_split"]["texels_max_rel_diff"] <= 2e-5
     assert "gated_split" in done.stdout and "temporaries" in done.stdout
     main_job = doc["main_job"]                           # --bench_loop: the main job's set-up and loop first
     assert main_job["loop_peak_gb"] >= main_job["setup_peak_gb"] > 0 and main_job["loop_s"] > 0
