@@ -157,46 +157,28 @@ def test_texel_view_statistics_of_varying_images_match_a_float64_reference():
     assert np.median(ref_var[many]) > 1e-8                              # the spreads are really there
 
 
-def test_the_transpose_on_the_tiles_a_view_reads_is_the_dense_transpose_there(monkeypatch):
-    """`_tile_sums` (the taps inside tiles scattered into a pyramid of the view's tiles alone, the
-    coarse taps' share brought down per tile) equals the dense transpose of `render` at the texels
-    of `read_tiles`, and the dense transpose is 0 everywhere else: per view, for the hit mask and
-    random planes, with coarse mip entries above the tiles. The statistics do not depend on how far
-    the tiles are padded (a bucket of every tile gives the same figures, bit for bit)."""
+def test_texel_view_statistics_do_not_depend_on_how_the_read_texels_are_chunked(monkeypatch):
+    """Each view updates only the texels it reads, a chunk of them per call (`READ_CHUNK`, the ids
+    padded with an out-of-range id): chunks of 37 texels (many per view, the last one padded)
+    give the same statistics, bit for bit, as one chunk."""
     from jaxdistill.render import visibility
 
     mesh, frags = scene_views()
     layout = make_layout(len(mesh.object_names), "pages", 32, frags, mipmaps=True)
     space = build_texel_space(frags, layout, "trilinear")
     plan = build_gather_plans(frags, space, "trilinear")
-    assert plan.chain.children and plan.chain.in_tile_levels > 1           # coarse entries and in-tile levels
-    area = plan.chain.tile ** 2
-    num_tiles = space.num_texels // area
-    rng = np.random.default_rng(3)
-    for v in range(plan.num_views):
-        one = plan.select(v)
-        tiles = visibility.read_tiles(one, num_tiles)
-        assert 0 < len(tiles) < num_tiles
-        hit = np.asarray(one.hit).reshape(1, one.height, one.width)
-        planes = np.concatenate([hit, rng.uniform(-1, 1, (2, one.height, one.width)) * hit]).astype(np.float32)
-        padded = np.pad(tiles, (0, 3), constant_values=num_tiles).astype(np.int32)
-        local = np.full(num_tiles, len(padded), np.int32)
-        local[tiles] = np.arange(len(tiles))
-        got = np.asarray(visibility._tile_sums(one, jnp.asarray(planes), padded, local, num_tiles=num_tiles))
-        dense = np.stack([np.asarray(visibility._transposed(one, jnp.asarray(p), space.num_texels)) for p in planes])
-        ids = (tiles[:, None] * area + np.arange(area)).reshape(-1)
-        np.testing.assert_allclose(got[:, :len(ids)], dense[:, ids], rtol=1e-6, atol=1e-6 * np.abs(dense).max())
-        assert not got[:, len(ids):].any()                                  # the padding tiles
-        outside = np.ones(space.num_texels, bool)
-        outside[ids] = False
-        assert not dense[:, outside].any() and (dense[0, ids] > 0).any()
+    rng = np.random.default_rng(7)
     images = [rng.uniform(-1, 1, (*f.shape, 3)).astype(np.float32) for f in frags]
-    tight = texel_view_statistics(plan, images, space.num_texels)
-    monkeypatch.setattr(visibility, "TILE_BUCKET_MIN", num_tiles)
-    loose = texel_view_statistics(plan, images, space.num_texels)
-    for a, b in zip(tight, loose):
+    whole = texel_view_statistics(plan, images, space.num_texels)
+    read = [int((visibility._evidence(plan.select(v), jnp.zeros((space.num_texels, 1))) > 0).sum())
+            for v in range(plan.num_views)]
+    assert max(read) <= visibility.READ_CHUNK                              # one chunk each by default
+    monkeypatch.setattr(visibility, "READ_CHUNK", 37)
+    assert min(read) > 3 * 37 and any(n % 37 for n in read)               # many chunks, a padded last one
+    chunked = texel_view_statistics(plan, images, space.num_texels)
+    for a, b in zip(whole, chunked):
         np.testing.assert_array_equal(a, b)
-    assert (tight[0] >= 2).sum() > 100
+    assert (whole[0] >= 2).sum() > 100 and (whole[0] == 0).sum() < len(whole[0])
 
 
 def test_texel_trust_expands_to_the_page_trust_of_the_expanded_evidence():

@@ -41,22 +41,15 @@ def build_pyramid(texels: jnp.ndarray, chain: MipChain, *, split: bool = False):
         n, side = level.shape[0], level.shape[1] // 2
         level = level.reshape(n, side, 2, side, 2, channels).mean(axis=(2, 4))
         parts.append(level.reshape(-1, channels))
-    parts += coarse_levels(parts[-1], chain)   # level k: one entry per tile
+    below = parts[-1]  # level k: one entry per tile
+    for children in chain.children:
+        below = jnp.mean(below[children], axis=1)
+        parts.append(below)
     if len(parts) == 1:
         return texels
     if split:
         return SplitPyramid(texels, jnp.concatenate(parts[1:], axis=0) if len(parts) > 2 else parts[1])
     return jnp.concatenate(parts, axis=0)
-
-
-def coarse_levels(top: jnp.ndarray, chain: MipChain) -> list:
-    """The pyramid's levels above one tile, each (N_level, C) the means of 4 entries of the level
-    below, from its in-tile top level `top` (N_tiles, C), one entry per tile."""
-    levels, below = [], top
-    for children in chain.children:
-        below = jnp.mean(below[children], axis=1)
-        levels.append(below)
-    return levels
 
 
 def render(texels: jnp.ndarray, plan: GatherPlan) -> jnp.ndarray:

@@ -25,7 +25,7 @@ from jaxdistill.io import images as imageio
 from jaxdistill.scene.cameras import Camera
 from jaxdistill.errors import InputError
 from jaxdistill.render.gather_plan import GatherPlan, TexelSpace
-from jaxdistill.render.sampler import build_pyramid, coarse_levels, expand, render
+from jaxdistill.render.sampler import expand, render
 from jaxdistill.scene.model import Mesh
 
 log = logging.getLogger(__name__)
@@ -84,137 +84,71 @@ def texel_view_statistics(plan: GatherPlan, images: Iterable[np.ndarray], num_te
     that read the texel (through the transpose of `render`), so every view counts once.
     `images` (one per view of `plan`, in order) may be a generator: one view's image is in memory
     at a time. The statistics are kept on the device as Welford's running mean and sum of squared
-    deviations (float32, stable where the views agree closely), updated a view at a time on the
-    tiles that view reads only (`read_tiles`; the transposes too, `_tile_sums`), so a view's cost
-    goes with what it sees, not with the texels; the work arrays are (max(C, 3), N), so a caller
-    with many channels asks per map and holds a few channels at once."""
-    state, channels = None, 0
-    tile = plan.chain.tile
-    num_tiles = num_texels // (tile * tile)
-    smallest = max(TILE_BUCKET_MIN, num_tiles // TILE_BUCKETS)
+    deviations (float32, stable where the views agree closely), updated a view at a time by one
+    compiled function (`_accumulate`) on the texels that view reads only (`_read_texels`: a few
+    to a fifth of a room's texels per view), so the update's cost goes with what a view sees,
+    not with the texels; the work arrays are (C, N), so a caller with many channels asks per map
+    and holds a few channels at once."""
+    state = None
+    zeros = jnp.zeros((num_texels, 1), jnp.float32)
     for v, image in enumerate(images):
         image = jnp.asarray(image, jnp.float32)
-        if state is None:                  # at least STAT_CHANNELS: maps of 1 and 3 channels share programs
-            channels, width = image.shape[-1], max(image.shape[-1], STAT_CHANNELS)
-            state = (jnp.zeros(num_texels, jnp.int32), jnp.zeros((width, num_texels), jnp.float32),
-                     jnp.zeros((width, num_texels), jnp.float32))
-        one = jax.device_put(plan.select(v))              # once for the view's calls
-        tiles = read_tiles(one, num_tiles)
-        size = min(max(smallest, 1 << int(np.ceil(np.log2(max(len(tiles), 1))))), num_tiles)
-        local = np.full(num_tiles, size, np.int32)         # each tile's place in `tiles` (size: not read)
-        local[tiles] = np.arange(len(tiles), dtype=np.int32)
-        tiles = np.pad(tiles, (0, size - len(tiles)), constant_values=num_tiles).astype(np.int32)
-        hit = one.hit.reshape(1, one.height, one.width)
-        values = jnp.moveaxis(image, -1, 0)
-        values = jnp.pad(values, ((0, state[1].shape[0] - channels), (0, 0), (0, 0)))
-        planes = jnp.concatenate([hit.astype(jnp.float32), jnp.where(hit, values, 0.0)])
-        sums = _tile_sums(one, planes, tiles, local, num_tiles=num_tiles)
-        state = jax.block_until_ready(_accumulate(state, sums, tiles))   # one view's inputs in memory at a time
+        if state is None:
+            channels = image.shape[-1]
+            state = (jnp.zeros(num_texels, jnp.int32), jnp.zeros((channels, num_texels), jnp.float32),
+                     jnp.zeros((channels, num_texels), jnp.float32))
+        one = jax.device_put(plan.select(v))              # once for the view's several calls
+        weight = _evidence(one, zeros)                     # the view's read weight w per texel
+        read = _read_texels(np.asarray(weight), num_texels)
+        sums = tuple(_channel_sum(one, image[..., c], num_texels=num_texels) for c in range(image.shape[-1]))
+        for start in range(0, len(read), READ_CHUNK):      # one compiled update for every view
+            state = _accumulate(state, weight, sums, read[start:start + READ_CHUNK])
+        state = jax.block_until_ready(state)              # one view's inputs in memory at a time
     if state is None:
         raise ValueError("texel_view_statistics: no images")
-    count, mean, squares = (np.array(a[:channels] if a.ndim == 2 else a) for a in jax.device_get(state))
+    count, mean, squares = (np.array(a) for a in jax.device_get(state))
     variance = np.maximum(squares, 0.0) / np.maximum(count, 1)      # rounding can leave -ulp where views agree
     return count, np.ascontiguousarray(mean.T), np.ascontiguousarray(variance.T)
 
 
-# A view's tiles are padded to a power of two, at least 1/TILE_BUCKETS of the tiles (and TILE_BUCKET_MIN),
-# and its channels to STAT_CHANNELS: a few compiled programs serve every view and map (compiling one per
-# size took longer than the statistics of the bedroom's 48 views)
-TILE_BUCKET_MIN = 64
-TILE_BUCKETS = 16
-STAT_CHANNELS = 3
+READ_CHUNK = 1 << 18     # texels per `_accumulate` call: one compiled shape, whatever a view reads
 
 
-def _level_starts(chain, num_tiles: int) -> list[int]:
-    """Where each in-tile level's entries start in the pyramid, and (last) where the coarse ones do."""
-    return [int(s) for s in np.cumsum([0] + [num_tiles * (chain.tile >> lv) ** 2
-                                             for lv in range(chain.in_tile_levels)])]
+def _read_texels(weight: np.ndarray, num_texels: int) -> np.ndarray:
+    """int32 ids of the texels with w > 0, padded with `num_texels` (out of range: reads give 0,
+    writes are dropped) to a multiple of READ_CHUNK."""
+    read = np.flatnonzero(weight > 0).astype(np.int32)
+    return np.pad(read, (0, -len(read) % READ_CHUNK), constant_values=num_texels)
 
 
-def read_tiles(plan: GatherPlan, num_tiles: int) -> np.ndarray:
-    """Sorted ids of the tiles a single view's plan reads: those of its in-tile taps with a weight
-    on a hit pixel, and those below the coarse entries it reads (`_coarse_reach`)."""
-    starts = _level_starts(plan.chain, num_tiles)
-    index = np.asarray(plan.index)
-    used = index[(np.asarray(plan.weight) > 0) & np.asarray(plan.hit).reshape(-1, 1) & (index < starts[-1])]
-    level = np.searchsorted(np.asarray(starts[1:]), used, side="right")
-    read = np.zeros(num_tiles, bool)
-    read[(used - np.asarray(starts)[level]) // ((plan.chain.tile >> level) ** 2)] = True
-    if plan.chain.children:
-        read |= np.asarray(_coarse_reach(plan, num_tiles=num_tiles))
-    return np.flatnonzero(read)
-
-
-def _top_level(plan: GatherPlan, planes: jnp.ndarray, num_tiles: int) -> jnp.ndarray:
-    """(C', n_tiles): what the transpose of the plan's coarse taps (entries above one tile) brings
-    down to each tile's top in-tile entry, for each plane (C', H, W): the transpose of the
-    pyramid's coarse levels (`sampler.coarse_levels`) applied to the taps' scatter over them."""
-    fine_end = _level_starts(plan.chain, num_tiles)[-1]
-    coarse = sum(len(c) for c in plan.chain.children)
-    values = planes.reshape(planes.shape[0], -1)[:, :, None] * plan.weight[None]         # (C', P, T)
-    at = jnp.where(plan.index >= fine_end, plan.index - fine_end, coarse)
-    spread = jnp.zeros((planes.shape[0], coarse), planes.dtype).at[:, at].add(values, mode="drop")
-    _, pull = jax.vjp(lambda top: jnp.concatenate(coarse_levels(top, plan.chain)),
-                      jnp.zeros((num_tiles, planes.shape[0]), planes.dtype))
-    return pull(spread.T)[0].T
-
-
-@functools.partial(jax.jit, static_argnames=("num_tiles",))
-def _coarse_reach(plan: GatherPlan, *, num_tiles: int) -> jnp.ndarray:
-    """(n_tiles,) bool: the tiles below the coarse entries the view's hit pixels read."""
-    hit = plan.hit.reshape(1, plan.height, plan.width).astype(jnp.float32)
-    return _top_level(plan, hit, num_tiles)[0] > 0
-
-
-@functools.partial(jax.jit, static_argnames=("num_tiles",))
-def _tile_sums(plan: GatherPlan, planes: jnp.ndarray, tiles: jnp.ndarray, local: jnp.ndarray, *,
-               num_tiles: int) -> jnp.ndarray:
-    """(C', K B²): the transpose of the single-view `plan`'s render applied to each plane (C', H, W),
-    at the texels of `tiles` (K,) (padded with num_tiles, which give 0), texels in tile order;
-    local (n_tiles,) int32 each tile's place in `tiles` (K where it is not there). The taps inside
-    tiles go to a pyramid of those tiles alone, the coarse taps' share comes down per tile
-    (`_top_level`), and the in-tile levels are transposed on those tiles only: the same sums as the
-    dense transpose at those texels, with work that goes with the tiles a view reads."""
-    chain, k, c = plan.chain, tiles.shape[0], planes.shape[0]
-    starts = _level_starts(chain, num_tiles)
-    per = [(chain.tile >> lv) ** 2 for lv in range(chain.in_tile_levels)]
-    local_starts = [int(s) for s in np.cumsum([0] + [k * p for p in per])]
-    index = plan.index
-    level = sum((index >= s).astype(jnp.int32) for s in starts[1:-1]) if len(per) > 1 else jnp.zeros_like(index)
-    size = jnp.asarray(per, jnp.int32)[level]
-    offset = index - jnp.asarray(starts[:-1], jnp.int32)[level]
-    place = local.at[offset // size].get(mode="fill", fill_value=k)
-    at = jnp.where((index < starts[-1]) & (place < k),
-                   jnp.asarray(local_starts[:-1], jnp.int32)[level] + place * size + offset % size, local_starts[-1])
-    values = planes.reshape(c, -1)[:, :, None] * plan.weight[None]                        # (C', P, T)
-    spread = jnp.zeros((c, local_starts[-1]), planes.dtype).at[:, at].add(values, mode="drop")
-    if chain.children:
-        spread = spread.at[:, local_starts[-2]:].add(
-            _top_level(plan, planes, num_tiles).at[:, tiles].get(mode="fill", fill_value=0))
-    in_tile = chain.replace(children=())
-    _, pull = jax.vjp(lambda t: build_pyramid(t, in_tile), jnp.zeros((k * chain.tile ** 2, c), planes.dtype))
-    return pull(spread.T)[0].T
+@functools.partial(jax.jit, static_argnames=("num_texels",))
+def _channel_sum(plan: GatherPlan, plane: jnp.ndarray, *, num_texels: int) -> jnp.ndarray:
+    """(N,) float32: the transpose of the single-view `plan`'s render applied to one channel (H, W)
+    of an image on the plan's hit pixels: per texel the gather-weighted sum s. One channel per
+    compiled call: on the CPU that is several times faster per channel than an (N, C) transpose,
+    and than C of them in one program."""
+    hit = plan.hit.reshape(plan.height, plan.width)
+    return _transposed(plan, jnp.where(hit, plane, 0.0), num_texels)
 
 
 @functools.partial(jax.jit, donate_argnums=(0,))
-def _accumulate(state, sums: jnp.ndarray, tiles: jnp.ndarray):
+def _accumulate(state, weight: jnp.ndarray, sums: tuple, read: jnp.ndarray):
     """One view's update of (count (N,), mean (C, N), sum of squared deviations (C, N)) at the
-    texels of `tiles` (K,) (padded with an out-of-range id: reads give 0, writes are dropped), from
-    the view's transposes there, sums (1 + C, K B²) (`_tile_sums`): the read weight w and the
-    weighted sums s of its C channels; the view's value s / w joins the texels with w > 0."""
+    texels `read` (a chunk of `_read_texels`), from the view's read weight w (N,) (`_evidence`)
+    and its weighted sums s, C arrays (N,) (`_channel_sum`): the view's value s / w joins the
+    texels with w > 0. The texels outside `read` are left as they are, as a dense update would."""
     count, mean, squares = state
-    area = sums.shape[1] // tiles.shape[0]
-    ids = (tiles[:, None] * area + jnp.arange(area)).reshape(-1)
-    at = lambda a: a.at[..., ids].get(mode="fill", fill_value=0)
-    seen = sums[0] > 0
-    value = sums[1:] / jnp.where(seen, sums[0], 1.0)
+    at = lambda a: a.at[..., read].get(mode="fill", fill_value=0)
+    w = at(weight)
+    seen = w > 0
+    value = jnp.stack([at(s) for s in sums]) / jnp.where(seen, w, 1.0)
     n = at(count) + seen
     old = at(mean)
     delta = value - old
     new = old + jnp.where(seen, delta / jnp.maximum(n, 1), 0.0)
     squared = at(squares) + jnp.where(seen, delta * (value - new), 0.0)
-    return (count.at[ids].set(n, mode="drop"), mean.at[:, ids].set(new, mode="drop"),
-            squares.at[:, ids].set(squared, mode="drop"))
+    return (count.at[read].set(n, mode="drop"), mean.at[:, read].set(new, mode="drop"),
+            squares.at[:, read].set(squared, mode="drop"))
 
 
 def pixel_weights(plan: GatherPlan, counts: np.ndarray, out=None) -> np.ndarray:
