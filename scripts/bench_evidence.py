@@ -40,7 +40,8 @@ flags.DEFINE_string("bench_json", None, "write the figures as JSON here")
 
 
 def module_at(revision: str):
-    """`render/visibility.py` as it was at `revision`, loaded as its own module."""
+    """`render/visibility.py` as it was at `revision`, loaded as its own module. Only that file comes
+    from the revision: what it imports (the sampler's `render`, the gather plans) is this checkout's."""
     done = subprocess.run(["git", "show", f"{revision}:{MODULE}"], cwd=REPO, capture_output=True, text=True)
     if done.returncode != 0:
         sys.exit(f"--against={revision}: git cannot show {MODULE} there ({done.stderr.strip()})")
@@ -59,15 +60,21 @@ def statistics_of(module, plan, images_of, maps, num_texels) -> tuple[float, dic
 
 
 def apart(a: dict, b: dict) -> dict:
-    """How far two sides' statistics are apart, over all maps."""
+    """How far two sides' statistics are apart, over all maps: counts equal, NaN in the same places,
+    and the largest difference of mean and variance where both are finite, relative to the largest
+    finite magnitude."""
     import numpy as np
 
-    worst = {"counts_equal": True, "mean": 0.0, "variance": 0.0}
+    worst = {"counts_equal": True, "nan_equal": True, "mean": 0.0, "variance": 0.0}
     for m in a:
         worst["counts_equal"] &= bool(np.array_equal(a[m][0], b[m][0]))
         for i, name in ((1, "mean"), (2, "variance")):
-            scale = max(float(np.abs(a[m][i]).max()), 1e-30)
-            worst[name] = max(worst[name], float(np.abs(a[m][i] - b[m][i]).max()) / scale)
+            x, y = np.asarray(a[m][i], np.float64), np.asarray(b[m][i], np.float64)
+            worst["nan_equal"] &= bool(np.array_equal(np.isnan(x), np.isnan(y)))
+            both = np.isfinite(x) & np.isfinite(y)
+            if both.any():
+                scale = max(float(np.abs(x[both]).max()), 1e-30)
+                worst[name] = max(worst[name], float(np.abs(x[both] - y[both]).max()) / scale)
     return worst
 
 

@@ -175,14 +175,18 @@ def test_split_pyramid_samples_and_transposes_as_the_concatenated_one(room):
 
 
 def test_sample_many_reads_several_plans_as_sample_reads_each(room):
-    """One gather of two plans' taps (a step's renders and its photos: views in another order and
-    a batch of another size) gives each plan's image as `sample` does, from either pyramid form
+    """One gather of two plans' taps (a step's renders and its photos: other views, another pixel
+    count) gives each plan's image as `sample` does, from either pyramid form
     (float64), and its transpose is the sum of the two plans' transposes; its jaxpr gathers from
     the texels once where `sample` per plan gathers twice."""
     with jax.enable_x64(True):
         space, plan, plan64, x, y, _ = trilinear_case(room, 3, 6)
-        other = plan64.select(np.array([2, 0]))
-        z = jnp.asarray(np.random.default_rng(7).normal(size=(2, plan.height, plan.width, 3)))
+        half = plan.height // 2                    # the top half of views 2 and 0: another pixel count
+        pixels = half * plan.width
+        other = plan64.replace(index=plan64.index[np.array([2, 0]), :pixels],
+                               weight=plan64.weight[np.array([2, 0]), :pixels],
+                               hit=plan64.hit[np.array([2, 0]), :pixels], height=half)
+        z = jnp.asarray(np.random.default_rng(7).normal(size=(2, half, plan.width, 3)))
         for split in (False, True):
             pyramid = build_pyramid(x, plan.chain, split=split)
             both = sample_many(pyramid, [plan64, other])

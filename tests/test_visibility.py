@@ -157,6 +157,29 @@ def test_texel_view_statistics_of_varying_images_match_a_float64_reference():
     assert np.median(ref_var[many]) > 1e-8                              # the spreads are really there
 
 
+def test_texel_view_statistics_ignore_what_missed_pixels_hold():
+    """A missed pixel reads no texel: NaN and infinities there leave the statistics as zeros there
+    would, bit for bit."""
+    mesh, frags = scene_views()
+    layout = make_layout(len(mesh.object_names), "pages", 32, frags, mipmaps=True)
+    space = build_texel_space(frags, layout, "trilinear")
+    plan = build_gather_plans(frags, space, "trilinear")
+    rng = np.random.default_rng(11)
+    hit = np.asarray(plan.hit) & (rng.uniform(size=plan.hit.shape) > 0.1)   # a tenth of the pixels missed
+    plan = plan.replace(hit=jnp.asarray(hit), weight=jnp.where(jnp.asarray(hit)[..., None], plan.weight, 0.0))
+    clean, dirty = [], []
+    for v, f in enumerate(frags):
+        image = rng.uniform(-1, 1, (*f.shape, 2)).astype(np.float32)
+        missed = ~np.asarray(plan.hit[v]).reshape(f.shape)
+        clean.append(np.where(missed[..., None], 0.0, image).astype(np.float32))
+        dirty.append(np.where(missed[..., None], np.float32(np.nan), image).astype(np.float32))
+        dirty[-1][missed.nonzero()[0][:1], missed.nonzero()[1][:1]] = np.inf
+    assert sum(np.isnan(d).any() for d in dirty) >= 1                 # missed pixels really occur
+    for a, b in zip(texel_view_statistics(plan, clean, space.num_texels),
+                    texel_view_statistics(plan, dirty, space.num_texels)):
+        np.testing.assert_array_equal(a, b)
+
+
 def test_texel_view_statistics_do_not_depend_on_how_the_read_texels_are_chunked(monkeypatch):
     """Each view updates only the texels it reads, a chunk of them per call (`READ_CHUNK`, the ids
     padded with an out-of-range id): chunks of 37 texels (many per view, the last one padded)

@@ -200,9 +200,9 @@ def make_step(prior: Prior, settings: StepSettings, optimizer: optax.GradientTra
         k_features, k_t, k_prior, k_keep = jax.random.split(key, 4)
         # one mip pyramid for the renders and the photos, so one transpose of it in the gradient; split
         # (texels + the entries above them, `SplitPyramid`): no copy of the texels, and its cotangent's
-        # level 0 is their gradient, one texel array less than a concatenated pyramid in the step's
-        # memory for a second gather, and on the CPU no slower (docs/benchmarks.md §10; `loop.step_settings`).
-        # The renders' and the photos' taps are read by one gather, so their gradient is one scatter-add
+        # level 0 is their gradient, one texel array less in the step's memory than a concatenated
+        # pyramid, and on the CPU no slower (docs/benchmarks.md §10; `loop.step_settings`). The renders'
+        # and the photos' taps are read by one gather, so their gradient is one scatter-add
         # (`sample_many`; docs/benchmarks.md §7)
         pyramid, pyramid_pullback = jax.vjp(
             lambda x: build_pyramid(x, frozen["chain"], split=settings.split_pyramid), state.texels)

@@ -84,11 +84,12 @@ def texel_view_statistics(plan: GatherPlan, images: Iterable[np.ndarray], num_te
     that read the texel (through the transpose of `render`), so every view counts once.
     `images` (one per view of `plan`, in order) may be a generator: one view's image is in memory
     at a time. The statistics are kept on the device as Welford's running mean and sum of squared
-    deviations (float32, stable where the views agree closely), updated a view at a time by one
-    compiled function (`_accumulate`) on the texels that view reads only (`_read_texels`: a few
-    to a fifth of a room's texels per view), so the update's cost goes with what a view sees,
-    not with the texels; the work arrays are (C, N), so a caller with many channels asks per map
-    and holds a few channels at once."""
+    deviations (float32, stable where the views agree closely), updated a view at a time on the
+    texels that view reads only (`_read_texels`: a few to a fifth of a room's texels per view;
+    `_accumulate`, a chunk of them per call), so the update's cost goes with what a view sees; the
+    transposes it starts from (the read weight, `_evidence`, and one per channel, `_channel_sum`)
+    are still dense over the texels. A NaN or infinite value on a missed pixel is not read. The
+    work arrays are (C, N), so a caller with many channels asks per map and holds a few at once."""
     state = None
     zeros = jnp.zeros((num_texels, 1), jnp.float32)
     for v, image in enumerate(images):
