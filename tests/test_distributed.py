@@ -1,7 +1,8 @@
 """More than one process (`engine/distributed.py`): two CPU processes on localhost, joined by
-`jax.distributed` (gloo collectives), each sending its half of every step's views, give the
-texels of one process running the same batches; the checkpoint they write once resumes in one
-process; bad multi-process flags are named before any compute."""
+`jax.distributed` (gloo collectives), each holding its share of the views and sending its half of
+every step's views, give the texels of one process running the same batches (--view_shares=2);
+the checkpoint they write once resumes in one process; bad multi-process flags are named before
+any compute."""
 
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ import pytest
 
 from jaxdistill import pipeline
 from jaxdistill.engine import config as config_lib, distributed
+from jaxdistill.engine.problem import Problem
 from jaxdistill.engine.config import DistillConfig
 from jaxdistill.errors import InputError
 from jaxdistill.io.checkpoint import CheckpointStore
@@ -80,8 +82,12 @@ def test_two_processes_give_the_texels_of_one_and_process_0_writes_the_outputs(t
     device = json.loads((out / "metrics.json").read_text())["device"]
     assert device["processes"] == 2 and len(device["devices"]) == 2
     assert (out / "scene.glb").is_file() and "outputs in" not in logs[1]        # only process 0 writes them
+    # process 1 ray cast, planned and read the targets of its share alone (views 1 and 3 of 4)
+    assert "process 1 holds 2 of the 4 views (share 1 of 2: v1, v3)" in logs[1] and "holds" not in logs[0]
+    assert "fragments: 100%|██████████| 2/2" in logs[1] and "targets: 100%|██████████| 2/2" in logs[1]
+    assert "fragments: 100%|██████████| 4/4" in logs[0]
     monkeypatch.setenv("JAXDISTILL_CACHE", str(tmp_path / "cache"))
-    one_process(scene, tmp_path / "one")
+    one_process(scene, tmp_path / "one", view_shares=2)
     two, one = texels(out), texels(tmp_path / "one")
     assert np.abs(one).max() > 0.1 and not np.array_equal(one, np.zeros_like(one))
     assert_close(two, one, rtol=1e-5)
@@ -92,8 +98,10 @@ def test_the_checkpoint_two_processes_wrote_resumes_in_one(two_process_run, tmp_
     monkeypatch.setenv("JAXDISTILL_CACHE", str(tmp_path / "cache"))
     resumed = tmp_path / "resumed"
     shutil.copytree(out, resumed)
-    one_process(scene, resumed, steps=STEPS + 2, resume=True)
-    one_process(scene, tmp_path / "fresh", steps=STEPS + 2)
+    with pytest.raises(InputError, match="view_shares"):      # one process draws from one share unless told
+        one_process(scene, resumed, steps=STEPS + 2, resume=True)
+    one_process(scene, resumed, steps=STEPS + 2, resume=True, view_shares=2)
+    one_process(scene, tmp_path / "fresh", steps=STEPS + 2, view_shares=2)
     assert_close(texels(resumed), texels(tmp_path / "fresh"), rtol=1e-5)
 
 
@@ -132,3 +140,48 @@ def test_auto_outside_a_cluster_is_refused_naming_the_flag(tmp_path):
                           text=True, timeout=120)
     assert proc.returncode != 0 and "--coordinator_address: auto found no cluster" in proc.stderr
     assert not (tmp_path / "o").exists()
+
+
+def _problem_of(num_views: int, held=None) -> Problem:
+    """A Problem with only what `view_ids` and `rows` read (a scene of `num_views` views, `held`)."""
+    problem = Problem.__new__(Problem)
+    object.__setattr__(problem, "scene", type("S", (), {"views": [None] * num_views})())
+    object.__setattr__(problem, "held", held)
+    return problem
+
+
+def test_one_share_draws_as_runs_did_before_shares_and_shares_draw_evenly_from_each():
+    problem = _problem_of(11)
+    for step in range(20):
+        before = np.random.default_rng([5, step]).choice(11, 4, replace=False)   # the sampler before shares
+        assert np.array_equal(problem.view_ids(step, 4, 5), before)
+        two = problem.view_ids(step, 4, 5, shares=2)
+        assert np.array_equal(two, problem.view_ids(step, 4, 5, shares=2))        # a function of its arguments
+        assert set(two[:2]) <= set(range(0, 11, 2)) and set(two[2:]) <= set(range(1, 11, 2))
+        assert len(set(two.tolist())) == 4
+    assert np.array_equal(distributed.view_share(11, 1, 3), [1, 4, 7, 10])
+    drawn = np.concatenate([problem.view_ids(s, 6, 0, shares=3) for s in range(200)])
+    assert set(drawn.tolist()) == set(range(11))                                  # every view gets drawn
+
+
+def test_a_process_takes_the_rows_of_the_views_it_holds_and_names_those_it_does_not():
+    problem = _problem_of(7, held=np.array([1, 4]))
+    assert np.array_equal(problem.rows([4, 1, 4]), [1, 0, 1])
+    with pytest.raises(ValueError, match=r"views \[2, 6\] are not among the 2 this process holds"):
+        problem.rows([1, 2, 6])
+    assert np.array_equal(_problem_of(7).rows([6, 0]), [6, 0])
+    assert distributed.held_views(7) is None                       # one process holds every view
+    made = {"a": np.arange(3)}
+    assert distributed.from_primary(lambda: made) is made          # one process: its own arrays
+
+
+@pytest.mark.parametrize("kw,words", [
+    (dict(view_shares=-1), "must be >= 0"),
+    (dict(view_shares=3, views_per_step=4), "do not split --views_per_step=4"),
+    (dict(view_shares=3, views_per_step=6, coordinator_address="node001:1234", num_processes=2, process_id=0),
+     "each of the --num_processes=2 processes holds one share"),
+])
+def test_bad_view_shares_are_named(tmp_path, kw, words):
+    with pytest.raises(InputError, match=rf"--view_shares.*{words}"):
+        config_lib.validate(DistillConfig(scene=str(tmp_path / "s.json"), out_dir=str(tmp_path / "o"), **kw))
+

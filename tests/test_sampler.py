@@ -467,3 +467,22 @@ def test_texel_space_and_plans_built_in_threads_equal_one_thread(room, sampler, 
     for name in ("index", "weight", "hit"):
         np.testing.assert_array_equal(np.asarray(getattr(plan_two, name)), np.asarray(getattr(plan_one, name)))
     assert np.asarray(plan_one.weight).any()
+
+
+def test_views_needs_taken_together_give_the_texel_space_of_all_views(room):
+    """`texel_needs` of disjoint sets of views, OR-ed, give `build_texel_space` of every view (what
+    a process of a multi-process run takes from the primary); one view's alone give fewer tiles."""
+    from jaxdistill.render.gather_plan import space_from_needs, texel_needs
+
+    mesh, frags = room
+    layout = make_layout(len(mesh.object_names), "pages", 32, frags, mipmaps=True, tile_size=4)
+    whole = build_texel_space(frags, layout, "trilinear")
+    first, rest = texel_needs(frags[:1], layout, "trilinear"), texel_needs(frags[1:], layout, "trilinear")
+    union = [[a | b for a, b in zip(pa, pb)] for pa, pb in zip(first, rest)]
+    joined = space_from_needs(union, layout)
+    for name in ("tile_page", "tile_row", "tile_col"):
+        np.testing.assert_array_equal(getattr(joined, name), getattr(whole, name))
+    assert len(joined.children) == len(whole.children) > 0
+    for a, b in zip(joined.children, whole.children):
+        np.testing.assert_array_equal(a, b)
+    assert space_from_needs(first, layout).num_tiles < whole.num_tiles

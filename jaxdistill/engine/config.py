@@ -105,6 +105,7 @@ class DistillConfig:
     coordinator_address: str = ""           # engine/distributed.py: "" one process, HOST:PORT or auto several
     num_processes: int = 1
     process_id: int = -1
+    view_shares: int = 0                    # steps' views drawn from this many shares (0: one per process)
     mesh: str | None = _IMPORT.mesh
     exposure: str = _IMPORT.exposure
     uv: str = _IMPORT.uv
@@ -240,6 +241,10 @@ def define_flags(fv: flags.FlagValues = flags.FLAGS, *, main_module: bool = Fals
                          **where)
     flags.DEFINE_integer("process_id", d.process_id, "this process's rank in [0, --num_processes), with "
                          "--coordinator_address=HOST:PORT; process 0 writes the outputs", **where)
+    flags.DEFINE_integer("view_shares", d.view_shares, "split the views into this many shares (view i in share "
+                         "i mod N) and draw each step's views evenly from them; with several processes each process "
+                         "holds one share (0: one share per process). A one-process run with --view_shares=N steps "
+                         "through the views an N-process run does (and resumes its checkpoint)", **where)
     define_dataset_flags(fv, main_module=main_module)
 
 
@@ -311,6 +316,15 @@ def validate(config: DistillConfig) -> DistillConfig:
         bad("max_texture_size", f"must be a power of two >= 8, got {c.max_texture_size}")
     if c.views_per_step < 1:
         bad("views_per_step", f"must be >= 1, got {c.views_per_step}")
+    if c.view_shares < 0:
+        bad("view_shares", f"must be >= 0 (0: one share per process), got {c.view_shares}")
+    elif c.view_shares and c.views_per_step % c.view_shares:
+        bad("view_shares", f"{c.view_shares} shares do not split --views_per_step={c.views_per_step} evenly; use a "
+            f"divisor of {c.views_per_step}")
+    elif c.view_shares and c.coordinator_address and c.coordinator_address != "auto" and \
+            c.view_shares != c.num_processes:
+        bad("view_shares", f"is {c.view_shares}, but each of the --num_processes={c.num_processes} processes holds "
+            "one share; leave it at 0")
     for name in ("ckpt_every", "keep_checkpoints", "log_every", "eval_every", "contact_views"):
         if getattr(c, name) < 0:
             bad(name, f"must be >= 0, got {getattr(c, name)}")
@@ -440,7 +454,8 @@ def out_dir_problem(out_dir: str) -> str | None:
 
 def check_views_per_step(config: DistillConfig, num_views: int, scene: str) -> None:
     """InputError when a step would draw more views than the scene has (it would repeat views):
-    called as soon as the scene is read, before any ray casting."""
+    called as soon as the scene is read, before any ray casting. (With view shares, a step draws
+    views_per_step / N from each; the smallest share holds num_views // N, never fewer.)"""
     if config.views_per_step > num_views:
         raise InputError.single("flags", "--views_per_step", (
             f"{config.views_per_step} is more than the {num_views} views of {scene}; a step never repeats a "

@@ -8,17 +8,23 @@ SLURM, Open MPI or Kubernetes). `initialize` joins them before JAX touches a dev
 step is unchanged: texels and optimizer state replicated, each step's views split over the
 devices by view, XLA all-reducing the gradients (gloo on CPU, NCCL on GPU).
 
-Each process assembles only its own rows of a step's batch (`place_batch`: the gather plans,
-photos and targets of the views its devices hold); the precompute still builds every view's
-plans in every process (the fragment cache is shared on disk). Checkpoints are written by
-orbax's multi-process protocol (every process calls save; the primary writes the replicated
-arrays), and the outputs after the loop (scores, pages, glTF) by the primary process only
-(`is_primary`).
+Each process holds one share of the views (`view_share`: view i in share i mod N) and a step
+draws its views evenly from the shares, process q's rows from share q (`engine/problem.py`
+`Problem.view_ids`), so each process assembles only its own rows of a step's batch
+(`place_batch`) from views it holds. The set-up follows: a process other than the primary ray
+casts, plans and reads the photos, targets and photo latents of its share alone (`held_views`),
+and takes what depends on every view (the texture layout, the texel space, the view counts and
+the evidence) from the primary (`from_primary`). The primary still holds every view: its
+evaluation during the loop and the outputs after it (scores, renders, evidence, pages, glTF) read
+them all. Checkpoints are written by orbax's multi-process protocol (every process calls save;
+the primary writes the replicated arrays), and the outputs by the primary alone (`is_primary`).
 """
 
 from __future__ import annotations
 
+import io
 import re
+from typing import Callable
 
 import jax
 import numpy as np
@@ -101,3 +107,48 @@ def place_batch(make_batch, view_ids: np.ndarray, sharding: jax.sharding.Shardin
     local = make_batch(view_ids[start:stop])
     return jax.tree.map(lambda x: jax.make_array_from_process_local_data(
         sharding, np.asarray(x), (len(view_ids),) + np.shape(x)[1:]), local)
+
+
+def view_share(num_views: int, share: int, shares: int) -> np.ndarray:
+    """The views (ascending ids) of share `share` of `shares`: view i is in share i mod `shares`,
+    so the shares' sizes differ by one at most and each spans the whole capture."""
+    return np.arange(share, num_views, shares)
+
+
+def shares_of_run(view_shares: int) -> int:
+    """The shares a run draws its views from: --view_shares, or one per process when it is 0."""
+    return view_shares or jax.process_count()
+
+
+def held_views(num_views: int) -> np.ndarray | None:
+    """The views whose per-view arrays this process builds: None (every view) for the primary and a
+    one-process run, else the process's share."""
+    if jax.process_count() == 1 or is_primary():
+        return None
+    return view_share(num_views, jax.process_index(), jax.process_count())
+
+
+_CHUNK = 1 << 30        # bytes a collective carries at most
+
+
+def from_primary(make: Callable[[], dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+    """`make()`'s arrays, computed by the primary process alone and received by every other (one
+    process: `make()`). Every process must call it at the same point of the set-up; the arrays go
+    as one `np.savez` buffer, its length first, in collectives of at most 1 GiB."""
+    if jax.process_count() == 1:
+        return make()
+    from jax.experimental import multihost_utils
+
+    data = np.zeros(0, np.uint8)
+    if is_primary():
+        buffer = io.BytesIO()
+        np.savez(buffer, **make())
+        data = np.frombuffer(buffer.getvalue(), np.uint8)
+    size = multihost_utils.broadcast_one_to_all(np.array([len(data) >> 31, len(data) & (2 ** 31 - 1)], np.int32))
+    size = (int(size[0]) << 31) | int(size[1])
+    chunks = []
+    for start in range(0, size, _CHUNK):
+        part = data[start:start + _CHUNK] if is_primary() else np.zeros(min(_CHUNK, size - start), np.uint8)
+        chunks.append(np.asarray(multihost_utils.broadcast_one_to_all(part), np.uint8))
+    with np.load(io.BytesIO(np.concatenate(chunks).tobytes() if chunks else b"")) as arrays:
+        return {name: arrays[name] for name in arrays.files}

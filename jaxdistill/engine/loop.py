@@ -49,9 +49,20 @@ def step_settings(config: DistillConfig, problem: Problem) -> StepSettings:
 
 
 def batch_views(problem: Problem, config: DistillConfig, step: int) -> np.ndarray:
-    """The views of `step`: a function of (seed, step // reuse_steps), so the steps that reuse one
-    x_pred see the views it was computed for, and a resumed run samples the same."""
-    return problem.view_ids(step // config.reuse_steps, config.views_per_step, config.seed)
+    """The views of `step`: a function of (seed, step // reuse_steps, the view shares), so the steps
+    that reuse one x_pred see the views it was computed for, and a resumed run samples the same."""
+    return problem.view_ids(step // config.reuse_steps, config.views_per_step, config.seed,
+                            distributed.shares_of_run(config.view_shares))
+
+
+def first_batch(problem: Problem, config: DistillConfig) -> dict:
+    """A host batch of the run's shapes, which the step is traced for: step 0's, or in a process
+    holding its share of the views alone (`Problem.held`), its own rows of step 0 repeated to the
+    batch's size (nothing but their shapes is read)."""
+    views = batch_views(problem, config, 0)
+    if problem.held is not None:
+        views = np.resize(views[np.isin(views, problem.held)], len(views))
+    return problem.batch(views)
 
 
 @dataclasses.dataclass
@@ -111,7 +122,7 @@ def prepare_step(config: DistillConfig, problem: Problem) -> PreparedStep:
     thread while the evaluation context is built: XLA's compilation (most of the first step's
     time with the rgbx prior) holds no Python lock, so it runs beside that NumPy work."""
     start = time.perf_counter()
-    first = problem.batch(batch_views(problem, config, 0))
+    first = first_batch(problem, config)
     stepper = setup_step(config, problem, first)
 
     def abstract(value, sharding):
@@ -153,7 +164,8 @@ def _history_path(out: Path) -> Path:
 
 # flags added after checkpoints were first written, at the values that keep the earlier
 # behaviour: a checkpoint that does not record them resumes when the run leaves them so
-ADDED_FLAG_DEFAULTS = {"reuse_steps": 1, "align": "none", "align_strength": DistillConfig.align_strength,
+# (view_shares is recorded resolved: one share drew from every view, as every run did before shares)
+ADDED_FLAG_DEFAULTS = {"view_shares": 1, "reuse_steps": 1, "align": "none", "align_strength": DistillConfig.align_strength,
                        "photo_weight": 0.0, "photo_size": 0, "photo_space": DistillConfig.photo_space,
                        "photo_loss": DistillConfig.photo_loss, "photo_scale": DistillConfig.photo_scale,
                        "irradiance_smoothness": 0.0, "irradiance_sds_weight": 1.0, "albedo_smoothness": 0.0,
@@ -165,8 +177,9 @@ ADDED_FLAG_DEFAULTS = {"reuse_steps": 1, "align": "none", "align_strength": Dist
 
 
 def recorded_config(config: DistillConfig, prior_kind: str) -> dict:
-    """The flags saved with a checkpoint, plus the prior --prior=auto resolved to."""
-    return {**config.as_dict(), "prior_kind": prior_kind}
+    """The flags saved with a checkpoint, plus the prior --prior=auto resolved to; --view_shares
+    as resolved (0: the process count), since the views a step draws depend on it."""
+    return {**config.as_dict(), "prior_kind": prior_kind, "view_shares": distributed.shares_of_run(config.view_shares)}
 
 
 def _save(store, state, recorded: dict, history: dict, out: Path) -> None:
@@ -185,6 +198,14 @@ def check_before_compute(config: DistillConfig, out: Path, choice) -> int | None
 
         convert.check_rgbx_folder(choice.folder, "--rgbx_dir")
     devices = jax.devices()
+    if jax.process_count() > 1 and config.view_shares not in (0, jax.process_count()):
+        raise InputError.single("flags", "--view_shares", f"is {config.view_shares}, but each of the "
+                                f"{jax.process_count()} processes holds one share of the views; leave it at 0")
+    if jax.device_count() != jax.local_device_count() * jax.process_count():
+        raise InputError.single("flags", "--num_processes", f"the {jax.process_count()} processes have "
+                                f"{jax.device_count()} devices in all and this one {jax.local_device_count()}: each "
+                                "process places its share's rows of a step on its own devices, so give every process "
+                                "as many (e.g. one process per GPU, or every GPU of a host)")
     if config.views_per_step % len(devices):
         raise InputError.single("flags", "--views_per_step", f"{config.views_per_step} does not split over "
                                 f"{len(devices)} devices; use a multiple of {len(devices)}")
@@ -313,7 +334,7 @@ def run_loop(config: DistillConfig, problem: Problem, recorded: dict, latest: in
     if prepared is not None and hooks.before_steps is not None:
         raise ValueError("run_loop: a prepared step and a before_steps hook: give one")
     stepper = (prepared.stepper if prepared is not None
-               else setup_step(config, problem, problem.batch(batch_views(problem, config, 0))))
+               else setup_step(config, problem, first_batch(problem, config)))
     checkpoints = _Checkpoints(config, Path(config.out_dir), recorded, enabled=hooks.checkpoints)
     history = _empty_history()
     state = stepper.state

@@ -23,14 +23,14 @@ from tqdm.auto import tqdm
 
 from jaxdistill.io import images as imageio
 from jaxdistill.scene.cameras import Camera
-from jaxdistill.engine import photo as photo_lib
+from jaxdistill.engine import distributed, photo as photo_lib
 from jaxdistill.engine.config import RGBX_DIR_ENV, DistillConfig, import_options, rgbx_dir
 from jaxdistill.errors import InputError, ProblemList
 from jaxdistill.scene.cameras import rgbx_camera_rotation
 from jaxdistill.scene.maps import INITIAL_VALUE, MapChannels, file_to_model
 from jaxdistill.render import fragments as fr
-from jaxdistill.render.gather_plan import TAPS, TexelSpace, build_gather_plans, build_texel_space
-from jaxdistill.render.layout import make_layout
+from jaxdistill.render.gather_plan import TAPS, TexelSpace, build_gather_plans, space_from_needs, texel_needs
+from jaxdistill.render.layout import make_layout, sized_layout
 from jaxdistill.render.visibility import (check_coverage, hit_fractions, pixel_weights, texel_evidence,
                                          view_counts)
 from jaxdistill.scene.model import Scene
@@ -157,7 +157,10 @@ class Problem:
     arrays (these, the photos, the views prior's targets; fragments as `FragmentRows`) are NumPy
     or, with --view_data on disk, `ViewRows` files: read them by views (`a[ids]`), as `batch` does;
     counts (N,) int32 view counts per texel; evidence (N,) float32 summed tap weights per texel
-    (`visibility.texel_evidence`); normal_rotation (V, 3, 3) float32.
+    (`visibility.texel_evidence`); normal_rotation (V, 3, 3) float32. `held`: the views those
+    per-view arrays hold, one row each in this order (a process's share of a multi-process run,
+    `distributed.held_views`), or None for every view; `batch` takes views by id either way.
+    counts and evidence are of every view.
     """
 
     scene: Scene
@@ -181,6 +184,7 @@ class Problem:
     rgbx_model: Any = None            # the loaded RgbxPrior (rgbx prior only): per-view estimates use it
     photos: PhotoData | None = None   # --photo_weight > 0: the re-rendering term's plans and photos
     view_folder: ViewFolder | None = None   # --view_data: where per-view arrays live on disk (None: memory)
+    held: np.ndarray | None = None          # the views of the per-view arrays' rows (None: every view, in order)
 
     @property
     def num_views(self) -> int:
@@ -210,14 +214,26 @@ class Problem:
     def initial_texels(self) -> np.ndarray:
         return self.channels.initial_texels(self.space.num_texels)
 
+    def rows(self, view_ids) -> np.ndarray:
+        """The rows of the per-view arrays that hold `view_ids`; ValueError for a view not held."""
+        ids = np.asarray(view_ids)
+        if self.held is None:
+            return ids
+        rows = np.minimum(np.searchsorted(self.held, ids), len(self.held) - 1)
+        if not np.array_equal(self.held[rows], ids):
+            missing = sorted(set(ids.tolist()) - set(self.held.tolist()))
+            raise ValueError(f"views {missing} are not among the {len(self.held)} this process holds")
+        return rows
+
     def batch(self, view_ids) -> dict:
         """Host arrays of one step for `view_ids` (B,)."""
         ids = np.asarray(view_ids)
-        batch = {"index": self.plan_index[ids], "weight": self.plan_weight[ids], "hit": self.plan_hit[ids],
-                 "pixel_weight": self.pixel_weight[ids], "normal_rotation": self.normal_rotation[ids],
-                 "view": ids.astype(np.int32), "prior": self.prior.view_data(ids)}
+        rows = self.rows(ids)
+        batch = {"index": self.plan_index[rows], "weight": self.plan_weight[rows], "hit": self.plan_hit[rows],
+                 "pixel_weight": self.pixel_weight[rows], "normal_rotation": self.normal_rotation[rows],
+                 "view": ids.astype(np.int32), "prior": self.prior.view_data(rows)}
         if self.photos is not None:
-            batch.update(self.photos.batch(ids))
+            batch.update(self.photos.batch(rows))
         return batch
 
     @property
@@ -225,15 +241,22 @@ class Problem:
         """(height, width) of the re-rendered photos; (0, 0) without the re-rendering term."""
         return (self.photos.height, self.photos.width) if self.photos is not None else (0, 0)
 
-    def view_ids(self, step: int, batch_size: int, seed: int) -> np.ndarray:
-        """The views of `step`: a function of (seed, step) only, so a resumed run samples the same."""
+    def view_ids(self, step: int, batch_size: int, seed: int, shares: int = 1) -> np.ndarray:
+        """The views of `step`: a function of (seed, step, shares) only, so a resumed run samples the
+        same. batch_size / shares views from each share (`distributed.view_share`), share q's
+        in rows q * batch_size / shares onwards: with one share per process, the rows each process
+        places are views it holds. One share draws from every view, as runs did before shares."""
         rng = np.random.default_rng([seed, step])
-        return rng.choice(self.num_views, batch_size, replace=batch_size > self.num_views)
+        per = batch_size // shares
+        parts = [distributed.view_share(self.num_views, q, shares) for q in range(shares)]
+        return np.concatenate([rng.choice(part, per, replace=per > len(part)) for part in parts])
 
 
-def read_view_targets(scene: Scene, maps: Sequence[str], height: int, width: int, folder: ViewFolder | None = None):
-    """(V, H, W, C) float32 model-space targets of every view, in memory, or in a `ViewRows` file
-    of `folder` when one is given; InputError listing missing ones."""
+def read_view_targets(scene: Scene, maps: Sequence[str], height: int, width: int, folder: ViewFolder | None = None,
+                      views: Sequence | None = None):
+    """(V, H, W, C) float32 model-space targets of every view (or of `views`, some of the scene's),
+    in memory, or in a `ViewRows` file of `folder` when one is given; InputError listing missing
+    ones (of every view of the scene)."""
     problems = ProblemList()
     for i, view in enumerate(scene.views):
         for m in maps:
@@ -243,21 +266,22 @@ def read_view_targets(scene: Scene, maps: Sequence[str], height: int, width: int
                              "(drop the map with --maps, or use --prior=rgbx)")
     problems.raise_if_any()
     channels = MapChannels(tuple(maps))
-    out = view_array("targets", (len(scene.views), height, width, channels.num_channels), np.float32, folder)
-    for i, view in enumerate(tqdm(scene.views, desc="targets", unit="view", dynamic_ncols=True)):
+    views = scene.views if views is None else views
+    out = view_array("targets", (len(views), height, width, channels.num_channels), np.float32, folder)
+    for i, view in enumerate(tqdm(views, desc="targets", unit="view", dynamic_ncols=True)):
         parts = [file_to_model(m, resize(read_target(m, view.targets[m]), height, width)) for m in maps]
         out[i] = np.concatenate(parts, axis=-1)
     return out
 
 
-def _views_prior(scene, channels, height, width, folder: ViewFolder | None):
+def _views_prior(scene, views, channels, height, width, folder: ViewFolder | None):
     from jaxdistill.engine.priors import ViewsPrior
 
     return ViewsPrior(channels=channels, target_images=read_view_targets(scene, channels.maps, height, width,
-                                                                         folder)), {}
+                                                                         folder, views)), {}
 
 
-def _rgbx_prior(config: DistillConfig, choice: PriorChoice, scene, channels, height, width):
+def _rgbx_prior(config: DistillConfig, choice: PriorChoice, views, channels, height, width):
     import jax.numpy as jnp
 
     from jaxdistill.models import convert, layers
@@ -270,11 +294,11 @@ def _rgbx_prior(config: DistillConfig, choice: PriorChoice, scene, channels, hei
     loaded = convert.load_rgbx(choice.folder, dtype=dtype, cache_dir=config.convert_cache, chunk_size=chunk)
     model = rgbx.load_prior(loaded)
     logging.info("RGB<->X loaded from %s in %.1f s", choice.folder, sum(loaded.seconds.values()))
-    photos = (resize(imageio.read_photo_srgb(v.photo, v.exposure), height, width) for v in scene.views)
+    photos = (resize(imageio.read_photo_srgb(v.photo, v.exposure), height, width) for v in views)
     guidance = rgbx.Guidance(text=config.w_t, image=config.w_i)
     prior, frozen = make_rgbx_prior(model, channels, photos, guidance=guidance, sample_latent=config.latent == "sample",
                                     latent_space=config.loss_space == "latent",
-                                    progress=lambda it: tqdm(it, total=len(scene.views), desc="photo latents",
+                                    progress=lambda it: tqdm(it, total=len(views), desc="photo latents",
                                                              unit="view", dynamic_ncols=True))
     frozen["alphas_cumprod"] = np.asarray(rgbx.sched.alphas_cumprod(model.scheduler))
     return prior, frozen, model
@@ -336,40 +360,60 @@ def _build_problem(config: DistillConfig, *, cache_dir=None, check_scene=None) -
     logging.info("scene %s: %d faces, %d objects, %d views rendered at %dx%d", scene.name, scene.mesh.num_faces,
                  scene.num_objects, len(scene.views), width, height)
 
-    view_folder = _view_data_folder(config, scene, choice, channels, (height, width), cache_dir)
+    # a process of a multi-process run other than the primary builds its share of the views alone
+    held = distributed.held_views(len(scene.views))
+    views = list(scene.views) if held is None else [scene.views[v] for v in held]
+    if held is not None:
+        logging.info("process %d holds %d of the %d views (share %d of %d: %s)", jax.process_index(), len(views),
+                     len(scene.views), jax.process_index(), jax.process_count(),
+                     ", ".join(v.name for v in views[:8]) + (", ..." if len(views) > 8 else ""))
+    view_folder = _view_data_folder(config, scene, choice, channels, (height, width), cache_dir, views=len(views),
+                                    evaluation=held is None)
 
     t0 = time.perf_counter()
-    cameras = [scaled_camera(v.camera, height, width) for v in scene.views]
+    cameras = [scaled_camera(v.camera, height, width) for v in views]
     fragments = functools.partial(_fragments, scene.mesh, cache_dir=cache_dir, folder=view_folder)
     frags = fragments(cameras)
-    native = all((v.camera.height, v.camera.width) == (height, width) for v in scene.views)
-    native_frags = frags if native else fragments([v.camera for v in scene.views])
-    photo_frags = _photo_fragments(config, scene, (height, width), frags, native_frags, fragments)
+    native = all((v.camera.height, v.camera.width) == (height, width) for v in views)
+    # the evaluation's fragments, at the photos' own size: the primary's (it evaluates and writes the outputs)
+    native_frags = frags if native else fragments([v.camera for v in views]) if held is None else None
+    photo_frags = _photo_fragments(config, scene, views, (height, width), frags, native_frags, fragments)
     timings["fragments_s"] = time.perf_counter() - t0
     scene_file = os.fspath(scene.root / "scene.json") if scene.root and (scene.root / "scene.json").is_file() \
         else config.scene
-    check_coverage([v.name for v in scene.views], hit_fractions(frags), cameras, scene.mesh, scene_file)
+    check_coverage([v.name for v in views], hit_fractions(frags), cameras, scene.mesh, scene_file)
 
     t0 = time.perf_counter()
     trilinear = config.sampler == "trilinear"
-    size = config.texture_size if config.texture_size == "auto" else int(config.texture_size)
-    # pages resolve what the finest fragments the loss sees resolve: the photos' with the re-rendering term
-    layout = make_layout(scene.num_objects, scene.texture_layout, size, photo_frags or frags,
-                         max_size=config.max_texture_size, mipmaps=trilinear)
-    # evaluation renders at the photos' size: its texels must exist too (they get no gradient)
-    seen = [frags] + ([] if native else [native_frags])
-    if photo_frags is not None and photo_frags is not frags and photo_frags is not native_frags:
-        seen.append(photo_frags)
-    space = build_texel_space(itertools.chain(*seen), layout, config.sampler)      # a view at a time
-    check_state_fits(space.num_texels, channels.num_channels, config, layout.full_size())
     empty = functools.partial(view_array, folder=view_folder)
-    plan = build_gather_plans(frags, space, config.sampler, empty=empty)
-    counts = view_counts(plan, space.num_texels)
-    evidence = texel_evidence(plan, space.num_texels)
-    weights = _loss_weights(config, scene, plan, counts, empty)
+    if held is None:
+        size = config.texture_size if config.texture_size == "auto" else int(config.texture_size)
+        # pages resolve what the finest fragments the loss sees resolve: the photos' with the re-rendering term
+        layout = make_layout(scene.num_objects, scene.texture_layout, size, photo_frags or frags,
+                             max_size=config.max_texture_size, mipmaps=trilinear)
+        # evaluation renders at the photos' size: its texels must exist too (they get no gradient)
+        seen = [frags] + ([] if native else [native_frags])
+        if photo_frags is not None and photo_frags is not frags and photo_frags is not native_frags:
+            seen.append(photo_frags)
+        needs = texel_needs(itertools.chain(*seen), layout, config.sampler)      # a view at a time
+        shared_needs = _needs_arrays(needs) if jax.process_count() > 1 else {}
+        space = space_from_needs(needs, layout)
+        check_state_fits(space.num_texels, channels.num_channels, config, layout.full_size())
+        plan = build_gather_plans(frags, space, config.sampler, empty=empty)
+        counts = view_counts(plan, space.num_texels)
+        evidence = texel_evidence(plan, space.num_texels)
+    # what depends on every view, the primary's: the layout, the texel space, the view counts, the evidence
+    shared = distributed.from_primary(lambda: {"page_sizes": np.asarray(layout.page_sizes, np.int32),
+                                               "counts": counts, "evidence": evidence, **shared_needs})
+    if held is not None:
+        layout = sized_layout(scene.num_objects, scene.texture_layout, shared["page_sizes"], mipmaps=trilinear)
+        space = space_from_needs(_needs_of(shared, len(layout.page_sizes)), layout)
+        counts, evidence = shared["counts"], shared["evidence"]
+        plan = build_gather_plans(frags, space, config.sampler, empty=empty)
+    weights = _loss_weights(config, views, plan, counts, empty)
     photos = None
     if photo_frags is not None:
-        photos = _photo_data(config, scene, photo_frags, space, counts, empty,
+        photos = _photo_data(config, scene, views, photo_frags, space, counts, empty,
                              plan=plan if photo_frags is frags else None)
     timings["plans_s"] = time.perf_counter() - t0
     logging.info("texels: %d parameters x %d channels (%s pages, %.1fx fewer than full pages), %d observed",
@@ -378,30 +422,47 @@ def _build_problem(config: DistillConfig, *, cache_dir=None, check_scene=None) -
 
     t0 = time.perf_counter()
     if choice.kind == "views":
-        prior, prior_frozen = _views_prior(scene, channels, height, width, view_folder)
+        prior, prior_frozen = _views_prior(scene, views, channels, height, width, view_folder)
         alphas, model = None, None
     else:
-        prior, prior_frozen, model = _rgbx_prior(config, choice, scene, channels, height, width)
+        prior, prior_frozen, model = _rgbx_prior(config, choice, views, channels, height, width)
         alphas = prior_frozen.pop("alphas_cumprod")
     timings["prior_setup_s"] = time.perf_counter() - t0
     frozen = {"chain": plan.chain, "prior": prior_frozen, "alphas_cumprod": alphas}
-    rotations = np.stack([rgbx_camera_rotation(c.c2w) for c in cameras]).astype(np.float32)
+    rotations = np.stack([rgbx_camera_rotation(c.c2w) for c in cameras]).astype(np.float32)     # held views'
     return Problem(scene=scene, channels=channels, choice=choice, prior=prior, frozen=frozen, space=space,
                    fragments=frags, native_fragments=native_frags, height=height, width=width,
                    plan_index=plan.index, plan_weight=plan.weight, plan_hit=plan.hit, pixel_weight=weights,
                    counts=counts, evidence=evidence, normal_rotation=rotations, timings=timings,
-                   rgbx_model=model, photos=photos, view_folder=view_folder)
+                   rgbx_model=model, photos=photos, view_folder=view_folder, held=held)
+
+
+def _needs_arrays(needs) -> dict[str, np.ndarray]:
+    """`texel_needs`' grids as named arrays for `distributed.from_primary` (copies: building the
+    space changes the grids)."""
+    return {f"need_{p}_{j}": grid.copy() for p, grids in enumerate(needs) for j, grid in enumerate(grids)}
+
+
+def _needs_of(arrays: dict, num_pages: int) -> list[list[np.ndarray]]:
+    """`_needs_arrays`' grids back as `texel_needs` gives them."""
+    out = [[] for _ in range(num_pages)]
+    for p in range(num_pages):
+        while f"need_{p}_{len(out[p])}" in arrays:
+            out[p].append(np.array(arrays[f"need_{p}_{len(out[p])}"], bool))
+    return out
 
 
 def _view_data_folder(config: DistillConfig, scene: Scene, choice: PriorChoice, channels: MapChannels,
-                      render: tuple[int, int], cache_dir) -> ViewFolder | None:
+                      render: tuple[int, int], cache_dir, *, views: int | None = None,
+                      evaluation: bool = True) -> ViewFolder | None:
     """Where the per-view arrays are held (--view_data): None for memory, else the cache's
     `ViewFolder`, its disk space checked before any compute. They are, 4 bytes a value: the
     fragments (11 values a pixel) and gather plans (T taps of index and weight, and the pixel
     weight) at the render size, the views prior's targets (C channels) there, and with the
     re-rendering term fragments, plans, photos (3) and chroma guides (2, --albedo_smoothness) at
-    the photo size; fragments and plans at the photos' own size when neither size is theirs."""
-    views, taps = len(scene.views), TAPS[config.sampler]
+    the photo size; fragments and plans at the photos' own size when neither size is theirs (and
+    `evaluation`: the primary's). `views`: how many views this process holds (default all)."""
+    views, taps = len(scene.views) if views is None else views, TAPS[config.sampler]
     frag, plan = fr.BYTES_PER_PIXEL // 4, 2 * taps + 1
     per_pixel = {render: frag + plan + (channels.num_channels if choice.kind == "views" else 0)}
     if config.photo_weight > 0:
@@ -411,7 +472,7 @@ def _view_data_folder(config: DistillConfig, scene: Scene, choice: PriorChoice, 
         per_pixel[photo] = per_pixel.get(photo, 0) + images + (1 if photo in per_pixel else frag + plan)
     sizes = {(v.camera.height, v.camera.width) for v in scene.views}
     native = next(iter(sizes)) if len(sizes) == 1 else None
-    if native is not None and native not in per_pixel:
+    if evaluation and native is not None and native not in per_pixel:
         per_pixel[native] = frag + 2 * taps                         # the evaluation's fragments and plans
     nbytes = sum(views * h * w * values * 4 for (h, w), values in per_pixel.items())
     if not placement(config.view_data, nbytes):
@@ -419,26 +480,29 @@ def _view_data_folder(config: DistillConfig, scene: Scene, choice: PriorChoice, 
     folder = ViewFolder(Path(cache_dir) if cache_dir else fr.default_cache_dir())
     what = f"the per-view arrays of {views} views (--view_data={config.view_data})"
     # the ray casts still to be cached go to the same disk: both must fit
-    casts = fr.uncached_bytes(scene.mesh, _cameras_cast(config, scene, render), cache_dir)
+    held = scene.views if views == len(scene.views) else [scene.views[v] for v in distributed.held_views(len(scene.views))]
+    casts = fr.uncached_bytes(scene.mesh, _cameras_cast(config, scene, render, held, evaluation), cache_dir)
     folder.check_space(nbytes + casts, what + (f" and the ray casts not cached yet ({casts / 2 ** 30:.2f} GB)"
                                                if casts else ""))
     logging.info("%s: %.2f GB on disk in %s, read a batch at a time", what, nbytes / 2 ** 30, folder.root)
     return folder
 
 
-def _cameras_cast(config: DistillConfig, scene: Scene, render: tuple[int, int]) -> list[Camera]:
-    """Every camera the set-up casts rays for: at the render size, the photos' own, and the photo size."""
-    cameras = [scaled_camera(v.camera, *render) for v in scene.views] + [v.camera for v in scene.views]
+def _cameras_cast(config: DistillConfig, scene: Scene, render: tuple[int, int], views: Sequence,
+                  evaluation: bool = True) -> list[Camera]:
+    """Every camera the set-up casts rays for, of `views` (the views this process holds): at the
+    render size, the photos' own (`evaluation`: the primary's), and the photo size."""
+    cameras = [scaled_camera(v.camera, *render) for v in views] + ([v.camera for v in views] if evaluation else [])
     if config.photo_weight > 0:
         photo = render_shape(scene, config.photo_size, flag="--photo_size")
-        cameras += [scaled_camera(v.camera, *photo) for v in scene.views]
+        cameras += [scaled_camera(v.camera, *photo) for v in views]
     return cameras
 
 
-def _loss_weights(config: DistillConfig, scene: Scene, plan, counts: np.ndarray, empty):
-    """(V, H, W) float32 pixel weights of `plan`'s views (visibility weights, or the hit mask with
-    --visibility_weighting=false) times each view's mask (emitters, anonymised faces, unfilled
-    pixels), in an array from `empty`, a view at a time."""
+def _loss_weights(config: DistillConfig, views: Sequence, plan, counts: np.ndarray, empty):
+    """(V, H, W) float32 pixel weights of `plan`'s views (`views`, in order: visibility weights, or
+    the hit mask with --visibility_weighting=false) times each view's mask (emitters, anonymised
+    faces, unfilled pixels), in an array from `empty`, a view at a time."""
     height, width = plan.height, plan.width
     weights = empty("pixel_weight", (plan.num_views, height, width), np.float32)
     if config.visibility_weighting:
@@ -446,7 +510,7 @@ def _loss_weights(config: DistillConfig, scene: Scene, plan, counts: np.ndarray,
     else:
         for v in range(plan.num_views):
             weights[v] = plan.hit[v].reshape(height, width).astype(np.float32)
-    for v, view in enumerate(scene.views):
+    for v, view in enumerate(views):
         if view.mask is not None:
             weights[v] = weights[v] * read_mask(view.mask, height, width)
     return weights
@@ -460,36 +524,38 @@ def _fragments(mesh, cameras: Sequence[Camera], *, cache_dir, folder: ViewFolder
     return fr.compute_fragments(mesh, cameras, cache_dir=cache_dir, empty=empty)
 
 
-def _photo_fragments(config: DistillConfig, scene: Scene, render: tuple[int, int], frags, native_frags,
-                     fragments) -> Sequence | None:
-    """The fragments the re-rendering term renders the photos at (--photo_size), or None when
-    --photo_weight is 0. Reuses the render-size or native fragments when the size is theirs;
-    `fragments(cameras)` computes others."""
+def _photo_fragments(config: DistillConfig, scene: Scene, views: Sequence, render: tuple[int, int], frags,
+                     native_frags, fragments) -> Sequence | None:
+    """The fragments of `views` (the views this process holds) that the re-rendering term renders
+    the photos at (--photo_size, of the whole scene), or None when --photo_weight is 0. Reuses the
+    render-size or native fragments (when computed) where the size is theirs; `fragments(cameras)`
+    computes others."""
     if config.photo_weight <= 0:
         return None
     shape = render_shape(scene, config.photo_size, flag="--photo_size")
     if shape == render:
         return frags
-    if all((v.camera.height, v.camera.width) == shape for v in scene.views):
+    if native_frags is not None and all((v.camera.height, v.camera.width) == shape for v in views):
         return native_frags
-    return fragments([scaled_camera(v.camera, *shape) for v in scene.views])
+    return fragments([scaled_camera(v.camera, *shape) for v in views])
 
 
-def _photo_data(config: DistillConfig, scene: Scene, photo_frags, space: TexelSpace, counts, empty=None, *,
-                plan=None) -> PhotoData:
-    """The re-rendering term's plans, photos and pixel weights (`PhotoData`), at the photo fragments'
-    size, in arrays from `empty(name, shape, dtype)` (`view_rows.view_array`: memory or files);
-    `plan`: the photo fragments' plan when the caller has it already (the render size's)."""
+def _photo_data(config: DistillConfig, scene: Scene, views: Sequence, photo_frags, space: TexelSpace, counts,
+                empty=None, *, plan=None) -> PhotoData:
+    """The re-rendering term's plans, photos and pixel weights (`PhotoData`) of `views` (the views
+    this process holds, of `scene`), at the photo fragments' size, in arrays from
+    `empty(name, shape, dtype)` (`view_rows.view_array`: memory or files); `plan`: the photo
+    fragments' plan when the caller has it already (the render size's)."""
     empty = empty or functools.partial(view_array, folder=None)
     plan = plan if plan is not None else build_gather_plans(photo_frags, space, config.sampler, empty=empty)
     height, width = plan.height, plan.width
-    weights = _loss_weights(config, scene, plan, counts, empty)
-    views = len(scene.views)
-    photos = empty("photos", (views, height, width, 3), np.float32)
-    guide = empty("guides", (views, height, width, 2), np.float32) if config.albedo_smoothness > 0 else None
-    noise = np.zeros(views, np.float64)
-    noise_weight = np.ones(views, np.float64)
-    for v, view in enumerate(tqdm(scene.views, desc="photos", unit="view", dynamic_ncols=True)):
+    weights = _loss_weights(config, views, plan, counts, empty)
+    count = len(views)
+    photos = empty("photos", (count, height, width, 3), np.float32)
+    guide = empty("guides", (count, height, width, 2), np.float32) if config.albedo_smoothness > 0 else None
+    noise = np.zeros(count, np.float64)
+    noise_weight = np.ones(count, np.float64)
+    for v, view in enumerate(tqdm(views, desc="photos", unit="view", dynamic_ncols=True)):
         photo, usable = read_photo_linear(view.photo, view.exposure, height, width)
         photos[v] = photo
         if guide is not None:
@@ -505,7 +571,7 @@ def _photo_data(config: DistillConfig, scene: Scene, photo_frags, space: TexelSp
                      "weigh less in the term (weights %.2f-%.2f)", config.photo_noise_ref, float(np.median(noise)),
                      float(noise.min()), float(noise.max()), int(np.sum(noise_weight < 1)), len(noise),
                      float(noise_weight.min()), float(noise_weight.max()))
-    ldr = any(not imageio.is_linear_format(view.photo) for view in scene.views)
+    ldr = any(not imageio.is_linear_format(view.photo) for view in scene.views)     # every process's answer
     scale = photo_lib.resolve_scale(config.photo_scale, ldr)
     if scale != config.photo_scale:
         logging.info("--photo_scale=auto: %s (%s)", scale, "LDR photos: a gain per view and colour channel, their "

@@ -262,9 +262,15 @@ def _upsample(mask: np.ndarray) -> np.ndarray:
 
 def build_texel_space(fragments: Sequence[Fragments], layout: TextureLayout, sampler: str) -> TexelSpace:
     """The compact tiles read by all views' taps, directly or through coarse mip entries."""
+    return space_from_needs(texel_needs(fragments, layout, sampler), layout)
+
+
+def texel_needs(fragments: Sequence[Fragments], layout: TextureLayout, sampler: str) -> list[list[np.ndarray]]:
+    """need[p][j]: bool grid of the level-(k+j) entries of page p (j = 0: the tile grid) that the
+    views' taps read. Views' needs combine by OR (`space_from_needs` takes the union): processes
+    holding different views can take each other's."""
     b = layout.tile
     k = int(np.log2(b))
-    # need[p][j]: bool grid of level k+j entries of page p (j = 0: the tile grid).
     need = [[np.zeros((s >> (k + j), s >> (k + j)), bool) for j in range(layout.num_levels(p) - k if layout.mipmaps else 1)]
             for p, s in enumerate(layout.page_sizes)]
 
@@ -283,6 +289,12 @@ def build_texel_space(fragments: Sequence[Fragments], layout: TextureLayout, sam
     for view_marks in ordered_map(marks, fragments):
         for p, j, rows, cols in view_marks:
             need[p][j][rows, cols] = True
+    return need
+
+
+def space_from_needs(need: list[list[np.ndarray]], layout: TextureLayout) -> TexelSpace:
+    """The compact texel space of `texel_needs`' grids (modified in place: a needed coarse entry
+    needs its 4 children, down to the tiles; a page's tile grid is let go once numbered)."""
     for grids in need:  # a needed coarse entry needs its 4 children, down to the tiles
         for j in range(len(grids) - 1, 0, -1):
             grids[j - 1] |= _upsample(grids[j])

@@ -97,14 +97,7 @@ def make_layout(num_objects: int, texture_layout: str, texture_size, fragments: 
     tile_size (parameter allocation granularity) defaults to 1 (texel-exact) without mipmaps
     and 16 with them: scripts/bench_render.py measured these as the smallest and the fastest.
     """
-    if tile_size is None:
-        tile_size = 16 if mipmaps else 1
-    if texture_layout == "pages":
-        object_page = tuple(range(num_objects))
-    elif texture_layout == "atlas":
-        object_page = (0,) * num_objects
-    else:
-        raise InputError.single("scene", "texture_layout", f"unknown layout {texture_layout!r}; use pages or atlas")
+    object_page = object_pages(num_objects, texture_layout)
     num_pages = max(object_page) + 1
     if texture_size == "auto":
         sizes = auto_page_sizes(fragments, object_page, num_pages, max_size)
@@ -113,4 +106,22 @@ def make_layout(num_objects: int, texture_layout: str, texture_size, fragments: 
         if size < 1 or size & (size - 1):
             raise InputError.single("flags", "texture_size", f"must be a power of two or 'auto', got {texture_size!r}")
         sizes = (size,) * num_pages
-    return TextureLayout(page_sizes=tuple(sizes), object_page=object_page, mipmaps=mipmaps, tile_size=tile_size)
+    return sized_layout(num_objects, texture_layout, sizes, mipmaps=mipmaps, tile_size=tile_size)
+
+
+def object_pages(num_objects: int, texture_layout: str) -> tuple[int, ...]:
+    """Each object's page: its own ("pages") or one shared page ("atlas")."""
+    if texture_layout == "pages":
+        return tuple(range(num_objects))
+    if texture_layout == "atlas":
+        return (0,) * num_objects
+    raise InputError.single("scene", "texture_layout", f"unknown layout {texture_layout!r}; use pages or atlas")
+
+
+def sized_layout(num_objects: int, texture_layout: str, page_sizes: Sequence[int], *, mipmaps: bool = False,
+                 tile_size: int | None = None) -> TextureLayout:
+    """The layout `make_layout` gives with these page sizes (e.g. sizes another process chose)."""
+    if tile_size is None:
+        tile_size = 16 if mipmaps else 1
+    return TextureLayout(page_sizes=tuple(int(s) for s in page_sizes), object_page=object_pages(num_objects,
+                         texture_layout), mipmaps=mipmaps, tile_size=tile_size)
