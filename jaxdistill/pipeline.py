@@ -50,6 +50,8 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
     if not distributed.is_primary():               # another process of a multi-process run: the loop only
         problem = problem.without_fragments()
         loop = loop_lib.run_loop(config, problem, recorded, latest, progress=False)
+        if not loop.stopped_by:
+            distributed.barrier("outputs")     # process 0 writes them: JAX's shutdown waits only 300 s for it
         return {"process_id": jax.process_index(), "step": int(jax.device_get(loop.state.step)),
                 "stopped_by": loop.stopped_by, "exit_status": loop.exit_status}
     with ThreadPoolExecutor(max_workers=1) as pool:   # the step compiled beside the evaluation's set-up
@@ -104,6 +106,7 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
     (out / "metrics.json").write_text(json.dumps(json_safe(summary), indent=1))
     logging.info("wrote %s", out / "metrics.json")
     print(summary_table(json_safe(summary), out), flush=True)
+    distributed.barrier("outputs")
     return summary
 
 

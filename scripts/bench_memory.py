@@ -266,7 +266,7 @@ def child_run(args, flag_argv) -> int:
         rec.info.update({
             "texels": n, "channels": channels, "params": n * channels, "full_texels": full,
             "full_params": full * channels, "pyramid": pyramid, "tile": space.tile,
-            "page_sizes": list(layout.page_sizes), "sampler": a[2] if len(a) > 2 else k.get("sampler"),
+            "page_sizes": list(layout.page_sizes), "sampler": config.sampler,
             "texels_adamw_mb": state / MB, "full_pages_adamw_mb": 3 * full * word / MB,
             "texel_space_maps_mb": tile_maps / MB,
             "estimated_min_step_mb": step_need / MB, "estimated_min_outputs_mb": out_need / MB})
@@ -279,7 +279,7 @@ def child_run(args, flag_argv) -> int:
                               + (f", outputs: full pages {full * word / 2**30:.1f}" if args.outputs else "")
                               + f" GiB) > --max_gb={args.max_gb:.1f}")
 
-    after(problem_mod, "build_texel_space", on_space)
+    after(problem_mod, "space_from_needs", on_space)
     after(problem_mod, "build_gather_plans", lambda r, a, k: rec.mark("gather plans"))
     after(problem_mod, "pixel_weights", lambda r, a, k: rec.mark("visibility"))
     after(problem_mod, "_views_prior", lambda r, a, k: rec.mark("prior (views targets)"))

@@ -14,6 +14,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import jax
+import jax.tree as jax_tree
 import numpy as np
 import pytest
 
@@ -42,32 +44,51 @@ def texels(out: Path) -> np.ndarray:
         return store.read_texels()
 
 
-@pytest.fixture(scope="module")
-def two_process_run(tmp_path_factory):
-    work = tmp_path_factory.mktemp("distributed")
-    scene = write_tiny_scene(work / "scene")
-    out = work / "two"
-    env = {**os.environ, "JAX_PLATFORMS": "cpu", "JAXDISTILL_CACHE": str(work / "cache")}
+def run_two(scene: Path, out: Path, cache: Path, flags: dict, timeout: int = 300) -> list[tuple[int, str]]:
+    """(return code, log) of two processes of the main job on localhost, joined by jax.distributed."""
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "JAXDISTILL_CACHE": str(cache)}
     env["XLA_FLAGS"] = " ".join(f for f in env.get("XLA_FLAGS", "").split()     # one CPU device per process
                                 if not f.startswith("--xla_force_host_platform_device_count"))
     env.pop("JAXDISTILL_RGBX_DIR", None)
     address = f"localhost:{free_port()}"
-    flags = [f"--{k}={str(v).lower() if isinstance(v, bool) else v}" for k, v in FLAGS.items()]
-    procs = [subprocess.Popen([sys.executable, "-m", "jaxdistill.main", f"--scene={scene}", f"--out_dir={out}", *flags,
+    args = [f"--{k}={str(v).lower() if isinstance(v, bool) else v}" for k, v in flags.items()]
+    procs = [subprocess.Popen([sys.executable, "-m", "jaxdistill.main", f"--scene={scene}", f"--out_dir={out}", *args,
                                f"--coordinator_address={address}", "--num_processes=2", f"--process_id={i}"],
                               cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
              for i in range(2)]
     logs = []
     for proc in procs:
         try:
-            logs.append(proc.communicate(timeout=300)[0])
+            logs.append(proc.communicate(timeout=timeout)[0])
         except subprocess.TimeoutExpired:
             for p in procs:
                 p.kill()
-            pytest.fail("the two processes did not finish in 300 s")
-    for i, (proc, log) in enumerate(zip(procs, logs)):
-        assert proc.returncode == 0, f"process {i} failed:\n{log[-4000:]}"
-    return scene, out, logs
+            pytest.fail(f"the two processes did not finish in {timeout} s")
+    return [(proc.returncode, log) for proc, log in zip(procs, logs)]
+
+
+@pytest.fixture(scope="module")
+def two_process_run(tmp_path_factory):
+    work = tmp_path_factory.mktemp("distributed")
+    scene = write_tiny_scene(work / "scene")
+    out = work / "two"
+    results = run_two(scene, out, work / "cache", FLAGS)
+    for i, (code, log) in enumerate(results):
+        assert code == 0, f"process {i} failed:\n{log[-4000:]}"
+    return scene, out, [log for _, log in results]
+
+
+def test_process_0s_refusal_stops_every_process_with_its_message(tmp_path):
+    """Process 0 checks what depends on every view (here: no view sees the mesh) and the others
+    wait for its layout: its InputError reaches them, and both stop with it, none left waiting."""
+    scene = write_tiny_scene(tmp_path / "scene")
+    doc = json.loads(scene.read_text())
+    for view in doc["views"]:
+        view["c2w"] = [[1, 0, 0, 50], [0, 1, 0, 50], [0, 0, 1, 50], [0, 0, 0, 1]]     # far outside, facing away
+    scene.write_text(json.dumps(doc))
+    results = run_two(scene, tmp_path / "o", tmp_path / "cache", FLAGS, timeout=120)
+    for code, log in results:
+        assert code != 0 and "views: no view sees the mesh" in log, log[-3000:]
 
 
 def one_process(scene: Path, out: Path, **kw) -> dict:
@@ -98,7 +119,8 @@ def test_the_checkpoint_two_processes_wrote_resumes_in_one(two_process_run, tmp_
     monkeypatch.setenv("JAXDISTILL_CACHE", str(tmp_path / "cache"))
     resumed = tmp_path / "resumed"
     shutil.copytree(out, resumed)
-    with pytest.raises(InputError, match="view_shares"):      # one process draws from one share unless told
+    with pytest.raises(InputError, match=r"--view_shares: the checkpoint's steps drew their views from 2 share.*"
+                                         r"in one process with --view_shares=2"):      # one share unless told
         one_process(scene, resumed, steps=STEPS + 2, resume=True)
     one_process(scene, resumed, steps=STEPS + 2, resume=True, view_shares=2)
     one_process(scene, tmp_path / "fresh", steps=STEPS + 2, view_shares=2)
@@ -185,3 +207,52 @@ def test_bad_view_shares_are_named(tmp_path, kw, words):
     with pytest.raises(InputError, match=rf"--view_shares.*{words}"):
         config_lib.validate(DistillConfig(scene=str(tmp_path / "s.json"), out_dir=str(tmp_path / "o"), **kw))
 
+
+
+@pytest.mark.parametrize("flags", [
+    dict(),                                                                         # bilinear, the views prior
+    dict(sampler="trilinear", texture_size="auto", photo_weight=0.5, render_size=16, view_data="disk"),
+])
+def test_a_share_built_alone_gives_the_batches_of_the_whole_build(tmp_path, monkeypatch, flags):
+    """A process holding one share builds its views' per-view arrays alone from process 0's layout,
+    needs and counts (here in one process: `held_views` patched to share 1 of 2 and `from_primary`
+    to hand over, through a savez round trip of its own format, what a whole build sent). Its
+    batches of its views equal the whole build's, every array bit for bit; a view of another share
+    is refused."""
+    import io
+
+    from jaxdistill.engine import problem as problem_mod
+
+    scene = write_tiny_scene(tmp_path / "scene", views=5, width=32, height=24)
+    config = config_lib.validate(DistillConfig(scene=str(scene), out_dir=str(tmp_path / "o"), prior="views",
+                                               views_per_step=2, **flags))
+    sent = []
+
+    def record(make):
+        made = make()
+        buffer = io.BytesIO()
+        np.savez(buffer, **made)
+        sent.append(buffer.getvalue())
+        return made
+
+    monkeypatch.setattr(jax, "process_count", lambda: 2)                # the primary packs its needs to send
+    monkeypatch.setattr(distributed, "from_primary", record)
+    whole = problem_mod.build_problem(config, cache_dir=tmp_path / "cache")
+    assert len(sent) == 2 and whole.held is None
+
+    replies = iter(sent)
+    monkeypatch.setattr(distributed, "from_primary", lambda make: dict(np.load(io.BytesIO(next(replies)))))
+    monkeypatch.setattr(distributed, "held_views", lambda n: distributed.view_share(n, 1, 2))
+    share = problem_mod.build_problem(config, cache_dir=tmp_path / "cache2")
+    assert np.array_equal(share.held, [1, 3]) and share.evidence is None
+    assert share.space.num_texels == whole.space.num_texels and np.array_equal(share.counts, whole.counts)
+    if flags:
+        assert share.views_on_disk and share.photos is not None and share.space.layout.mipmaps
+    for ids in ([1, 3], [3, 3]):
+        mine, theirs = share.batch(np.array(ids)), whole.batch(np.array(ids))
+        leaves = jax_tree.leaves_with_path(theirs)
+        assert jax_tree.structure(mine) == jax_tree.structure(theirs) and len(leaves) >= (12 if flags else 7)
+        for (path, a), b in zip(leaves, jax_tree.leaves(mine)):
+            np.testing.assert_array_equal(np.asarray(b), np.asarray(a), err_msg=str(path))
+    with pytest.raises(ValueError, match=r"views \[2\] are not among the 2 this process holds"):
+        share.batch(np.array([1, 2]))

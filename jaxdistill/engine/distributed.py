@@ -13,16 +13,18 @@ draws its views evenly from the shares, process q's rows from share q (`engine/p
 `Problem.view_ids`), so each process assembles only its own rows of a step's batch
 (`place_batch`) from views it holds. The set-up follows: a process other than the primary ray
 casts, plans and reads the photos, targets and photo latents of its share alone (`held_views`),
-and takes what depends on every view (the texture layout, the texel space, the view counts and
-the evidence) from the primary (`from_primary`). The primary still holds every view: its
-evaluation during the loop and the outputs after it (scores, renders, evidence, pages, glTF) read
-them all. Checkpoints are written by orbax's multi-process protocol (every process calls save;
+and takes what depends on every view (the texture layout and texel space, then the view counts)
+from the primary (`from_primary`, which carries the primary's refusals too). The primary still
+holds every view: its evaluation during the loop and the outputs after it (scores, renders,
+evidence, pages, glTF) read them all. Where the processes arrive minutes apart (the hand-over,
+the loop's start, the end of the outputs) they meet at a `barrier` first. Checkpoints are written by orbax's multi-process protocol (every process calls save;
 the primary writes the replicated arrays), and the outputs by the primary alone (`is_primary`).
 """
 
 from __future__ import annotations
 
 import io
+import json
 import re
 from typing import Callable
 
@@ -129,26 +131,62 @@ def held_views(num_views: int) -> np.ndarray | None:
 
 
 _CHUNK = 1 << 30        # bytes a collective carries at most
+BARRIER_TIMEOUT_S = 24 * 3600     # how long a process waits for the others at a `barrier`
+
+
+def barrier(name: str) -> None:
+    """Waits until every process reaches the barrier `name` (nothing for one process). The
+    processes reach some points minutes apart (process 0 sets up every view and writes the
+    outputs), while XLA's CPU collectives give up after 30 s when a peer is late to its first
+    one and `jax.distributed` after 300 s of a peer's shutdown: so the run meets here, through the
+    coordination service, with a day's timeout, before it works together. A process that dies
+    fails the others' wait (the service's heartbeats)."""
+    if jax.process_count() == 1:
+        return
+    from jax._src import distributed as jax_distributed      # the client JAX's own multi-process tests wait on
+
+    _barriers[name] = _barriers.get(name, 0) + 1               # every process passes them in the same order
+    jax_distributed.global_state.client.wait_at_barrier(f"jaxdistill_{name}_{_barriers[name]}",
+                                                        BARRIER_TIMEOUT_S * 1000)
+
+
+_barriers: dict[str, int] = {}      # how often this process reached each barrier (their ids must not repeat)
 
 
 def from_primary(make: Callable[[], dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
     """`make()`'s arrays, computed by the primary process alone and received by every other (one
-    process: `make()`). Every process must call it at the same point of the set-up; the arrays go
-    as one `np.savez` buffer, its length first, in collectives of at most 1 GiB."""
+    process: `make()`). Every process must call it at the same point of the set-up. The arrays go
+    as one `np.savez` buffer, its length first, in collectives of at most 1 GiB; an `InputError`
+    that `make()` raises goes instead, and every process raises it (none is left waiting)."""
     if jax.process_count() == 1:
         return make()
     from jax.experimental import multihost_utils
 
-    data = np.zeros(0, np.uint8)
+    barrier("from_primary")             # the primary may take minutes longer: meet before the collectives
+    data, made, refused = np.zeros(0, np.uint8), None, None
     if is_primary():
+        try:
+            made = make()
+            payload = made
+        except InputError as err:
+            refused = err
+            payload = {"input_error": np.frombuffer(json.dumps(err.problems).encode(), np.uint8)}
         buffer = io.BytesIO()
-        np.savez(buffer, **make())
-        data = np.frombuffer(buffer.getvalue(), np.uint8)
+        np.savez(buffer, **payload)
+        data = np.frombuffer(buffer.getbuffer(), np.uint8)
     size = multihost_utils.broadcast_one_to_all(np.array([len(data) >> 31, len(data) & (2 ** 31 - 1)], np.int32))
     size = (int(size[0]) << 31) | int(size[1])
-    chunks = []
+    received = data if is_primary() else np.empty(size, np.uint8)
     for start in range(0, size, _CHUNK):
         part = data[start:start + _CHUNK] if is_primary() else np.zeros(min(_CHUNK, size - start), np.uint8)
-        chunks.append(np.asarray(multihost_utils.broadcast_one_to_all(part), np.uint8))
-    with np.load(io.BytesIO(np.concatenate(chunks).tobytes() if chunks else b"")) as arrays:
+        part = multihost_utils.broadcast_one_to_all(part)
+        if not is_primary():
+            received[start:start + len(part)] = np.asarray(part, np.uint8)
+    if refused is not None:
+        raise refused
+    if made is not None:
+        return made
+    with np.load(io.BytesIO(received.tobytes())) as arrays:
+        if "input_error" in arrays.files:
+            raise InputError([tuple(p) for p in json.loads(arrays["input_error"].tobytes().decode())])
         return {name: arrays[name] for name in arrays.files}

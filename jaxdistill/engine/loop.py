@@ -209,6 +209,14 @@ def check_before_compute(config: DistillConfig, out: Path, choice) -> int | None
     if config.views_per_step % len(devices):
         raise InputError.single("flags", "--views_per_step", f"{config.views_per_step} does not split over "
                                 f"{len(devices)} devices; use a multiple of {len(devices)}")
+    if jax.process_count() > 1:      # process q's devices must hold rows q*B/N.. of a step: its share's views
+        q, n, b = jax.process_index(), jax.process_count(), config.views_per_step
+        rows = distributed.local_rows(jax.sharding.NamedSharding(data_mesh(devices), jax.sharding.PartitionSpec("data")),
+                                      b)
+        if rows != (q * b // n, (q + 1) * b // n):
+            raise InputError.single("flags", "--num_processes", f"process {q}'s devices hold rows {rows[0]}-{rows[1]} "
+                                    f"of a step's {b} views, not its share's {q * b // n}-{(q + 1) * b // n}: the "
+                                    "devices are not ordered by process; report this with `jax.devices()`")
     if config.prior_attention == "cudnn":
         if choice.kind != "rgbx":
             raise InputError.single("flags", "--prior_attention", "cudnn is the UNet's attention, but the views prior "
@@ -242,7 +250,15 @@ def check_before_compute(config: DistillConfig, out: Path, choice) -> int | None
         if latest is None:
             raise InputError.single("flags", "--resume", f"no complete checkpoint in {directory}; "
                                     "run without --resume to start")
-        checkpoint.check_compatible(store.read_config(latest), recorded_config(config, choice.kind), directory,
+        written = store.read_config(latest)
+        shares, now = written.get("view_shares", ADDED_FLAG_DEFAULTS["view_shares"]), distributed.shares_of_run(
+            config.view_shares)
+        if shares != now:
+            raise InputError.single(directory, "--view_shares", (
+                f"the checkpoint's steps drew their views from {shares} share(s) (--view_shares, or one per "
+                f"process) and this run would draw from {now}; resume in {shares} process(es) with --view_shares=0, "
+                f"or in one process with --view_shares={shares}"))
+        checkpoint.check_compatible(written, recorded_config(config, choice.kind), directory,
                                     ignore=resumable_flags(config), defaults=ADDED_FLAG_DEFAULTS)
     if latest > config.steps:
         raise InputError.single("flags", "--steps", f"{config.steps} is below the checkpoint's step {latest} in "
@@ -335,6 +351,7 @@ def run_loop(config: DistillConfig, problem: Problem, recorded: dict, latest: in
         raise ValueError("run_loop: a prepared step and a before_steps hook: give one")
     stepper = (prepared.stepper if prepared is not None
                else setup_step(config, problem, first_batch(problem, config)))
+    distributed.barrier("loop")      # process 0 also built the evaluation: meet before the first collective
     checkpoints = _Checkpoints(config, Path(config.out_dir), recorded, enabled=hooks.checkpoints)
     history = _empty_history()
     state = stepper.state

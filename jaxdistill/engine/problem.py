@@ -3,6 +3,8 @@
 `build_problem(config)` reads the scene, resamples views to the render size, ray casts
 fragments (cached), lays out the compact texel space, builds every view's gather plan,
 visibility counts and pixel weights, and sets up the prior (`choose_prior` says which and why).
+In a process of a multi-process run other than process 0 "every view" is the views of its
+share (`distributed.held_views`), and the layout, texel space and counts are process 0's.
 `Problem.batch(view_ids)` then assembles one step's host arrays.
 """
 
@@ -31,8 +33,8 @@ from jaxdistill.scene.maps import INITIAL_VALUE, MapChannels, file_to_model
 from jaxdistill.render import fragments as fr
 from jaxdistill.render.gather_plan import TAPS, TexelSpace, build_gather_plans, space_from_needs, texel_needs
 from jaxdistill.render.layout import make_layout, sized_layout
-from jaxdistill.render.visibility import (check_coverage, hit_fractions, pixel_weights, texel_evidence,
-                                         view_counts)
+from jaxdistill.render.visibility import (check_coverage, coverage_summary, hit_fractions, pixel_weights,
+                                         texel_evidence, view_counts)
 from jaxdistill.scene.model import Scene
 from jaxdistill.scene.paths import resolve_scene_path  # noqa: F401  (--scene as a path; scripts use it from here)
 from jaxdistill.io.view_images import read_mask, read_photo_linear, read_target, resize
@@ -153,14 +155,15 @@ class Problem:
     """The precomputed, fixed part of a run (host NumPy arrays unless noted).
 
     plan_index (V, P, T) int32 / plan_weight (V, P, T) float32 / plan_hit (V, P) bool: gather
-    plans of all views at (height, width); pixel_weight (V, H, W) float32 loss weights. Per-view
+    plans of the views held (`held`) at (height, width); pixel_weight (V, H, W) float32 loss weights. Per-view
     arrays (these, the photos, the views prior's targets; fragments as `FragmentRows`) are NumPy
     or, with --view_data on disk, `ViewRows` files: read them by views (`a[ids]`), as `batch` does;
     counts (N,) int32 view counts per texel; evidence (N,) float32 summed tap weights per texel
     (`visibility.texel_evidence`); normal_rotation (V, 3, 3) float32. `held`: the views those
     per-view arrays hold, one row each in this order (a process's share of a multi-process run,
     `distributed.held_views`), or None for every view; `batch` takes views by id either way.
-    counts and evidence are of every view.
+    counts are of every view; evidence too, in the process that holds every view (None elsewhere:
+    only the outputs read it).
     """
 
     scene: Scene
@@ -178,7 +181,7 @@ class Problem:
     plan_hit: np.ndarray
     pixel_weight: np.ndarray
     counts: np.ndarray
-    evidence: np.ndarray
+    evidence: np.ndarray | None
     normal_rotation: np.ndarray
     timings: dict
     rgbx_model: Any = None            # the loaded RgbxPrior (rgbx prior only): per-view estimates use it
@@ -247,6 +250,8 @@ class Problem:
         in rows q * batch_size / shares onwards: with one share per process, the rows each process
         places are views it holds. One share draws from every view, as runs did before shares."""
         rng = np.random.default_rng([seed, step])
+        if batch_size % shares:
+            raise ValueError(f"{batch_size} views a step do not split over {shares} view shares")
         per = batch_size // shares
         parts = [distributed.view_share(self.num_views, q, shares) for q in range(shares)]
         return np.concatenate([rng.choice(part, per, replace=per > len(part)) for part in parts])
@@ -367,7 +372,7 @@ def _build_problem(config: DistillConfig, *, cache_dir=None, check_scene=None) -
         logging.info("process %d holds %d of the %d views (share %d of %d: %s)", jax.process_index(), len(views),
                      len(scene.views), jax.process_index(), jax.process_count(),
                      ", ".join(v.name for v in views[:8]) + (", ..." if len(views) > 8 else ""))
-    view_folder = _view_data_folder(config, scene, choice, channels, (height, width), cache_dir, views=len(views),
+    view_folder = _view_data_folder(config, scene, choice, channels, (height, width), cache_dir, views=views,
                                     evaluation=held is None)
 
     t0 = time.perf_counter()
@@ -381,12 +386,16 @@ def _build_problem(config: DistillConfig, *, cache_dir=None, check_scene=None) -
     timings["fragments_s"] = time.perf_counter() - t0
     scene_file = os.fspath(scene.root / "scene.json") if scene.root and (scene.root / "scene.json").is_file() \
         else config.scene
-    check_coverage([v.name for v in views], hit_fractions(frags), cameras, scene.mesh, scene_file)
 
     t0 = time.perf_counter()
     trilinear = config.sampler == "trilinear"
     empty = functools.partial(view_array, folder=view_folder)
-    if held is None:
+    # What depends on every view comes from the primary, which holds them all: the layout and the texel
+    # space, then the view counts (evidence: only its outputs read it). Its refusals reach every process.
+    built = {}
+
+    def layout_and_space() -> dict:
+        check_coverage([v.name for v in views], hit_fractions(frags), cameras, scene.mesh, scene_file)
         size = config.texture_size if config.texture_size == "auto" else int(config.texture_size)
         # pages resolve what the finest fragments the loss sees resolve: the photos' with the re-rendering term
         layout = make_layout(scene.num_objects, scene.texture_layout, size, photo_frags or frags,
@@ -396,20 +405,25 @@ def _build_problem(config: DistillConfig, *, cache_dir=None, check_scene=None) -
         if photo_frags is not None and photo_frags is not frags and photo_frags is not native_frags:
             seen.append(photo_frags)
         needs = texel_needs(itertools.chain(*seen), layout, config.sampler)      # a view at a time
-        shared_needs = _needs_arrays(needs) if jax.process_count() > 1 else {}
-        space = space_from_needs(needs, layout)
-        check_state_fits(space.num_texels, channels.num_channels, config, layout.full_size())
-        plan = build_gather_plans(frags, space, config.sampler, empty=empty)
+        shared = _needs_arrays(needs) if jax.process_count() > 1 else {}
+        built["space"] = space_from_needs(needs, layout)
+        check_state_fits(built["space"].num_texels, channels.num_channels, config, layout.full_size())
+        return {"page_sizes": np.asarray(layout.page_sizes, np.int32), **shared}
+
+    shared = distributed.from_primary(layout_and_space)
+    if held is None:
+        space = built["space"]
+    else:
+        logging.info("%s", coverage_summary([v.name for v in views], hit_fractions(frags)))
+        layout = sized_layout(scene.num_objects, scene.texture_layout, shared["page_sizes"], mipmaps=trilinear)
+        space = space_from_needs(_needs_of(shared, layout), layout)
+    plan = build_gather_plans(frags, space, config.sampler, empty=empty)
+    if held is None:
         counts = view_counts(plan, space.num_texels)
         evidence = texel_evidence(plan, space.num_texels)
-    # what depends on every view, the primary's: the layout, the texel space, the view counts, the evidence
-    shared = distributed.from_primary(lambda: {"page_sizes": np.asarray(layout.page_sizes, np.int32),
-                                               "counts": counts, "evidence": evidence, **shared_needs})
-    if held is not None:
-        layout = sized_layout(scene.num_objects, scene.texture_layout, shared["page_sizes"], mipmaps=trilinear)
-        space = space_from_needs(_needs_of(shared, len(layout.page_sizes)), layout)
-        counts, evidence = shared["counts"], shared["evidence"]
-        plan = build_gather_plans(frags, space, config.sampler, empty=empty)
+    counts = distributed.from_primary(lambda: {"counts": counts})["counts"]
+    evidence = evidence if held is None else None
+    layout = space.layout
     weights = _loss_weights(config, views, plan, counts, empty)
     photos = None
     if photo_frags is not None:
@@ -438,22 +452,24 @@ def _build_problem(config: DistillConfig, *, cache_dir=None, check_scene=None) -
 
 
 def _needs_arrays(needs) -> dict[str, np.ndarray]:
-    """`texel_needs`' grids as named arrays for `distributed.from_primary` (copies: building the
-    space changes the grids)."""
-    return {f"need_{p}_{j}": grid.copy() for p, grids in enumerate(needs) for j, grid in enumerate(grids)}
+    """`texel_needs`' grids as named arrays of packed bits for `distributed.from_primary`."""
+    return {f"need_{p}_{j}": np.packbits(grid) for p, grids in enumerate(needs) for j, grid in enumerate(grids)}
 
 
-def _needs_of(arrays: dict, num_pages: int) -> list[list[np.ndarray]]:
-    """`_needs_arrays`' grids back as `texel_needs` gives them."""
-    out = [[] for _ in range(num_pages)]
-    for p in range(num_pages):
-        while f"need_{p}_{len(out[p])}" in arrays:
-            out[p].append(np.array(arrays[f"need_{p}_{len(out[p])}"], bool))
+def _needs_of(arrays: dict, layout) -> list[list[np.ndarray]]:
+    """`_needs_arrays`' grids back as `texel_needs` gives them for `layout`."""
+    k = int(np.log2(layout.tile))
+    out = []
+    for p, side in enumerate(layout.page_sizes):
+        levels = layout.num_levels(p) - k if layout.mipmaps else 1
+        shapes = [(side >> (k + j),) * 2 for j in range(levels)]
+        out.append([np.unpackbits(arrays[f"need_{p}_{j}"], count=h * w).astype(bool).reshape(h, w)
+                    for j, (h, w) in enumerate(shapes)])
     return out
 
 
 def _view_data_folder(config: DistillConfig, scene: Scene, choice: PriorChoice, channels: MapChannels,
-                      render: tuple[int, int], cache_dir, *, views: int | None = None,
+                      render: tuple[int, int], cache_dir, *, views: Sequence | None = None,
                       evaluation: bool = True) -> ViewFolder | None:
     """Where the per-view arrays are held (--view_data): None for memory, else the cache's
     `ViewFolder`, its disk space checked before any compute. They are, 4 bytes a value: the
@@ -461,8 +477,9 @@ def _view_data_folder(config: DistillConfig, scene: Scene, choice: PriorChoice, 
     weight) at the render size, the views prior's targets (C channels) there, and with the
     re-rendering term fragments, plans, photos (3) and chroma guides (2, --albedo_smoothness) at
     the photo size; fragments and plans at the photos' own size when neither size is theirs (and
-    `evaluation`: the primary's). `views`: how many views this process holds (default all)."""
-    views, taps = len(scene.views) if views is None else views, TAPS[config.sampler]
+    `evaluation`: the primary's). `views`: the views this process holds (default all)."""
+    held = scene.views if views is None else views
+    views, taps = len(held), TAPS[config.sampler]
     frag, plan = fr.BYTES_PER_PIXEL // 4, 2 * taps + 1
     per_pixel = {render: frag + plan + (channels.num_channels if choice.kind == "views" else 0)}
     if config.photo_weight > 0:
@@ -480,7 +497,6 @@ def _view_data_folder(config: DistillConfig, scene: Scene, choice: PriorChoice, 
     folder = ViewFolder(Path(cache_dir) if cache_dir else fr.default_cache_dir())
     what = f"the per-view arrays of {views} views (--view_data={config.view_data})"
     # the ray casts still to be cached go to the same disk: both must fit
-    held = scene.views if views == len(scene.views) else [scene.views[v] for v in distributed.held_views(len(scene.views))]
     casts = fr.uncached_bytes(scene.mesh, _cameras_cast(config, scene, render, held, evaluation), cache_dir)
     folder.check_space(nbytes + casts, what + (f" and the ray casts not cached yet ({casts / 2 ** 30:.2f} GB)"
                                                if casts else ""))
