@@ -17,8 +17,9 @@ and takes what depends on every view (the texture layout and texel space, then t
 from the primary (`from_primary`, which carries the primary's refusals too). The primary still
 holds every view: its evaluation during the loop and the outputs after it (scores, renders,
 evidence, pages, glTF) read them all. Where the processes arrive minutes apart (the hand-over,
-the loop's start, the end of the outputs) they meet at a `barrier` first. Checkpoints are written by orbax's multi-process protocol (every process calls save;
-the primary writes the replicated arrays), and the outputs by the primary alone (`is_primary`).
+the loop's start, the end of the outputs) they meet at a `barrier` first. Checkpoints are
+written by orbax's multi-process protocol (every process calls save; the primary writes the
+replicated arrays), and the outputs by the primary alone (`is_primary`).
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from __future__ import annotations
 import io
 import json
 import re
-from typing import Callable
+from collections.abc import Callable
 
 import jax
 import numpy as np
@@ -143,7 +144,8 @@ def barrier(name: str) -> None:
     fails the others' wait (the service's heartbeats)."""
     if jax.process_count() == 1:
         return
-    from jax._src import distributed as jax_distributed      # the client JAX's own multi-process tests wait on
+    # the coordination service's client, which JAX's own multi-process tests wait on
+    from jax._src import distributed as jax_distributed
 
     _barriers[name] = _barriers.get(name, 0) + 1               # every process passes them in the same order
     jax_distributed.global_state.client.wait_at_barrier(f"jaxdistill_{name}_{_barriers[name]}",

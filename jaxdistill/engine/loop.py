@@ -165,8 +165,9 @@ def _history_path(out: Path) -> Path:
 # flags added after checkpoints were first written, at the values that keep the earlier
 # behaviour: a checkpoint that does not record them resumes when the run leaves them so
 # (view_shares is recorded resolved: one share drew from every view, as every run did before shares)
-ADDED_FLAG_DEFAULTS = {"view_shares": 1, "reuse_steps": 1, "align": "none", "align_strength": DistillConfig.align_strength,
-                       "photo_weight": 0.0, "photo_size": 0, "photo_space": DistillConfig.photo_space,
+ADDED_FLAG_DEFAULTS = {"view_shares": 1, "reuse_steps": 1, "align": "none",
+                       "align_strength": DistillConfig.align_strength, "photo_weight": 0.0, "photo_size": 0,
+                       "photo_space": DistillConfig.photo_space,
                        "photo_loss": DistillConfig.photo_loss, "photo_scale": DistillConfig.photo_scale,
                        "irradiance_smoothness": 0.0, "irradiance_sds_weight": 1.0, "albedo_smoothness": 0.0,
                        "photo_noise_ref": 0.0,
@@ -179,7 +180,8 @@ ADDED_FLAG_DEFAULTS = {"view_shares": 1, "reuse_steps": 1, "align": "none", "ali
 def recorded_config(config: DistillConfig, prior_kind: str) -> dict:
     """The flags saved with a checkpoint, plus the prior --prior=auto resolved to; --view_shares
     as resolved (0: the process count), since the views a step draws depend on it."""
-    return {**config.as_dict(), "prior_kind": prior_kind, "view_shares": distributed.shares_of_run(config.view_shares)}
+    return {**config.as_dict(), "prior_kind": prior_kind,
+            "view_shares": distributed.shares_of_run(config.view_shares)}
 
 
 def _save(store, state, recorded: dict, history: dict, out: Path) -> None:
@@ -211,8 +213,8 @@ def check_before_compute(config: DistillConfig, out: Path, choice) -> int | None
                                 f"{len(devices)} devices; use a multiple of {len(devices)}")
     if jax.process_count() > 1:      # process q's devices must hold rows q*B/N.. of a step: its share's views
         q, n, b = jax.process_index(), jax.process_count(), config.views_per_step
-        rows = distributed.local_rows(jax.sharding.NamedSharding(data_mesh(devices), jax.sharding.PartitionSpec("data")),
-                                      b)
+        by_view = jax.sharding.NamedSharding(data_mesh(devices), jax.sharding.PartitionSpec("data"))
+        rows = distributed.local_rows(by_view, b)
         if rows != (q * b // n, (q + 1) * b // n):
             raise InputError.single("flags", "--num_processes", f"process {q}'s devices hold rows {rows[0]}-{rows[1]} "
                                     f"of a step's {b} views, not its share's {q * b // n}-{(q + 1) * b // n}: the "
