@@ -2,7 +2,7 @@
 
     python scripts/bench_scale.py [--views=50,150] [--sizes=876x584] [--faces_per_side=300] \\
         [--steps=5] [--prior=views] [--max_texture_size=4096] [--view_data=auto] [--work=out/bench_scale] \
-        [--flagfile=configs/bedroom.cfg] [--json=FILE]
+        [--flagfile=configs/bedroom.cfg] [--processes=1] [--json=FILE]
 
 For every resolution × view count, one after the other:
 1. the capture-sized synthetic room (`scripts/make_capture_scene.py`'s scene, reused when it is
@@ -13,6 +13,11 @@ For every resolution × view count, one after the other:
    prior), the loop (compilation + steps), the peak RSS by the end of set-up and of the loop
    (`metrics.json` `peak_host_memory_gb`), the size of the cache on disk, and that of the
    per-view arrays' files (`--view_data`, `metrics.json` `view_data`; unlinked, so not in the cache's size).
+With `--processes=N` the main job runs as N processes on this machine, joined by
+`jax.distributed` on localhost (gloo): process 0 holds every view and writes the outputs, each
+other its share of the views (`jaxdistill/engine/distributed.py`); every process's wall seconds
+and peak RSS are recorded, the table's row being process 0's and the other processes' peaks
+printed under it.
 A run that fails (out of memory, say) is recorded with its exit status and the log's last line,
 and the next size still runs. The table prints as the runs finish; `--json` writes it.
 """
@@ -23,6 +28,7 @@ import argparse
 import json
 import os
 import shutil
+import socket
 import subprocess
 import sys
 import time
@@ -48,6 +54,8 @@ def parse_args(argv=None):
     p.add_argument("--flagfile", default=None,
                    help="the main job's settings (e.g. configs/bedroom.cfg for SDS as the default run does it); "
                         "the scene, steps, views per step, page cap, --view_data and a --prior given above override it")
+    p.add_argument("--processes", type=int, default=1, help="processes of the main job on this machine, joined on "
+                   "localhost; each but process 0 holds its share of the views")
     p.add_argument("--json", default=None)
     args = p.parse_args(argv)
     if args.flagfile and not Path(args.flagfile).is_file():
@@ -59,33 +67,59 @@ def parse_args(argv=None):
         p.error("--views takes integers (50,150) and --sizes WxH pairs (876x584,1752x1168)")
     if any(v < 1 for v in args.views) or any(len(s) != 2 or min(s) < 8 for s in args.sizes):
         p.error("--views must be >= 1 and --sizes WxH with sides >= 8")
+    if args.processes < 1:
+        p.error(f"--processes must be >= 1, got {args.processes}")
     return args
 
 
 def run_child(cmd: list[str], log: Path, env: dict | None = None) -> dict:
     """Runs `cmd` with its output in `log`; its wall seconds, peak RSS and exit status."""
-    with open(log, "w") as out:
+    return run_children([cmd], [log], env)[0]
+
+
+def run_children(cmds: list[list[str]], logs: list[Path], env: dict | None = None) -> list[dict]:
+    """Runs the commands at once, each with its output in its log; each one's wall seconds (from
+    the common start), peak RSS and exit status, and its log's last line."""
+    outs = [open(log, "w") for log in logs]
+    try:
         t0 = time.monotonic()
-        proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=out, stderr=subprocess.STDOUT)
-        _, status, usage = os.wait4(proc.pid, 0)
-        wall = time.monotonic() - t0
-    lines = log.read_text(errors="replace").replace("\r", "\n").strip().splitlines()
-    return {"exit": os.waitstatus_to_exitcode(status), "wall_s": wall, "peak_rss_gb": usage.ru_maxrss / 2 ** 20,
-            "last_line": lines[-1] if lines else ""}
+        procs = {subprocess.Popen(cmd, cwd=REPO, env=env, stdout=out, stderr=subprocess.STDOUT).pid: i
+                 for i, (cmd, out) in enumerate(zip(cmds, outs))}
+        got = [None] * len(cmds)
+        while procs:
+            pid, status, usage = os.wait4(-1, 0)
+            if pid in procs:
+                got[procs.pop(pid)] = (os.waitstatus_to_exitcode(status), time.monotonic() - t0, usage.ru_maxrss)
+    finally:
+        for out in outs:
+            out.close()
+    rows = []
+    for (code, wall, rss), log in zip(got, logs):
+        lines = log.read_text(errors="replace").replace("\r", "\n").strip().splitlines()
+        rows.append({"exit": code, "wall_s": wall, "peak_rss_gb": rss / 2 ** 20, "last_line": lines[-1] if lines else ""})
+    return rows
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("localhost", 0))
+        return s.getsockname()[1]
 
 
 def folder_bytes(folder: Path) -> int:
     return sum(p.stat().st_size for p in folder.rglob("*") if p.is_file())
 
 
-def main_command(args, scene: Path, out: Path, views: int) -> list[str]:
-    """The main job's command for one case: `--flagfile`'s settings first, so the flags after it win."""
+def main_command(args, scene: Path, out: Path, views: int, process: tuple[int, str] | None = None) -> list[str]:
+    """The main job's command for one case: `--flagfile`'s settings first, so the flags after it win;
+    `process` (id, coordinator HOST:PORT) with --processes > 1."""
     settings = [f"--flagfile={Path(args.flagfile).resolve()}"] if args.flagfile else []
     prior = [f"--prior={args.prior}"] if args.prior else [] if args.flagfile else ["--prior=views"]
     return [sys.executable, "-m", "jaxdistill.main", *settings, f"--scene={scene}", *prior,
             f"--steps={args.steps}", f"--views_per_step={min(args.views_per_step, views)}",
             f"--max_texture_size={args.max_texture_size}", f"--out_dir={out}", "--renders=false",
-            f"--view_data={args.view_data}"]
+            f"--view_data={args.view_data}"] + ([] if process is None else [
+            f"--coordinator_address={process[1]}", f"--num_processes={args.processes}", f"--process_id={process[0]}"])
 
 
 def one_case(args, work: Path, width: int, height: int, views: int) -> dict:
@@ -102,8 +136,18 @@ def one_case(args, work: Path, width: int, height: int, views: int) -> dict:
     cache, out = work / f"cache_{tag}", work / f"run_{tag}"
     for folder in (cache, out):
         shutil.rmtree(folder, ignore_errors=True)
-    cmd = main_command(args, scene, out, views)
-    run = run_child(cmd, work / f"run_{tag}.log", env={**os.environ, "JAXDISTILL_CACHE": str(cache)})
+    env = {**os.environ, "JAXDISTILL_CACHE": str(cache)}
+    if args.processes == 1:
+        run = run_child(main_command(args, scene, out, views), work / f"run_{tag}.log", env=env)
+    else:
+        address = f"localhost:{free_port()}"
+        runs = run_children([main_command(args, scene, out, views, (i, address)) for i in range(args.processes)],
+                            [work / f"run_{tag}_p{i}.log" for i in range(args.processes)], env=env)
+        run = runs[0]
+        row["processes"] = runs
+        failed = [r["exit"] for r in runs if r["exit"]]
+        if failed and not run["exit"]:
+            run = {**run, "exit": failed[0]}
     row.update(run=run, cache_gb=folder_bytes(cache) / 2 ** 30 if cache.exists() else 0.0)
     if run["exit"]:
         return {**row, "status": f"main job failed (exit {run['exit']})"}
@@ -126,6 +170,9 @@ def print_row(r: dict, file=sys.stdout) -> None:
           f"{run.get('wall_s', 0):7.0f} {run.get('peak_rss_gb', 0):7.1f} {peaks.get('set-up', 0):7.1f} "
           f"{peaks.get('loop', 0):7.1f} {r.get('cache_gb', 0):8.2f} {(r.get('view_data') or {}).get('disk_bytes', 0) / 2 ** 30:7.2f}",
           file=file, flush=True)
+    for i, p in enumerate((r.get("processes") or [])[1:], start=1):
+        print(f"{'':11s} process {i}: exit {p['exit']}, wall {p['wall_s']:.0f} s, peak RSS {p['peak_rss_gb']:.1f} GB",
+              file=file, flush=True)
 
 
 def main(argv=None) -> int:

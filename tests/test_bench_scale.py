@@ -49,3 +49,19 @@ def test_a_childs_accounting_is_its_own(bench, tmp_path):
     got = bench.run_child([sys.executable, "-c", code], tmp_path / "child.log")
     assert got["exit"] == 3 and got["last_line"] == "last line"
     assert got["peak_rss_gb"] > 0.19 and got["wall_s"] > 0
+
+
+def test_several_processes_each_get_their_flags_and_their_own_accounting(bench, tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        bench.parse_args(["--processes=0"])
+    assert "--processes must be >= 1" in capsys.readouterr().err
+    args = bench.parse_args(["--processes=2"])
+    cmd = bench.main_command(args, Path("s"), Path("o"), 5, (1, "localhost:1234"))
+    assert cmd[-3:] == ["--coordinator_address=localhost:1234", "--num_processes=2", "--process_id=1"]
+    assert not any("coordinator" in c for c in bench.main_command(bench.parse_args([]), Path("s"), Path("o"), 5))
+    big = "import sys, time; b = bytearray(300 * 2**20); time.sleep(0.3); print('big done'); sys.exit(2)"
+    small = "print('small done')"
+    got = bench.run_children([[sys.executable, "-c", big], [sys.executable, "-c", small]],
+                             [tmp_path / "p0.log", tmp_path / "p1.log"])
+    assert [g["exit"] for g in got] == [2, 0] and [g["last_line"] for g in got] == ["big done", "small done"]
+    assert got[0]["peak_rss_gb"] > 0.29 > got[1]["peak_rss_gb"] and got[0]["wall_s"] >= 0.3
