@@ -64,4 +64,7 @@ def test_several_processes_each_get_their_flags_and_their_own_accounting(bench, 
     got = bench.run_children([[sys.executable, "-c", big], [sys.executable, "-c", small]],
                              [tmp_path / "p0.log", tmp_path / "p1.log"])
     assert [g["exit"] for g in got] == [2, 0] and [g["last_line"] for g in got] == ["big done", "small done"]
-    assert got[0]["peak_rss_gb"] > 0.29 > got[1]["peak_rss_gb"] and got[0]["wall_s"] >= 0.3
+    # each child's own wall time (the small one ends first) and peak RSS (a forked child's includes
+    # its parent's memory at the fork, so only the big one's lower bound says it is the child's)
+    assert got[0]["peak_rss_gb"] > 0.29 and got[1]["peak_rss_gb"] > 0
+    assert got[0]["wall_s"] >= 0.3 and got[1]["wall_s"] < got[0]["wall_s"]
