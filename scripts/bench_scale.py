@@ -136,18 +136,16 @@ def one_case(args, work: Path, width: int, height: int, views: int) -> dict:
     cache, out = work / f"cache_{tag}", work / f"run_{tag}"
     for folder in (cache, out):
         shutil.rmtree(folder, ignore_errors=True)
-    env = {**os.environ, "JAXDISTILL_CACHE": str(cache)}
-    if args.processes == 1:
-        run = run_child(main_command(args, scene, out, views), work / f"run_{tag}.log", env=env)
-    else:
-        address = f"localhost:{free_port()}"
-        runs = run_children([main_command(args, scene, out, views, (i, address)) for i in range(args.processes)],
-                            [work / f"run_{tag}_p{i}.log" for i in range(args.processes)], env=env)
-        run = runs[0]
+    several = args.processes > 1
+    address = f"localhost:{free_port()}" if several else ""
+    runs = run_children([main_command(args, scene, out, views, (i, address) if several else None)
+                         for i in range(args.processes)],
+                        [work / (f"run_{tag}_p{i}.log" if several else f"run_{tag}.log") for i in range(args.processes)],
+                        env={**os.environ, "JAXDISTILL_CACHE": str(cache)})
+    # the row is process 0's, failed when any process failed
+    run = {**runs[0], "exit": next((r["exit"] for r in runs if r["exit"]), 0)}
+    if several:
         row["processes"] = runs
-        failed = [r["exit"] for r in runs if r["exit"]]
-        if failed and not run["exit"]:
-            run = {**run, "exit": failed[0]}
     row.update(run=run, cache_gb=folder_bytes(cache) / 2 ** 30 if cache.exists() else 0.0)
     if run["exit"]:
         return {**row, "status": f"main job failed (exit {run['exit']})"}
