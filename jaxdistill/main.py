@@ -55,10 +55,17 @@ def main(argv) -> None:
             follower = start_viewer(config)
         summary = pipeline.run(config)
     except InputError as err:
+        distributed.announce_failure(err)        # the other processes of a run stop with it too
         raise app.UsageError(str(err)) from None
     except NonFiniteLoss as err:
         logging.error("%s", err)
         sys.exit(3)
+    except distributed.PeerFailed as err:
+        logging.error("%s", err)
+        sys.exit(1)
+    except Exception as err:
+        distributed.announce_failure(err)
+        raise
     finally:
         if follower is not None and sys.exc_info()[0] is not None:
             follower.stop()

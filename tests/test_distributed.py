@@ -44,15 +44,17 @@ def texels(out: Path) -> np.ndarray:
         return store.read_texels()
 
 
-def run_two(scene: Path, out: Path, cache: Path, flags: dict, timeout: int = 300) -> list[tuple[int, str]]:
-    """(return code, log) of two processes of the main job on localhost, joined by jax.distributed."""
+def run_two(scene: Path | list[Path], out: Path, cache: Path, flags: dict, timeout: int = 300) -> list[tuple[int, str]]:
+    """(return code, log) of two processes of the main job on localhost, joined by jax.distributed;
+    `scene` a list: each process's own copy (as on hosts without a shared file system)."""
+    scenes = scene if isinstance(scene, list) else [scene, scene]
     env = {**os.environ, "JAX_PLATFORMS": "cpu", "JAXDISTILL_CACHE": str(cache)}
     env["XLA_FLAGS"] = " ".join(f for f in env.get("XLA_FLAGS", "").split()     # one CPU device per process
                                 if not f.startswith("--xla_force_host_platform_device_count"))
     env.pop("JAXDISTILL_RGBX_DIR", None)
     address = f"localhost:{free_port()}"
     args = [f"--{k}={str(v).lower() if isinstance(v, bool) else v}" for k, v in flags.items()]
-    procs = [subprocess.Popen([sys.executable, "-m", "jaxdistill.main", f"--scene={scene}", f"--out_dir={out}", *args,
+    procs = [subprocess.Popen([sys.executable, "-m", "jaxdistill.main", f"--scene={scenes[i]}", f"--out_dir={out}", *args,
                                f"--coordinator_address={address}", "--num_processes=2", f"--process_id={i}"],
                               cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
              for i in range(2)]
@@ -89,6 +91,39 @@ def test_process_0s_refusal_stops_every_process_with_its_message(tmp_path):
     results = run_two(scene, tmp_path / "o", tmp_path / "cache", FLAGS, timeout=120)
     for code, log in results:
         assert code != 0 and "views: no view sees the mesh" in log, log[-3000:]
+
+
+def test_bad_input_one_process_alone_finds_stops_every_process_naming_it(tmp_path):
+    """Process 1 reads its share from its own copy of the scene (as on another host), where a target
+    image of one of its views is broken; process 0's copy is whole, and it goes on until it meets
+    the others. Process 1 stops on the file and tells the others (`distributed.announce_failure`):
+    process 0 stops at the next barrier with the same file named and which process found it,
+    instead of waiting there for a process that has left until JAX's timeouts (minutes)."""
+    whole = write_tiny_scene(tmp_path / "whole")
+    shutil.copytree(whole.parent, tmp_path / "copy")
+    broken = tmp_path / "copy" / "targets" / "albedo" / "v1.png"      # view 1: share 1
+    broken.write_bytes(broken.read_bytes()[:40])
+    results = run_two([whole, tmp_path / "copy" / "scene.json"], tmp_path / "o", tmp_path / "cache", FLAGS,
+                      timeout=120)
+    (code0, log0), (code1, log1) = results
+    assert code1 != 0 and str(broken) in log1 and "found by process" not in log1, log1[-3000:]
+    assert code0 != 0 and str(broken) in log0 and "(found by process 1 of 2)" in log0, log0[-3000:]
+    assert "Terminating process" not in log0 + log1            # JAX's fatal end when a peer vanishes
+
+
+def test_announced_failures_are_raised_with_the_process_that_found_them():
+    """What a process at a barrier raises for the failures others announced: their bad input as one
+    InputError (each problem once, marked with its process), else what stopped them."""
+    problems = [("scene.json", "views[3].photo", "cannot read image")]
+    entries = [(f"jaxdistill/failed/{q}", json.dumps({"problems": problems})) for q in (2, 1)]
+    entries.append(("jaxdistill/failed/3", json.dumps({"error": "MemoryError: out of memory"})))
+    with pytest.raises(distributed.PeerInputError) as caught:
+        distributed._raise_failures(entries)
+    assert caught.value.problems == [("scene.json", "views[3].photo", "cannot read image (found by process 1 of 1)"),
+                                     ("scene.json", "views[3].photo", "cannot read image (found by process 2 of 1)")]
+    with pytest.raises(distributed.PeerFailed, match=r"process 3 of 1 stopped: MemoryError: out of memory \(its log"):
+        distributed._raise_failures(entries[2:])
+    distributed._raise_failures([])                     # nobody failed: nothing raised
 
 
 def one_process(scene: Path, out: Path, **kw) -> dict:

@@ -17,7 +17,9 @@ and takes what depends on every view (the texture layout and texel space, then t
 from the primary (`from_primary`, which carries the primary's refusals too). The primary still
 holds every view: its evaluation during the loop and the outputs after it (scores, renders,
 evidence, pages, glTF) read them all. Where the processes arrive minutes apart (the hand-over,
-the loop's start, the end of the outputs) they meet at a `barrier` first. Checkpoints are
+the loop's start, the end of the outputs) they meet at a `barrier` first; a process that stops
+on an error says so there (`announce_failure`), and the others stop with it, naming the file and
+field where it was bad input. Checkpoints are
 written by orbax's multi-process protocol (every process calls save; the primary writes the
 replicated arrays), and the outputs by the primary alone (`is_primary`).
 """
@@ -27,6 +29,7 @@ from __future__ import annotations
 import io
 import json
 import re
+import time
 from collections.abc import Callable
 
 import jax
@@ -133,26 +136,85 @@ def held_views(num_views: int) -> np.ndarray | None:
 
 _CHUNK = 1 << 30        # bytes a collective carries at most
 BARRIER_TIMEOUT_S = 24 * 3600     # how long a process waits for the others at a `barrier`
+POLL_S = 0.2            # how often a process at a `barrier` asks who has arrived and who has failed
+_KEYS = "jaxdistill/"   # this run's keys in the coordination service's key-value store
+
+
+class PeerFailed(RuntimeError):
+    """Another process of the run stopped with an error other than bad input (its log has the rest)."""
+
+
+class PeerInputError(InputError):
+    """Bad input another process of the run found (each problem says which process)."""
 
 
 def barrier(name: str) -> None:
-    """Waits until every process reaches the barrier `name` (nothing for one process). The
-    processes reach some points minutes apart (process 0 sets up every view and writes the
-    outputs), while XLA's CPU collectives give up after 30 s when a peer is late to its first
-    one and `jax.distributed` after 300 s of a peer's shutdown: so the run meets here, through the
-    coordination service, with a day's timeout, before it works together. A process that dies
-    fails the others' wait (the service's heartbeats)."""
+    """Waits until every process reaches the barrier `name` (nothing for one process), or stops
+    with the error of a process that failed (`announce_failure`): an `InputError` naming the file
+    and field that process found wrong, else `PeerFailed`. The processes reach some points minutes
+    apart (process 0 sets up every view and writes the outputs), while XLA's CPU collectives give
+    up after 30 s when a peer is late to its first one and `jax.distributed` after 300 s of a
+    peer's shutdown: so the run meets here, through the coordination service's key-value store
+    (each process sets its key, then polls every `POLL_S`), with a day's timeout, before it works
+    together. A process that dies without a word (killed) fails the others through the service's
+    heartbeats (100 s)."""
     if jax.process_count() == 1:
         return
-    # the coordination service's client, which JAX's own multi-process tests wait on
-    from jax._src import distributed as jax_distributed
-
+    client = _client()
     _barriers[name] = _barriers.get(name, 0) + 1               # every process passes them in the same order
-    jax_distributed.global_state.client.wait_at_barrier(f"jaxdistill_{name}_{_barriers[name]}",
-                                                        BARRIER_TIMEOUT_S * 1000)
+    folder = f"{_KEYS}barrier/{name}_{_barriers[name]}/"
+    client.key_value_set(f"{folder}{jax.process_index()}", "")
+    deadline = time.monotonic() + BARRIER_TIMEOUT_S
+    while True:
+        _raise_failures(client.key_value_dir_get(f"{_KEYS}failed/"))
+        if len(client.key_value_dir_get(folder)) == jax.process_count():
+            return
+        if time.monotonic() > deadline:
+            raise PeerFailed(f"the processes did not all reach '{name}' within {BARRIER_TIMEOUT_S} s")
+        time.sleep(POLL_S)
 
 
 _barriers: dict[str, int] = {}      # how often this process reached each barrier (their ids must not repeat)
+
+
+def announce_failure(err: BaseException) -> None:
+    """Tells the run's other processes that this one stops with `err`: each stops with it at its
+    next `barrier` instead of waiting there for this one (nothing for one process, or before the
+    processes joined; nothing for what it learnt from another process)."""
+    client = _client()
+    if client is None or jax.process_count() == 1 or isinstance(err, (PeerFailed, PeerInputError)):
+        return
+    record = {"problems": err.problems} if isinstance(err, InputError) else {"error": f"{type(err).__name__}: {err}"}
+    try:
+        client.key_value_set(f"{_KEYS}failed/{jax.process_index()}", json.dumps(record))
+    except Exception as why:        # noqa: BLE001 -- the service may be gone (process 0 ended); nothing else to do
+        logging.warning("could not tell the other processes that this one failed: %s", why)
+
+
+def _raise_failures(entries: list[tuple[str, str]]) -> None:
+    """The failures other processes announced (key-value entries `failed/<process>`), raised:
+    an InputError of their problems, each marked with the process that found it, if any was
+    bad input, else PeerFailed."""
+    problems, errors = [], []
+    for key, value in sorted(entries, key=lambda kv: int(kv[0].rsplit("/", 1)[1])):
+        process, record = int(key.rsplit("/", 1)[1]), json.loads(value)
+        where = f"found by process {process} of {jax.process_count()}"
+        if "problems" in record:
+            problems += [(file, field, f"{message} ({where})") for file, field, message in record["problems"]]
+        else:
+            errors.append(f"process {process} of {jax.process_count()} stopped: {record['error']}")
+    if problems:
+        raise PeerInputError(list(dict.fromkeys(map(tuple, problems))))
+    if errors:
+        raise PeerFailed("; ".join(errors) + " (its log has the traceback); this process stops too")
+
+
+def _client():
+    """The coordination service's client of `jax.distributed` (None before the processes joined);
+    JAX's own multi-process tests use it."""
+    from jax._src import distributed as jax_distributed
+
+    return jax_distributed.global_state.client
 
 
 def from_primary(make: Callable[[], dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
