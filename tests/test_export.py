@@ -74,6 +74,30 @@ def test_write_maps_single_page(tmp_path):
     np.testing.assert_allclose(png("metallic"), pages["metallic"][0], atol=tol)
 
 
+def png_zlib_level_class(path) -> int:
+    """FLEVEL of the first IDAT chunk's zlib header (RFC 1950: 0 fastest, 1 fast, 2 default, 3 best;
+    zlib writes 1 for levels 2-5 and 2 for 6)."""
+    data = path.read_bytes()
+    at = 8                                                       # after the PNG signature
+    while True:
+        length, kind = struct.unpack(">I4s", data[at:at + 8])
+        if kind == b"IDAT":
+            cmf, flg = data[at + 8], data[at + 9]
+            assert cmf & 0x0F == 8 and (cmf << 8 | flg) % 31 == 0          # deflate, a valid header
+            return flg >> 6
+        at += 12 + length
+
+
+def test_pngs_are_written_at_the_faster_zlib_level_and_stay_lossless(tmp_path):
+    """PNG_COMPRESSION_LEVEL (4, against OpenImageIO's 6) reaches the file: the zlib header says
+    a fast level; the 8-bit values read back exactly."""
+    assert imageio.PNG_COMPRESSION_LEVEL == 4
+    values = np.random.default_rng(0).integers(0, 256, (24, 32, 3)) / 255.0
+    imageio.write_image(tmp_path / "a.png", values, encode_srgb=False)
+    assert png_zlib_level_class(tmp_path / "a.png") == 1
+    np.testing.assert_array_equal(np.round(imageio.read_image(tmp_path / "a.png", linear=False) * 255), values * 255)
+
+
 def test_write_maps_several_pages(tmp_path):
     pages = random_pages([8, 4])
     written = page_files.write_maps(tmp_path, pages, ["wall", "lamp"], [0, 1])
@@ -254,9 +278,13 @@ def test_gltf_orientation_raw(tmp_path):
     prim = wall["primitives"][0]
     texcoord = accessor(doc, blob, prim["attributes"]["TEXCOORD_0"]).astype(np.float64)
     position = accessor(doc, blob, prim["attributes"]["POSITION"]).astype(np.float64)
-    image = decode_png(doc, blob, doc["materials"][prim["material"]]["pbrMetallicRoughness"]
-                       ["baseColorTexture"]["index"])
+    index = doc["materials"][prim["material"]]["pbrMetallicRoughness"]["baseColorTexture"]["index"]
+    image = decode_png(doc, blob, index)
     assert image.shape == (8, 8, 3)
+    view = doc["bufferViews"][doc["images"][doc["textures"][index]["source"]]["bufferView"]]
+    png = tmp_path / "embedded.png"
+    png.write_bytes(blob[view.get("byteOffset", 0):view.get("byteOffset", 0) + view["byteLength"]])
+    assert png_zlib_level_class(png) == 1                # PNG_COMPRESSION_LEVEL, as the maps' files
     # glTF: texcoord (s, t) samples the image at column s * W, row t * H from the top
     for (s, t), p in zip(texcoord, position):
         our_v = p[1]  # the wall's UVs are (x, y) in our convention (v up)

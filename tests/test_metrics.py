@@ -144,6 +144,25 @@ def test_ssim_matches_brute_force_with_mask_and_borders():
     assert got < 0.95
 
 
+def test_si_ssim_from_the_scaled_moments_matches_brute_force_on_the_scaled_image():
+    """`ssim_and_si_ssim` filters once and scales pred's moments; the reference scales the image
+    by the least-squares scales (by hand here) and computes SSIM window by window."""
+    rng = np.random.default_rng(5)
+    gt = rng.uniform(0.1, 0.9, size=(16, 14, 3))
+    pred = np.clip(gt * [0.6, 1.3, 0.9] + rng.normal(scale=0.05, size=gt.shape), 0, None)
+    pred[..., 2] = 0.0                                    # an all-zero channel: its scale is 0
+    mask = np.ones((16, 14), bool)
+    mask[3:8, 2:9] = False
+    p, g = pred[mask], gt[mask]
+    scales = [(p[:, c] @ g[:, c]) / (p[:, c] @ p[:, c]) if p[:, c].any() else 0.0 for c in range(3)]
+    plain, scaled = metrics.ssim_and_si_ssim(pred, gt, mask)
+    assert plain == pytest.approx(brute_force_ssim(pred, gt, mask), rel=1e-12)
+    assert scaled == pytest.approx(brute_force_ssim(pred * scales, gt, mask), rel=1e-12)
+    assert metrics.si_ssim(pred, gt, mask) == scaled and metrics.ssim(pred, gt, mask) == plain
+    assert scaled > plain + 0.01                          # the scales matter here
+    assert all(np.isnan(metrics.ssim_and_si_ssim(pred, gt, np.zeros((16, 14), bool))))
+
+
 def test_ssim_ignores_garbage_outside_the_mask_exactly():
     rng = np.random.default_rng(3)
     gt = rng.uniform(size=(20, 20, 3))

@@ -149,27 +149,52 @@ def ssim_map(pred, gt, mask=None, data_range: float = 1.0) -> np.ndarray:
     """
     pred, gt = _pair(pred, gt)
     mask = _mask(mask, pred.shape[:2])
+    return _ssim_of_moments(_ssim_moments(pred, gt, mask), 1.0, mask, data_range)
+
+
+def _ssim_moments(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """(5, H, W, C) `ssim_map`'s local moments E[x], E[y], E[x^2], E[y^2], E[xy] (float64)."""
     m = mask[:, :, None]
     x, y = np.where(m, pred, 0.0), np.where(m, gt, 0.0)
     weight = _gaussian_filter(mask.astype(np.float64))[:, :, None]
     with np.errstate(divide="ignore", invalid="ignore"):
         stats = _gaussian_filter(np.stack([x, y, x * x, y * y, x * y], axis=-1)) / weight[..., None]
-    mu_x, mu_y, xx, yy, xy = np.moveaxis(stats, -1, 0)
+    return np.moveaxis(stats, -1, 0)
+
+
+def _ssim_of_moments(moments: np.ndarray, scale, mask: np.ndarray, data_range: float) -> np.ndarray:
+    """`ssim_map` of (scale * pred, gt) from pred's and gt's `_ssim_moments`: scaling pred scales
+    E[x] and E[xy] by s and E[x^2] by s^2 (scale: a number or one per channel)."""
+    mu_x, mu_y, xx, yy, xy = moments
+    mu_x, xx, xy = mu_x * scale, xx * np.square(scale), xy * scale
     var_x, var_y, cov = xx - mu_x ** 2, yy - mu_y ** 2, xy - mu_x * mu_y
     c1, c2 = (SSIM_K1 * data_range) ** 2, (SSIM_K2 * data_range) ** 2
     with np.errstate(divide="ignore", invalid="ignore"):
         s = ((2 * mu_x * mu_y + c1) * (2 * cov + c2)) / ((mu_x ** 2 + mu_y ** 2 + c1) * (var_x + var_y + c2))
-    return np.where(m, s, np.nan)
+    return np.where(mask[:, :, None], s, np.nan)
 
 
 def ssim(pred, gt, mask=None, data_range: float = 1.0) -> float:
     """Mean of `ssim_map` over the masked pixels and all channels; 1 for identical images,
     NaN for an empty mask."""
+    return ssim_and_si_ssim(pred, gt, mask, data_range, scale_invariant_too=False)[0]
+
+
+def ssim_and_si_ssim(pred, gt, mask=None, data_range: float = 1.0, *,
+                     scale_invariant_too: bool = True) -> tuple[float, float]:
+    """(`ssim`, `si_ssim`) of one pair from one Gaussian filtering: the scale-invariant one is SSIM
+    of (s pred, gt), whose moments are pred's scaled (`_ssim_of_moments`); NaN for an empty mask
+    (and si_ssim NaN unless `scale_invariant_too`)."""
     pred, gt = _pair(pred, gt)
     mask = _mask(mask, pred.shape[:2])
     if not mask.any():
-        return math.nan
-    return float(np.mean(ssim_map(pred, gt, mask, data_range)[mask]))
+        return math.nan, math.nan
+    moments = _ssim_moments(pred, gt, mask)
+    plain = float(np.mean(_ssim_of_moments(moments, 1.0, mask, data_range)[mask]))
+    if not scale_invariant_too:
+        return plain, math.nan
+    scales = scale_invariant(pred, gt, mask)[1]
+    return plain, float(np.mean(_ssim_of_moments(moments, scales, mask, data_range)[mask]))
 
 
 # ----------------------------------------------------------------------------- scale-invariant
@@ -197,8 +222,8 @@ def si_psnr(pred, gt, mask=None, data_range: float = 1.0) -> float:
 
 
 def si_ssim(pred, gt, mask=None, data_range: float = 1.0) -> float:
-    """`ssim` of `scale_invariant(pred, gt, mask)` against gt."""
-    return ssim(scale_invariant(pred, gt, mask)[0], gt, mask, data_range)
+    """`ssim` of `scale_invariant(pred, gt, mask)` against gt (`ssim_and_si_ssim`)."""
+    return ssim_and_si_ssim(pred, gt, mask, data_range)[1]
 
 
 # ----------------------------------------------------------------------------- normals
@@ -299,9 +324,8 @@ def _map_metrics(name: str, pred, gt, mask) -> dict[str, float]:
     if name == "albedo":
         p, g = _srgb_encode(np.clip(p, 0.0, 1.0)), _srgb_encode(np.clip(g, 0.0, 1.0))
         out["albedo_psnr"] = psnr(p, g, mask)
-        out["albedo_ssim"] = ssim(p, g, mask)
         out["albedo_si_psnr"] = si_psnr(p, g, mask)
-        out["albedo_si_ssim"] = si_ssim(p, g, mask)
+        out["albedo_ssim"], out["albedo_si_ssim"] = ssim_and_si_ssim(p, g, mask)      # one filtering
     elif name in ("roughness", "metallic"):
         out[f"{name}_mse"] = grey_mse(p, g, mask)
     elif name == "normal":

@@ -108,12 +108,18 @@ def gltf_bytes(mesh: Mesh, object_page: Sequence[int], material_images: Sequence
 
     check_mesh_pages(mesh, object_page, len(material_images))
     stems = page_names(mesh.object_names, object_page)
+    def texture(pixels: np.ndarray) -> PIL.Image.Image:
+        image = PIL.Image.fromarray(pixels)
+        # trimesh saves it as PNG with no options; Pillow reads the image's own encoderinfo
+        image.encoderinfo = {"compress_level": imageio.PNG_COMPRESSION_LEVEL}
+        return image
+
     materials = []
     for p, images in enumerate(material_images):
         has_mr = "metallicRoughnessTexture" in images
         materials.append(trimesh.visual.material.PBRMaterial(
             name=stems[p], metallicFactor=1.0 if has_mr else 0.0, roughnessFactor=1.0,
-            **{key: PIL.Image.fromarray(img) for key, img in images.items()}))
+            **{key: texture(img) for key, img in images.items()}))
     scene = trimesh.Scene()
     for object_id, name in enumerate(mesh.object_names):
         face_ids = np.nonzero(mesh.face_object == object_id)[0]

@@ -132,6 +132,11 @@ def read_image(path, *, linear: bool = True) -> np.ndarray:
     return pixels
 
 
+# zlib's level for PNGs (OpenImageIO's default is 6): the bedroom's 150 map pages encode in 0.46x
+# the time, its 240 renders in 0.42x, for files 8 % and 4 % larger (lossless either way)
+PNG_COMPRESSION_LEVEL = 4
+
+
 def write_image(path, pixels: np.ndarray, *, encode_srgb: bool | None = None, half: bool = False,
                 compression: str | None = None, timestamp: str | None = None) -> None:
     """Writes (H, W) or (H, W, C) linear float pixels; PNG/JPG get sRGB encoding by default.
@@ -157,6 +162,8 @@ def write_image(path, pixels: np.ndarray, *, encode_srgb: bool | None = None, ha
     buf = oiio.ImageBuf(np.ascontiguousarray(pixels))
     if compression:
         buf.specmod().attribute("compression", compression)
+    if ext == ".png":
+        buf.specmod().attribute("png:compressionLevel", PNG_COMPRESSION_LEVEL)
     if timestamp:
         buf.specmod().attribute("DateTime", timestamp)
     tmp = path.with_name(path.name + ".tmp" + path.suffix)
