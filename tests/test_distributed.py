@@ -2,7 +2,7 @@
 `jax.distributed` (gloo collectives), each holding its share of the views and sending its half of
 every step's views, give the texels of one process running the same batches (--view_shares=2);
 the checkpoint they write once resumes in one process; bad multi-process flags are named before
-any compute."""
+any compute; bad input one process alone finds stops every process, naming it."""
 
 from __future__ import annotations
 
