@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import resource
+import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -54,9 +55,16 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
             distributed.barrier("outputs")     # process 0 writes them: JAX's shutdown waits only 300 s for it
         return {"process_id": jax.process_index(), "step": int(jax.device_get(loop.state.step)),
                 "stopped_by": loop.stopped_by, "exit_status": loop.exit_status}
-    with ThreadPoolExecutor(max_workers=1) as pool:   # the step compiled beside the evaluation's set-up
-        steps_left = latest is None or latest < config.steps
+    steps_left = latest is None or latest < config.steps
+    # one thread compiles beside the evaluation's set-up: the step, then the model's per-view
+    # estimates' programs (used after the loop), which go on while the loop runs (XLA compiles on
+    # one core, which the steps leave partly idle); only the step is waited for here
+    pool = ThreadPoolExecutor(max_workers=1)
+    try:
         preparing = pool.submit(loop_lib.prepare_step, config, problem) if steps_left else None
+        estimates_compiled = (pool.submit(scoring.compile_baseline_ahead, config,    # (the fragments not held)
+                                          dataclasses.replace(problem, fragments=None, native_fragments=None))
+                              if steps_left else None)
         trust = texel_trust(problem)               # once: the texel space file and the exported pages
         run_files.write_texel_space(out, problem.space, trust, problem.channels.maps, json_safe(recorded))
         ctx = scoring.evaluation_context(config, problem)
@@ -64,6 +72,8 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
         prepared = preparing.result() if preparing is not None else None
         waited = time.perf_counter() - waited
         preparing = None
+    finally:
+        pool.shutdown(wait=False, cancel_futures=sys.exc_info()[0] is not None)
     problem = problem.without_fragments()         # read by nothing after the evaluation context
     if prepared is not None:
         problem.timings.update(step_compiled_s=round(prepared.seconds, 2), step_compile_waited_s=round(waited, 2))
@@ -83,6 +93,8 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
         gains = np.exp(np.asarray(jax.device_get(align_lib.centred(loop.state.align["log_gains"]))))
     # the state holds AdamW's two moments, each as large as the texels: nothing after the loop reads them
     loop = dataclasses.replace(loop, state=None)
+    if estimates_compiled is not None and estimates_compiled.result() is not None:
+        problem.timings["estimates_compiled_s"] = round(estimates_compiled.result(), 2)
     phases = OutputPhases()
     with phases("per-view estimates"):
         baseline = scoring.per_view_baseline(config, problem, ctx.shapes)

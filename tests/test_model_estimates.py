@@ -136,6 +136,35 @@ def test_estimates_in_padded_batches_of_mixed_maps_equal_one_batch_of_each_map(r
     assert np.max(np.abs(by_prompt[0] - by_prompt[1])) > 6 / 255          # 20 / 255 here
 
 
+def test_programs_compiled_ahead_are_the_ones_the_estimates_run(run_rgbx_dir, tmp_path):
+    """`compile_ahead` (run in a thread beside the loop) lowers the sampling and decoding programs
+    with arguments of the kinds `estimate_views` passes: the estimates then compile neither (JAX's
+    backend-compile events, by program), while another batch size compiles both."""
+    scene = read_scene(write_tiny_scene(tmp_path / "scene", views=3, width=32, height=24))
+    photos = [(v.name, v.photo, v.exposure) for v in scene.views]
+    maps = ("albedo", "irradiance")
+    model = rgbx.load_prior(convert.load_rgbx(run_rgbx_dir))
+    compiled = []
+
+    def listen(event, seconds, **kwargs):
+        if event == "/jax/core/compile/backend_compile_duration":
+            compiled.extend(name for name in ("_sample", "decode_latents") if name in kwargs.get("fun_name", ""))
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        model_estimates.compile_ahead(model, maps, len(photos), 24, 32, steps=2, max_batch=4)
+        assert sorted(compiled) == ["_sample", "decode_latents"]
+        compiled.clear()
+        model_estimates.estimate_views(model, photos, maps, 24, 32, tmp_path / "est", steps=2, progress=False,
+                                       max_batch=4)
+        assert compiled == []                                    # found in the cache
+        model_estimates.estimate_views(model, photos, maps, 24, 32, tmp_path / "est6", steps=2, progress=False,
+                                       max_batch=6)        # one call of 6 pairs, not two of 3
+        assert sorted(compiled) == ["_sample", "decode_latents"]     # the check can fail
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+
+
 def test_estimate_batches_are_as_few_and_as_even_as_the_cap_allows():
     """The shipped model's 16 x 12 latents: 48 pairs a call (the bedroom's 48 views x 5 maps in 5
     calls), 24 views x 5 maps in 3 calls of 40 (not 48 + 48 + 24 padded to 48), fewer pairs in

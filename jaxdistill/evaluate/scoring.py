@@ -99,13 +99,34 @@ def per_view_baseline(config: DistillConfig, problem: Problem, shapes: list[tupl
     if problem.rgbx_model is None:
         return Baseline(evaluation.read_baseline(scene, channels.maps, shapes, lazy),
                         "the scene's per-view target images")
-    steps = config.estimate_steps or model_estimates.default_steps(problem.choice.folder)
-    folder = model_estimates.cached_estimates(
-        problem.rgbx_model, [(v.name, v.photo, v.exposure) for v in scene.views], channels.maps, problem.height,
-        problem.width, dtype=config.prior_dtype, steps=steps, seed=config.seed)
+    steps, photos = _estimate_steps(config, problem), _photos(problem)
+    folder = model_estimates.cached_estimates(problem.rgbx_model, photos, channels.maps, problem.height,
+                                              problem.width, dtype=config.prior_dtype, steps=steps, seed=config.seed)
     views = model_estimates.read_estimates(folder, [v.name for v in scene.views], channels.maps, shapes, lazy)
     return Baseline(views, f"the model's own per-view estimates ({steps} DDIM steps, "
                     f"{folder})", folder, steps)
+
+
+def compile_baseline_ahead(config: DistillConfig, problem: Problem) -> float | None:
+    """Compiles the programs of the model's per-view estimates that `per_view_baseline` will
+    compute (`model_estimates.compile_ahead`), for a thread beside the set-up and the loop: their
+    seconds, or None when nothing will be computed (the views prior, or the estimates cached)."""
+    if problem.rgbx_model is None:
+        return None
+    steps, photos, maps = _estimate_steps(config, problem), _photos(problem), problem.channels.maps
+    if model_estimates.is_cached(problem.rgbx_model, photos, maps, problem.height, problem.width,
+                                 dtype=config.prior_dtype, steps=steps, seed=config.seed):
+        return None
+    return model_estimates.compile_ahead(problem.rgbx_model, maps, len(photos), problem.height, problem.width,
+                                         steps=steps)
+
+
+def _estimate_steps(config: DistillConfig, problem: Problem) -> int:
+    return config.estimate_steps or model_estimates.default_steps(problem.choice.folder)
+
+
+def _photos(problem: Problem) -> list[tuple[str, Path, float]]:
+    return [(v.name, v.photo, v.exposure) for v in problem.scene.views]
 
 
 def improvement(ours: dict, baseline: dict) -> dict:

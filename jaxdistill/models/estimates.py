@@ -116,6 +116,36 @@ def estimate_views(model: rgbx.RgbxPrior, photos: Sequence[tuple[str, Path, floa
     return summary
 
 
+def compile_ahead(model: rgbx.RgbxPrior, maps: Sequence[str], num_views: int, height: int, width: int, *,
+                  steps: int = ESTIMATE_STEPS, max_batch: int | None = None) -> float:
+    """Compiles the programs `estimate_views` runs for these sizes (`prior.compile_estimate_batch`,
+    and the noise's) and returns the seconds it took. XLA compiles on one core: started in a
+    thread while other work runs, it leaves the estimates only their sampling (on the bedroom,
+    13 s of their 24-30 s were compilation)."""
+    start = time.perf_counter()
+    factor = model.networks.vae.config.downsampling_factor
+    latent_shape = (1, height // factor, width // factor, 4)
+    size = batch_size(latent_shape[1] * latent_shape[2], len(maps) * num_views, max_batch)
+    jax.random.normal(rgbx.view_map_key(jax.random.key(0), "", maps[0]), latent_shape).block_until_ready()
+    rgbx.compile_estimate_batch(model, [maps[i % len(maps)] for i in range(size)], (size,) + latent_shape[1:], steps)
+    return time.perf_counter() - start
+
+
+def cache_folder(model: rgbx.RgbxPrior, photos: Sequence[tuple[str, Path, float]], height: int, width: int, *,
+                 dtype: str = "float32", steps: int = ESTIMATE_STEPS, seed: int = 0,
+                 cache_dir: Path | None = None) -> Path:
+    """Where `cached_estimates` keeps (or will keep) these estimates."""
+    fused = model.loaded.networks.unet.chunk_size == FUSED_CUDNN
+    key = cache_key(model.loaded.folder, photos, height, width, steps, seed, dtype, "cudnn" if fused else "chunked")
+    return Path(cache_dir or default_cache_dir() / "estimates") / key
+
+
+def is_cached(model: rgbx.RgbxPrior, photos: Sequence[tuple[str, Path, float]], maps: Sequence[str], height: int,
+              width: int, **settings) -> bool:
+    """Whether `cached_estimates` with these arguments finds every map in the cache."""
+    return _covers(cache_folder(model, photos, height, width, **settings) / "estimate.json", maps)
+
+
 def _covers(done: Path, maps: Sequence[str]) -> bool:
     """Whether the cache entry whose summary is `done` holds every map of `maps`."""
     return done.is_file() and set(maps) <= set(json.loads(done.read_text())["maps"])
@@ -126,9 +156,7 @@ def cached_estimates(model: rgbx.RgbxPrior, photos: Sequence[tuple[str, Path, fl
                      cache_dir: Path | None = None, progress: bool = True) -> Path:
     """The folder of the model's estimates (see `estimate_views`), computed only when the cache
     (`cache_dir`, default `default_cache_dir()/estimates`) lacks them."""
-    fused = model.loaded.networks.unet.chunk_size == FUSED_CUDNN
-    key = cache_key(model.loaded.folder, photos, height, width, steps, seed, dtype, "cudnn" if fused else "chunked")
-    folder = Path(cache_dir or default_cache_dir() / "estimates") / key
+    folder = cache_folder(model, photos, height, width, dtype=dtype, steps=steps, seed=seed, cache_dir=cache_dir)
     done = folder / "estimate.json"
     if _covers(done, maps):
         logging.info("the model's per-view estimates: cached in %s", folder)

@@ -225,6 +225,17 @@ def view_map_key(key: jax.Array, view_name: str, map_name: str) -> jax.Array:
     return jax.random.fold_in(jax.random.fold_in(key, zlib.crc32(view_name.encode())), list(MAP_PROMPTS).index(map_name))
 
 
+def compile_estimate_batch(prior: RgbxPrior, map_names: Sequence[str], latent_shape: tuple[int, ...],
+                           num_steps: int = 50, guidance: Guidance = Guidance()) -> None:
+    """Compiles the two programs `estimate_batch` runs for a batch of one map name per sample and
+    (B, h, w, 4) latents, lowered with arguments of the kinds it passes (NumPy latents, JAX noise
+    and prompts), so that its calls find them in JAX's cache instead of compiling."""
+    text = TextEmbedding(jnp.concatenate([prior.text[n].prompt for n in map_names]), prior.text[map_names[0]].empty)
+    _sample.lower(prior.networks, prior.scheduler, num_steps, guidance, prior.params,
+                  np.zeros(latent_shape, np.float32), text, jnp.zeros(latent_shape, jnp.float32)).compile()
+    decode_latents.lower(prior.networks.vae, prior.params["vae"], jnp.zeros(latent_shape, jnp.float32)).compile()
+
+
 def estimate_batch(prior: RgbxPrior, image_latents, map_name: str | Sequence[str], x_T, num_steps: int = 50,
                    guidance: Guidance = Guidance(), gamma: bool = True) -> np.ndarray:
     """`estimate_from_latent` for a batch: image latents and initial noise x_T (B, h, w, 4) →
