@@ -11,7 +11,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import resource
-import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -72,8 +71,10 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
         prepared = preparing.result() if preparing is not None else None
         waited = time.perf_counter() - waited
         preparing = None
-    finally:
-        pool.shutdown(wait=False, cancel_futures=sys.exc_info()[0] is not None)
+    except BaseException:
+        pool.shutdown(wait=False, cancel_futures=True)          # the estimates' programs are not needed
+        raise
+    pool.shutdown(wait=False)
     problem = problem.without_fragments()         # read by nothing after the evaluation context
     if prepared is not None:
         problem.timings.update(step_compiled_s=round(prepared.seconds, 2), step_compile_waited_s=round(waited, 2))
