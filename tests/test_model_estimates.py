@@ -139,7 +139,8 @@ def test_estimates_in_padded_batches_of_mixed_maps_equal_one_batch_of_each_map(r
 def test_programs_compiled_ahead_are_the_ones_the_estimates_run(run_rgbx_dir, tmp_path):
     """`compile_ahead` (run in a thread beside the loop) lowers the sampling and decoding programs
     with arguments of the kinds `estimate_views` passes: the estimates then compile neither (JAX's
-    backend-compile events, by program), while another batch size compiles both."""
+    backend-compile events, by program), while another batch size compiles both. JAX's caches are
+    cleared first: another test of this process may have compiled the same programs."""
     scene = read_scene(write_tiny_scene(tmp_path / "scene", views=3, width=32, height=24))
     photos = [(v.name, v.photo, v.exposure) for v in scene.views]
     maps = ("albedo", "irradiance")
@@ -150,6 +151,7 @@ def test_programs_compiled_ahead_are_the_ones_the_estimates_run(run_rgbx_dir, tm
         if event == "/jax/core/compile/backend_compile_duration":
             compiled.extend(name for name in ("_sample", "decode_latents") if name in kwargs.get("fun_name", ""))
 
+    jax.clear_caches()
     jax.monitoring.register_event_duration_secs_listener(listen)
     try:
         model_estimates.compile_ahead(model, maps, len(photos), 24, 32, steps=2, max_batch=4)
