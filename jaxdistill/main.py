@@ -63,7 +63,7 @@ def main(argv) -> None:
     except distributed.PeerFailed as err:
         logging.error("%s", err)
         sys.exit(1)
-    except Exception as err:
+    except (Exception, KeyboardInterrupt) as err:
         distributed.announce_failure(err)
         raise
     finally:

@@ -84,6 +84,9 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
                              prepared=prepared)
     prepared = None                               # its step-0 state (a resumed run's, never donated) goes now
     if loop.stopped_by:
+        if estimates_compiled is not None and not estimates_compiled.done():
+            logging.warning("the process ends once the per-view estimates' programs, compiling since the set-up, "
+                            "are compiled (XLA's compilation cannot be stopped)")
         return {"stopped_by": loop.stopped_by, "step": int(jax.device_get(loop.state.step)),
                 "exit_status": loop.exit_status}
 
@@ -94,8 +97,14 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
         gains = np.exp(np.asarray(jax.device_get(align_lib.centred(loop.state.align["log_gains"]))))
     # the state holds AdamW's two moments, each as large as the texels: nothing after the loop reads them
     loop = dataclasses.replace(loop, state=None)
-    if estimates_compiled is not None and estimates_compiled.result() is not None:
-        problem.timings["estimates_compiled_s"] = round(estimates_compiled.result(), 2)
+    if estimates_compiled is not None:
+        try:
+            seconds = estimates_compiled.result()
+        except Exception as err:         # noqa: BLE001 -- only a head start: the estimates compile them anyway
+            logging.warning("compiling the per-view estimates' programs ahead failed (%s: %s); they are compiled "
+                            "when they run", type(err).__name__, err)
+            seconds = None
+        problem.timings["estimates_compiled_s"] = None if seconds is None else round(seconds, 2)
     phases = OutputPhases()
     with phases("per-view estimates"):
         baseline = scoring.per_view_baseline(config, problem, ctx.shapes)

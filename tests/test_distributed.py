@@ -113,17 +113,24 @@ def test_bad_input_one_process_alone_finds_stops_every_process_naming_it(tmp_pat
 
 def test_announced_failures_are_raised_with_the_process_that_found_them():
     """What a process at a barrier raises for the failures others announced: their bad input as one
-    InputError (each problem once, marked with its process), else what stopped them."""
+    InputError (each process's problems marked with it), else what stopped them."""
     problems = [("scene.json", "views[3].photo", "cannot read image")]
     entries = [(f"jaxdistill/failed/{q}", json.dumps({"problems": problems})) for q in (2, 1)]
     entries.append(("jaxdistill/failed/3", json.dumps({"error": "MemoryError: out of memory"})))
+    read = []                                           # what the process tells the others it read
+
+    class Client:
+        def key_value_set(self, key, value):
+            read.append(key)
+
     with pytest.raises(distributed.PeerInputError) as caught:
-        distributed._raise_failures(entries)
+        distributed._raise_failures(Client(), entries)
     assert caught.value.problems == [("scene.json", "views[3].photo", "cannot read image (found by process 1 of 1)"),
                                      ("scene.json", "views[3].photo", "cannot read image (found by process 2 of 1)")]
+    assert read == [f"jaxdistill/seen/{q}/0" for q in (1, 2, 3)]       # each failed process may now exit
     with pytest.raises(distributed.PeerFailed, match=r"process 3 of 1 stopped: MemoryError: out of memory \(its log"):
-        distributed._raise_failures(entries[2:])
-    distributed._raise_failures([])                     # nobody failed: nothing raised
+        distributed._raise_failures(Client(), entries[2:])
+    distributed._raise_failures(Client(), [])           # nobody failed: nothing raised
 
 
 def one_process(scene: Path, out: Path, **kw) -> dict:

@@ -166,7 +166,7 @@ def barrier(name: str) -> None:
     client.key_value_set(f"{folder}{jax.process_index()}", "")
     deadline = time.monotonic() + BARRIER_TIMEOUT_S
     while True:
-        _raise_failures(client.key_value_dir_get(f"{_KEYS}failed/"))
+        _raise_failures(client, client.key_value_dir_get(f"{_KEYS}failed/"))
         if len(client.key_value_dir_get(folder)) == jax.process_count():
             return
         if time.monotonic() > deadline:
@@ -180,31 +180,54 @@ _barriers: dict[str, int] = {}      # how often this process reached each barrie
 def announce_failure(err: BaseException) -> None:
     """Tells the run's other processes that this one stops with `err`: each stops with it at its
     next `barrier` instead of waiting there for this one (nothing for one process, or before the
-    processes joined; nothing for what it learnt from another process)."""
-    client = _client()
-    if client is None or jax.process_count() == 1 or isinstance(err, (PeerFailed, PeerInputError)):
+    processes joined; nothing for what it learnt from another process). Before the loop, it then
+    waits (up to `BARRIER_TIMEOUT_S`) until every other process has read it: JAX's shutdown at exit
+    waits only 300 s for them, and a set-up can take longer to reach its next barrier. Once the
+    loop has begun the others may be inside a step's collectives, which never read it: no wait."""
+    from jax._src import distributed as jax_distributed
+
+    state = jax_distributed.global_state
+    client, count, me = state.client, state.num_processes or 1, state.process_id or 0
+    if client is None or count == 1 or isinstance(err, (PeerFailed, PeerInputError)):
         return
     record = {"problems": err.problems} if isinstance(err, InputError) else {"error": f"{type(err).__name__}: {err}"}
+    text = json.dumps(record, default=str)
     try:
-        client.key_value_set(f"{_KEYS}failed/{jax.process_index()}", json.dumps(record))
+        client.key_value_set(f"{_KEYS}failed/{me}", text)
+        if "loop" in _barriers:
+            return
+        logging.warning("waiting until the other processes (%d) have read that this one stops", count - 1)
+        others, deadline = set(range(count)) - {me}, time.monotonic() + BARRIER_TIMEOUT_S
+        # done when each has read it, or failed itself (it reaches no barrier, where it would read it)
+        while not others <= _processes(client, f"{_KEYS}seen/{me}/") | _processes(client, f"{_KEYS}failed/"):
+            if time.monotonic() > deadline:
+                break
+            time.sleep(POLL_S)
     except Exception as why:        # noqa: BLE001 -- the service may be gone (process 0 ended); nothing else to do
         logging.warning("could not tell the other processes that this one failed: %s", why)
 
 
-def _raise_failures(entries: list[tuple[str, str]]) -> None:
-    """The failures other processes announced (key-value entries `failed/<process>`), raised:
-    an InputError of their problems, each marked with the process that found it, if any was
-    bad input, else PeerFailed."""
+def _processes(client, folder: str) -> set[int]:
+    """The processes with a key in `folder` of the key-value store (keys end in a process id)."""
+    return {int(key.rsplit("/", 1)[1]) for key, _ in client.key_value_dir_get(folder)}
+
+
+def _raise_failures(client, entries: list[tuple[str, str]]) -> None:
+    """The failures other processes announced (key-value entries `failed/<process>`), raised
+    after telling `client` they were read (`seen/<process>/<this process>`): an InputError of
+    their problems, each marked with the process that found it, if any was bad input, else
+    PeerFailed."""
     problems, errors = [], []
     for key, value in sorted(entries, key=lambda kv: int(kv[0].rsplit("/", 1)[1])):
         process, record = int(key.rsplit("/", 1)[1]), json.loads(value)
+        client.key_value_set(f"{_KEYS}seen/{process}/{jax.process_index()}", "")
         where = f"found by process {process} of {jax.process_count()}"
         if "problems" in record:
             problems += [(file, field, f"{message} ({where})") for file, field, message in record["problems"]]
         else:
             errors.append(f"process {process} of {jax.process_count()} stopped: {record['error']}")
     if problems:
-        raise PeerInputError(list(dict.fromkeys(map(tuple, problems))))
+        raise PeerInputError(problems)
     if errors:
         raise PeerFailed("; ".join(errors) + " (its log has the traceback); this process stops too")
 
