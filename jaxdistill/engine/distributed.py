@@ -160,7 +160,7 @@ def barrier(name: str) -> None:
     heartbeats (100 s)."""
     if jax.process_count() == 1:
         return
-    client = _client()
+    client = _state().client
     _barriers[name] = _barriers.get(name, 0) + 1               # every process passes them in the same order
     folder = f"{_KEYS}barrier/{name}_{_barriers[name]}/"
     client.key_value_set(f"{folder}{jax.process_index()}", "")
@@ -184,9 +184,7 @@ def announce_failure(err: BaseException) -> None:
     waits (up to `BARRIER_TIMEOUT_S`) until every other process has read it: JAX's shutdown at exit
     waits only 300 s for them, and a set-up can take longer to reach its next barrier. Once the
     loop has begun the others may be inside a step's collectives, which never read it: no wait."""
-    from jax._src import distributed as jax_distributed
-
-    state = jax_distributed.global_state
+    state = _state()
     client, count, me = state.client, state.num_processes or 1, state.process_id or 0
     if client is None or count == 1 or isinstance(err, (PeerFailed, PeerInputError)):
         return
@@ -209,7 +207,12 @@ def announce_failure(err: BaseException) -> None:
 
 def _processes(client, folder: str) -> set[int]:
     """The processes with a key in `folder` of the key-value store (keys end in a process id)."""
-    return {int(key.rsplit("/", 1)[1]) for key, _ in client.key_value_dir_get(folder)}
+    return {_process_of(key) for key, _ in client.key_value_dir_get(folder)}
+
+
+def _process_of(key: str) -> int:
+    """The process id a key-value store key ends in."""
+    return int(key.rsplit("/", 1)[1])
 
 
 def _raise_failures(client, entries: list[tuple[str, str]]) -> None:
@@ -218,8 +221,8 @@ def _raise_failures(client, entries: list[tuple[str, str]]) -> None:
     their problems, each marked with the process that found it, if any was bad input, else
     PeerFailed."""
     problems, errors = [], []
-    for key, value in sorted(entries, key=lambda kv: int(kv[0].rsplit("/", 1)[1])):
-        process, record = int(key.rsplit("/", 1)[1]), json.loads(value)
+    for key, value in sorted(entries, key=lambda kv: _process_of(kv[0])):
+        process, record = _process_of(key), json.loads(value)
         client.key_value_set(f"{_KEYS}seen/{process}/{jax.process_index()}", "")
         where = f"found by process {process} of {jax.process_count()}"
         if "problems" in record:
@@ -232,12 +235,12 @@ def _raise_failures(client, entries: list[tuple[str, str]]) -> None:
         raise PeerFailed("; ".join(errors) + " (its log has the traceback); this process stops too")
 
 
-def _client():
-    """The coordination service's client of `jax.distributed` (None before the processes joined);
-    JAX's own multi-process tests use it."""
+def _state():
+    """`jax.distributed`'s state: the coordination service's client (None before the processes
+    joined, which JAX's own multi-process tests use too), the process count and id."""
     from jax._src import distributed as jax_distributed
 
-    return jax_distributed.global_state.client
+    return jax_distributed.global_state
 
 
 def from_primary(make: Callable[[], dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
