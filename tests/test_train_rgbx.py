@@ -4,6 +4,7 @@ networks; training stages resume bit-identically (tiny sizes)."""
 
 from __future__ import annotations
 
+import json
 from functools import partial
 from pathlib import Path
 
@@ -194,6 +195,88 @@ def test_init_continues_a_model_keeping_its_vae_scaling_and_text_encoder(exporte
         moved = max(float(np.max(np.abs(np.asarray(a) - np.asarray(b))))
                     for a, b in zip(jax.tree.leaves(unet_p), jax.tree.leaves(out.params["unet"])))
         assert (moved > 0) == (steps > 0)
+
+
+def test_a_unet_trained_from_8_bit_latents_elsewhere_exports_from_its_weights_file(exported, tmp_path, monkeypatch):
+    """v2's route: latents encoded in 8 bits by the init's VAE; the UNet trained from random
+    weights (`--fresh_unet`) from them alone, the shards not read (another machine); its EMA weights
+    carried back as float16 (`scripts/train_rgbx_gpu.sh`) and exported by `--stage=export` from
+    that file: the exported UNet is those weights, the VAE and text encoder the init's."""
+    folder, (_, unet_p), (_, vae_p), (_, text_p), _ = exported
+    monkeypatch.setattr(recipe, "VAE", TINY_VAE)
+    monkeypatch.setattr(recipe, "UNET", TINY_UNET)
+    monkeypatch.setattr(recipe, "TEXT", TINY_TEXT)
+    tiny_shards(tmp_path / "data")
+    here, there = tmp_path / "here", tmp_path / "there"
+    common = ["--init", str(folder), "--latent_bits=8", "--fresh_unet", "--unet_batch=4", "--unet_steps=2"]
+    assert train_prior.main(["--data", str(tmp_path / "data"), "--work", str(here), "--stage=latents"] + common) == 0
+    there.mkdir()
+    (there / "latents.npz").write_bytes((here / "latents.npz").read_bytes())
+    with np.load(here / "latents.npz") as z:
+        assert z["albedo"].dtype == np.uint8 and z["albedo_lo"].shape == (4,)
+    assert train_prior.main(["--data", str(tmp_path / "no_shards_here"), "--work", str(there), "--stage=unet"] + common) == 0
+    with np.load(there / "unet_ema.npz") as z:
+        carried = {k: z[k].astype(np.float16) for k in z.files}
+    np.savez(here / "unet_ema.npz", **carried)
+    assert train_prior.main(["--data", str(tmp_path / "data"), "--work", str(here), "--stage=export"] + common) == 0
+    out = load_rgbx(here / "model")
+    from flax import traverse_util
+    exported_unet = traverse_util.flatten_dict(jax.device_get(out.params["unet"]), sep="/")
+    assert set(exported_unet) == set(carried)
+    for k, v in carried.items():
+        np.testing.assert_array_equal(np.asarray(exported_unet[k], np.float16), v)
+    moved = max(float(np.max(np.abs(np.asarray(a, np.float32) - np.asarray(b, np.float32))))
+                for a, b in zip(jax.tree.leaves(unet_p), jax.tree.leaves(out.params["unet"])))
+    assert moved > 0.01                                     # not the init's UNet: trained from random weights
+    for part, params in (("vae", vae_p), ("text_encoder", text_p)):
+        for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(out.params[part])):
+            np.testing.assert_array_equal(np.asarray(a, np.float16), np.asarray(b, np.float16))
+    record = json.loads((here / "model" / "jaxdistill_model.json").read_text())
+    assert record["latent_bits"] == 8 and record["unet"]["fresh"] and record["unet"]["layers_per_block"] == 1
+    with pytest.raises(SystemExit, match=r"unet_ema\.npz: its UNet is not the one asked for"):
+        train_prior.main(["--data", str(tmp_path / "data"), "--work", str(here), "--stage=export",
+                          "--unet_layers_per_block=2"] + common)
+    with pytest.raises(SystemExit, match=r"latents\.npz: its latents are stored in 8 bits, but --latent_bits=32"):
+        train_prior.main(["--data", str(tmp_path / "data"), "--work", str(here), "--stage=export", "--init",
+                          str(folder), "--fresh_unet"])
+
+
+def test_8_bit_latents_are_within_half_a_level_per_channel():
+    rng = np.random.default_rng(1)
+    x = (rng.standard_normal((6, 3, 5, 4)) * np.array([1.0, 5.0, 0.1, 30.0]) + np.array([0, 3, -2, 9])).astype(np.float32)
+    q = train_prior.quantize(x, 8)
+    assert q["q"].dtype == np.uint8 and q["q"].min() == 0 and q["q"].max() == 255
+    back = train_prior.dequantize(q["q"], q["lo"], q["step"])
+    span = x.max((0, 1, 2)) - x.min((0, 1, 2))
+    assert np.all(np.abs(back - x).max((0, 1, 2)) <= span / 510 * (1 + 1e-5))
+
+
+def test_fit_steps_fills_the_minutes_after_compiling_and_keeps_its_choice(tmp_path, monkeypatch):
+    clock = [0.0]
+    monkeypatch.setattr(train_prior.time, "perf_counter", lambda: clock[0])
+
+    def step(state, batch, cost):
+        clock[0] += 5.0 if state == 0 else cost          # the first call compiles
+        return state + 1, jnp.zeros(())
+
+    fit = partial(train_prior.fit_steps, tmp_path, 1.0, init_state=lambda: 0, batch_fn=lambda i: None, probe=10)
+    # 60 s less 2 x 5.01 s of compiling (the probe's first two calls; the real program's) and the
+    # probe's 0.1 s, at 10 ms a step: 4988, down to thousands
+    assert fit(partial(step, cost=0.01)) == 4000
+    assert json.loads((tmp_path / "unet_steps.json").read_text())["steps"] == 4000
+    assert fit(partial(step, cost=1.0)) == 4000              # kept: a resumed run keeps its schedule
+    with pytest.raises(SystemExit, match=r"--unet_minutes=1.0: .* fewer than 1000 steps fit"):
+        train_prior.fit_steps(tmp_path / "slow", 1.0, partial(step, cost=0.1), lambda: 0, lambda i: None, probe=10)
+
+
+def test_unet_config_keeps_the_recipe_and_names_widths_it_cannot_take():
+    assert recipe.unet_config() == recipe.UNET
+    wide = recipe.unet_config((48, 96, 96, 96), 2)
+    assert wide["attention_head_dim"] == (3, 6, 6, 6) and wide["layers_per_block"] == 2
+    with pytest.raises(ValueError, match="multiple of 16"):
+        recipe.unet_config((40, 64, 64, 64))
+    with pytest.raises(ValueError, match="1 or more"):
+        recipe.unet_config(None, 0)
 
 
 def test_init_names_the_flag_when_the_folder_is_not_a_model(tmp_path):

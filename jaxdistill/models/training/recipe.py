@@ -19,6 +19,28 @@ UNET = dict(sample_size=16, in_channels=8, out_channels=4, block_out_channels=(3
             norm_num_groups=16, attention_head_dim=(2, 4, 4, 4), cross_attention_dim=64, use_linear_projection=True,
             upcast_attention=True, down_block_types=("CrossAttnDownBlock2D",) * 3 + ("DownBlock2D",),
             up_block_types=("UpBlock2D",) + ("CrossAttnUpBlock2D",) * 3)
+HEAD_CHANNELS = 16          # channels per attention head in every UNet block (UNET's 2/4/4/4 heads)
+
+
+def unet_config(blocks=None, layers_per_block: int | None = None) -> dict:
+    """UNET, or UNET with other block widths or layers per block (v2's options; None keeps
+    UNET's): new widths get heads of `HEAD_CHANNELS` channels, as UNET's have. ValueError naming
+    what a width must divide."""
+    blocks = tuple(UNET["block_out_channels"]) if blocks is None else tuple(int(b) for b in blocks)
+    layers = UNET["layers_per_block"] if layers_per_block is None else int(layers_per_block)
+    if layers < 1:
+        raise ValueError(f"UNet layers per block {layers}: give 1 or more")
+    heads = UNET["attention_head_dim"]
+    if blocks != tuple(UNET["block_out_channels"]):
+        if len(blocks) != len(UNET["block_out_channels"]) or any(
+                b <= 0 or b % HEAD_CHANNELS or b % UNET["norm_num_groups"] for b in blocks):
+            raise ValueError(f"UNet blocks {blocks}: give {len(UNET['block_out_channels'])} widths, each a positive "
+                             f"multiple of {HEAD_CHANNELS} (the channels of one attention head) and of "
+                             f"{UNET['norm_num_groups']} (GroupNorm's groups)")
+        heads = tuple(b // HEAD_CHANNELS for b in blocks)
+    return dict(UNET, block_out_channels=blocks, layers_per_block=layers, attention_head_dim=heads)
+
+
 TEXT = dict(hidden_size=64, intermediate_size=128, num_hidden_layers=2, num_attention_heads=4,
             max_position_embeddings=77, hidden_act="gelu", layer_norm_eps=1e-5, projection_dim=64)
 SCHEDULER = {"_class_name": "DDIMScheduler", "_diffusers_version": "0.20.0", "beta_end": 0.012,

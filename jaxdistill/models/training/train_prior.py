@@ -14,6 +14,15 @@ project's own Flax modules (`jaxdistill.models`) and optax:
    CLIP is frozen too): it only has to give the five prompts and "" distinct embeddings; the
    tokenizer is `vocabulary.write_prior_tokenizer`'s.
 4. `export`: a diffusers folder (`export_model`), read back by our loader and checked equal.
+   The UNet stage leaves its EMA weights in WORK/unet_ema.npz, and `--stage=export` reads them
+   from there when that file exists: a UNet trained on another machine (a GPU without torch,
+   `scripts/train_rgbx_gpu.sh`) is exported where torch is.
+
+v2's options: `--unet_blocks`/`--unet_layers_per_block` (a wider or deeper UNet; `--fresh_unet`
+keeps an `--init` model's VAE, text encoder and tokenizer but trains the UNet from random weights),
+`--latent_bits=8` (the latents stored as 8-bit codes per channel, a quarter of the file, so they
+can be carried to a GPU machine; the UNet trains on what is stored) and `--unet_minutes` (steps
+chosen from the measured speed, kept in WORK/unet_steps.json).
 
 Every stage is deterministic from `--seed` and resumable (`stages.run_stage`); `--init`
 continues a model this script exported (its VAE, latent scaling, text encoder and tokenizer kept).
@@ -42,7 +51,6 @@ from jaxdistill.models.tokenizer import load_tokenizer
 from jaxdistill.models.training import recipe
 from jaxdistill.models.training.export_model import check_export, export
 from jaxdistill.models.training.recipe import MAPS
-from jaxdistill.models.training.shards import load_images
 from jaxdistill.models.training.stages import Budget, adamw, run_stage
 from jaxdistill.models.training.vocabulary import write_prior_tokenizer
 from jaxdistill.models.unet import UNet2DCondition, UNetConfig
@@ -103,17 +111,57 @@ def train_vae(args, photos, maps):
 # ----------------------------------------------------------------------------- stage 2: latents
 
 
-def encode_all(args, vae, vae_params, photos, maps):
-    """{photo, <map>: (N, h, w, 4) unscaled posterior means}, cached in work/latents.npz."""
-    cache = args.work / "latents.npz"
-    if cache.exists():
-        with np.load(cache) as z:
+LATENTS = "latents.npz"
+
+
+def quantize(x: np.ndarray, bits: int) -> dict:
+    """{"q": uint8 codes, "lo": (C,), "step": (C,)} of `x` (..., C): per channel, `2**bits` levels
+    from its minimum to its maximum (bits = 8: the error is at most half a level, 1/510 of the range)."""
+    axes = tuple(range(x.ndim - 1))
+    lo, hi = x.min(axes), x.max(axes)
+    step = np.maximum(hi - lo, 1e-12) / (2 ** bits - 1)
+    return {"q": np.round((x - lo) / step).astype(np.uint8), "lo": lo.astype(np.float32), "step": step.astype(np.float32)}
+
+
+def dequantize(q: np.ndarray, lo: np.ndarray, step: np.ndarray) -> np.ndarray:
+    return (lo + q.astype(np.float32) * step).astype(np.float32)
+
+
+def load_latents(path: Path, bits: int):
+    """{photo, <map>: (N, h, w, 4) unscaled latents} of a latents file `encode_all` wrote, as float32
+    (dequantized where it holds codes); None when there is none. SystemExit when it was written with
+    another --latent_bits."""
+    if not path.is_file():
+        return None
+    with np.load(path) as z:
+        stored = 8 if z["photo"].dtype == np.uint8 else 32
+        if stored != bits:
+            raise SystemExit(f"{path}: its latents are stored in {stored} bits, but --latent_bits={bits}; pass "
+                             f"--latent_bits={stored}, or another --work to encode them again")
+        if bits == 32:
             return {k: z[k] for k in z.files}
+        return {k: dequantize(z[k], z[k + "_lo"], z[k + "_step"]) for k in ("photo",) + MAPS}
+
+
+def encode_all(args, vae, vae_params, photos, maps):
+    """{photo, <map>: (N, h, w, 4) unscaled posterior means}, cached in work/latents.npz. With
+    `--latent_bits=8` they are stored (and used) as 8-bit codes per channel, a quarter of the file:
+    small enough to carry to another machine to train the UNet there."""
+    cache = load_latents(args.work / LATENTS, args.latent_bits)
+    if cache is not None:
+        return cache
     encode = jax.jit(lambda x: vae.apply(vae_params, x, method="encode")[0])
     out = {}
     for name, images in tqdm([("photo", photos)] + [(m, maps[m]) for m in MAPS], desc="latents", unit="kind"):
         out[name] = np.concatenate([np.asarray(encode(jnp.asarray(images[i:i + 64]))) for i in range(0, len(images), 64)])
-    np.savez(cache, **out)
+    if args.latent_bits == 8:
+        stored = {}
+        for name, x in out.items():
+            q = quantize(x, 8)
+            stored.update({name: q["q"], name + "_lo": q["lo"], name + "_step": q["step"]})
+        np.savez(args.work / LATENTS, **stored)
+        return load_latents(args.work / LATENTS, 8)
+    np.savez(args.work / LATENTS, **out)
     return out
 
 
@@ -201,10 +249,50 @@ def unet_program(unet_json: str, scheduler_json: str, lr: float, steps: int, ema
     return unet, jax.jit(unet.init), jax.jit(tx.init), step
 
 
+def unet_recipe(args) -> dict:
+    """The diffusers config of the UNet the flags ask for (`recipe.unet_config`)."""
+    return recipe.unet_config(args.unet_blocks, args.unet_layers_per_block)
+
+
+def fit_steps(work: Path, minutes: float, step_fn, init_state, batch_fn, probe: int = 100) -> int:
+    """--unet_steps for a UNet stage of about `minutes` on this machine, all of it counted: two
+    steps compile the program (and settle its first arguments), `probe` more are timed (their
+    batches included), and what is left after these and one more compilation (the real schedule's
+    program) goes to steps at that rate, rounded down to thousands. The choice is kept in
+    work/unet_steps.json, so a resumed run keeps its schedule."""
+    record = work / "unet_steps.json"
+    if record.is_file():
+        return int(json.loads(record.read_text())["steps"])
+    start = time.perf_counter()
+    state = init_state()
+    for i in range(2):
+        state, loss = step_fn(state, batch_fn(i))
+    jax.block_until_ready(loss)
+    compile_s = time.perf_counter() - start
+    start = time.perf_counter()
+    for i in range(2, probe + 2):
+        state, loss = step_fn(state, batch_fn(i))
+    jax.block_until_ready(loss)
+    probe_s = time.perf_counter() - start
+    per_step = probe_s / probe
+    steps = int((60 * minutes - 2 * compile_s - probe_s) / per_step) // 1000 * 1000
+    if steps < 1000:
+        raise SystemExit(f"--unet_minutes={minutes}: at {per_step * 1e3:.1f} ms a step after {compile_s:.0f} s of "
+                         f"compilation, fewer than 1000 steps fit; give more minutes or --unet_steps")
+    record.write_text(json.dumps({"minutes": minutes, "steps": steps, "ms_per_step": round(per_step * 1e3, 3),
+                                  "compile_s": round(compile_s, 1), "device": str(jax.devices()[0])}))
+    print(f"--unet_minutes={minutes}: {per_step * 1e3:.2f} ms a step after {compile_s:.0f} s of compilation on "
+          f"{jax.devices()[0]}: {steps} steps")
+    return steps
+
+
 def train_unet(args, latents, contexts, scaling, init_params=None):
-    unet, init_unet, init_opt, unet_step = unet_program(
-        json.dumps(recipe.UNET, sort_keys=True), json.dumps(recipe.SCHEDULER, sort_keys=True), args.unet_lr,
-        args.unet_steps, args.ema, args.p_drop, args.t_high_fraction, args.t_high_from)
+    config = unet_recipe(args)
+
+    def program(steps):
+        return unet_program(json.dumps(config, sort_keys=True), json.dumps(recipe.SCHEDULER, sort_keys=True),
+                            args.unet_lr, steps, args.ema, args.p_drop, args.t_high_fraction, args.t_high_from)
+    unet, init_unet, init_opt, unet_step = program(args.unet_steps)
     photo = latents["photo"] * scaling
     targets = np.stack([latents[m] * scaling for m in MAPS], 1)   # (N, 5, h, w, 4)
     n, h, w = photo.shape[:3]
@@ -213,16 +301,14 @@ def train_unet(args, latents, contexts, scaling, init_params=None):
         shapes = jax.eval_shape(unet.init, *init_args)
         if jax.tree.structure(init_params) != jax.tree.structure(shapes) or any(
                 a.shape != b.shape for a, b in zip(jax.tree.leaves(init_params), jax.tree.leaves(shapes))):
-            raise SystemExit(f"--init: its UNet is not this script's UNet ({recipe.UNET['block_out_channels']} blocks, "
-                             f"{h}x{w} latents); give a folder this script exported")
+            raise SystemExit(f"--init: its UNet is not the one asked for ({config['block_out_channels']} blocks, "
+                             f"{config['layers_per_block']} layers each, {h}x{w} latents); give a folder this script "
+                             f"exported with the same --unet_blocks/--unet_layers_per_block, or --fresh_unet")
 
     def init_state():
         params = init_unet(*init_args) if init_params is None else jax.tree.map(jnp.asarray, init_params)
         return {"params": params, "ema": params, "opt": init_opt(params)}
     ctx = jnp.asarray(contexts)
-
-    def step(state, batch):
-        return unet_step(state, batch, ctx)
 
     def batch(step):
         rng = np.random.default_rng([args.seed, 3, step])
@@ -230,9 +316,50 @@ def train_unet(args, latents, contexts, scaling, init_params=None):
         return (jnp.asarray(targets[i, m]), jnp.asarray(photo[i]), jnp.asarray(m),
                 jax.random.fold_in(jax.random.key(args.seed + 3), step))
 
-    state = run_stage("unet", args.work, init_state, step, batch, args.unet_steps, args.ckpt_every, {"stage": "unet", **recipe.UNET},
+    steps = args.unet_steps
+    if args.unet_minutes:
+        steps = fit_steps(args.work, args.unet_minutes, lambda state, b: unet_step(state, b, ctx), init_state, batch)
+        args.unet_steps = steps                      # what the model record reports
+        unet_step = program(steps)[3]
+
+    def step(state, batch):
+        return unet_step(state, batch, ctx)
+
+    state = run_stage("unet", args.work, init_state, step, batch, steps, args.ckpt_every, {"stage": "unet", **config},
                       args.budget)
     return unet, state["ema"]
+
+
+UNET_EMA = "unet_ema.npz"
+
+
+def save_unet(path: Path, params) -> None:
+    """The UNet's weights as one float32 .npz of '/'-joined parameter paths (what the export reads,
+    so a UNet trained on another machine exports where torch is)."""
+    from flax import traverse_util
+
+    flat = traverse_util.flatten_dict(jax.device_get(params), sep="/")
+    tmp = path.with_suffix(".tmp.npz")
+    np.savez(tmp, **{k: np.asarray(v, np.float32) for k, v in flat.items()})
+    tmp.replace(path)
+
+
+def load_unet(path: Path, args, latents, contexts):
+    """`save_unet`'s weights, checked against the UNet the flags ask for (SystemExit naming the file)."""
+    from flax import traverse_util
+
+    config = unet_recipe(args)
+    unet = UNet2DCondition(UNetConfig.from_dict(config))
+    h, w = latents["photo"].shape[1:3]
+    like = traverse_util.flatten_dict(jax.eval_shape(unet.init, jax.random.key(0), jnp.zeros((1, h, w, 8)),
+                                                     jnp.zeros((1,)), jnp.asarray(contexts[:1])), sep="/")
+    with np.load(path) as z:
+        got = {k: z[k].astype(np.float32) for k in z.files}
+    if set(got) != set(like) or any(got[k].shape != like[k].shape for k in like):
+        raise SystemExit(f"{path}: its UNet is not the one asked for ({config['block_out_channels']} blocks, "
+                         f"{config['layers_per_block']} layers each); pass the --unet_blocks/--unet_layers_per_block "
+                         f"it was trained with")
+    return traverse_util.unflatten_dict(got, sep="/")
 
 
 # ----------------------------------------------------------------------------- main
@@ -250,7 +377,10 @@ def model_record(args, images: int, scaling: float) -> dict:
             "seed": args.seed, "latent_scaling_factor": scaling, "export_dtype": args.export_dtype,
             "vae": ({"from": str(args.init)} if args.init else
                     {"steps": args.vae_steps, "batch": args.vae_batch, "lr": args.vae_lr, "final_loss": last_loss("vae")}),
-            "unet": {"steps": args.unet_steps, "batch": args.unet_batch, "lr": args.unet_lr, "ema": args.ema,
+            "latent_bits": args.latent_bits,
+            "unet": {"blocks": list(args.unet_blocks), "layers_per_block": args.unet_layers_per_block,
+                     "fresh": bool(args.fresh_unet or not args.init), "minutes": args.unet_minutes or None,
+                     "steps": args.unet_steps, "batch": args.unet_batch, "lr": args.unet_lr, "ema": args.ema,
                      "p_drop": args.p_drop, "t_high_fraction": args.t_high_fraction, "t_high_from": args.t_high_from,
                      "final_loss": last_loss("unet")},
             "command": "python scripts/train_rgbx.py " + " ".join(sys.argv[1:])}
@@ -277,6 +407,19 @@ def main(argv=None) -> int:
     parser.add_argument("--t_high_from", type=int, default=900,
                         help="first timestep of the high draw (--t_high_fraction), in [0, T-1]")
     parser.add_argument("--p_drop", type=float, default=0.1, help="photo and prompt dropout, each")
+    parser.add_argument("--unet_blocks", default=None,
+                        help="the UNet's four block widths, comma-separated multiples of 16 (default: the "
+                             "recipe's, 32,64,64,64)")
+    parser.add_argument("--unet_layers_per_block", type=int, default=None, help="default: the recipe's, 1")
+    parser.add_argument("--fresh_unet", action="store_true",
+                        help="with --init: keep its VAE, latent scaling, text encoder and tokenizer, but train the "
+                             "UNet from random weights (needed when --unet_blocks or --unet_layers_per_block differ)")
+    parser.add_argument("--unet_minutes", type=float, default=0.0,
+                        help="choose --unet_steps to train about this long on this machine (timed after compiling; "
+                             "kept in WORK/unet_steps.json and the model record)")
+    parser.add_argument("--latent_bits", type=int, choices=(32, 8), default=32,
+                        help="store the encoded latents as float32, or as 8-bit codes per channel (a quarter of the "
+                             "file, to carry to another machine); the UNet trains on what is stored")
     parser.add_argument("--name", default="jaxdistill-rgbx-rooms", help="model name in jaxdistill_model.json")
     parser.add_argument("--version", default="1")
     parser.add_argument("--export_dtype", choices=("float32", "float16"), default="float16",
@@ -293,6 +436,17 @@ def main(argv=None) -> int:
         parser.error(f"--t_high_fraction: must be in [0, 1], got {args.t_high_fraction}")
     if not 0 <= args.t_high_from < recipe.SCHEDULER["num_train_timesteps"]:
         parser.error(f"--t_high_from: must be in [0, {recipe.SCHEDULER['num_train_timesteps'] - 1}], got {args.t_high_from}")
+    try:
+        if args.unet_blocks is not None:
+            args.unet_blocks = tuple(int(b) for b in str(args.unet_blocks).split(","))
+        config = recipe.unet_config(args.unet_blocks, args.unet_layers_per_block)
+        args.unet_blocks, args.unet_layers_per_block = config["block_out_channels"], config["layers_per_block"]
+    except ValueError as e:
+        parser.error(f"--unet_blocks/--unet_layers_per_block: {e}")
+    if args.fresh_unet and not args.init:
+        parser.error("--fresh_unet: only with --init (without it the UNet always starts from random weights)")
+    if args.unet_minutes < 0:
+        parser.error(f"--unet_minutes: must be >= 0, got {args.unet_minutes}")
     args.budget = Budget(args.stop_after_steps, args.time_limit)
     args.work.mkdir(parents=True, exist_ok=True)
     out = args.out or args.work / "model"
@@ -303,16 +457,28 @@ def main(argv=None) -> int:
         write_prior_tokenizer(args.work / "tokenizer")
     tokenizer = load_tokenizer(args.work / "tokenizer")
     start = time.perf_counter()
-    photos, maps, _ = load_images(args.data)
-    print(f"{len(photos)} images of {photos.shape[2]}x{photos.shape[1]} from {args.data} ({time.perf_counter() - start:.0f} s)")
+    # with --init the VAE is the init's, so latents already encoded are all the UNet needs: the
+    # shards are not read (a machine that trains only the UNet gets WORK/latents.npz alone)
+    latents = load_latents(args.work / LATENTS, args.latent_bits) if init is not None else None
+    if latents is None:
+        # imported here: the shards' reader needs the image library, a UNet trained from latents does not
+        from jaxdistill.models.training.shards import load_images
+
+        photos, maps, _ = load_images(args.data)
+        print(f"{len(photos)} images of {photos.shape[2]}x{photos.shape[1]} from {args.data} "
+              f"({time.perf_counter() - start:.0f} s)")
+    else:
+        print(f"{len(latents['photo'])} images' latents from {args.work / LATENTS}; the shards are not read")
     if init is None:
         vae, vae_params = train_vae(args, photos, maps)
     else:
         vae, vae_params = init.networks.vae, init.params["vae"]
-        print(f"VAE, latent scaling and text encoder of {args.init}; the UNet starts from its weights")
+        print(f"VAE, latent scaling and text encoder of {args.init}; the UNet starts from "
+              + ("random weights (--fresh_unet)" if args.fresh_unet else "its weights"))
     if args.stage == "vae":
         return 0
-    latents = encode_all(args, vae, vae_params, photos, maps)
+    if latents is None:
+        latents = encode_all(args, vae, vae_params, photos, maps)
     if init is None:
         scaling = float(1.0 / np.std(np.concatenate([latents[m] for m in MAPS])))
     else:
@@ -324,14 +490,22 @@ def main(argv=None) -> int:
         text_params, contexts = text_encoder_and_prompts(args.seed, tokenizer, recipe.TEXT)
     else:
         text_params, contexts = init_prompts(init, tokenizer)
-    _, unet_params = train_unet(args, latents, contexts, scaling, init.params["unet"] if init else None)
+    if args.stage == "export" and (args.work / UNET_EMA).is_file():
+        unet_params = load_unet(args.work / UNET_EMA, args, latents, contexts)
+        if (args.work / "unet_steps.json").is_file():             # the steps --unet_minutes chose there
+            args.unet_steps = int(json.loads((args.work / "unet_steps.json").read_text())["steps"])
+    else:
+        _, unet_params = train_unet(args, latents, contexts, scaling,
+                                    init.params["unet"] if init and not args.fresh_unet else None)
+        save_unet(args.work / UNET_EMA, unet_params)
     if args.stage == "unet":
         return 0
-    export(out, args.work / "tokenizer", unet_params, vae_params, text_params, scaling=scaling, unet=recipe.UNET, vae=recipe.VAE,
+    export(out, args.work / "tokenizer", unet_params, vae_params, text_params, scaling=scaling, unet=unet_recipe(args),
+           vae=recipe.VAE,
            text=recipe.TEXT,
            dtype=args.export_dtype)
     check_export(out, unet_params, vae_params, text_params, args.export_dtype)
-    (out / "jaxdistill_model.json").write_text(json.dumps(model_record(args, len(photos), scaling), indent=1))
+    (out / "jaxdistill_model.json").write_text(json.dumps(model_record(args, len(latents["photo"]), scaling), indent=1))
     size = sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
     print(f"exported {out} ({size / 2**20:.1f} MiB), read back identical; total {(time.perf_counter() - start) / 60:.1f} min")
     return 0

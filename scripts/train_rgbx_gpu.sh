@@ -1,0 +1,71 @@
+#!/usr/bin/env bash
+# The UNet of our RGB<->X-family model v2, trained on one NVIDIA GPU: three candidates at once,
+# each for about MINUTES, from latents encoded beforehand by the shipped model's VAE. The one
+# chosen on the validation rooms is exported where torch is (see the v2 model card).
+#
+#     # where the shards are (2 CPU cores are enough; 8-bit latents, about 5 KB an image):
+#     python scripts/train_rgbx.py --data=data/rgbx/train --work=data/rgbx_v2 \
+#         --init=jaxdistill/models/rgbx_rooms --latent_bits=8 --stage=latents
+#     # on the GPU machine, whose Python has jax with CUDA, flax, optax, orbax-checkpoint and tqdm:
+#     PYTHONPATH=$PWD bash scripts/train_rgbx_gpu.sh data/rgbx_v2/latents.npz OUT_DIR [MINUTES] [WORK_DIR]
+#     # back where torch is, for the candidate chosen (X = a, b or c, with its flags below):
+#     mkdir -p data/rgbx_v2_X && cp OUT_DIR/unet_ema_X.npz data/rgbx_v2_X/unet_ema.npz \
+#         && cp data/rgbx_v2/latents.npz data/rgbx_v2_X/ \
+#         && python -c "import json; print(json.dumps(json.load(open('OUT_DIR/runs.json'))['X']['steps']))" \
+#            > data/rgbx_v2_X/unet_steps.json
+#     python scripts/train_rgbx.py --data=data/rgbx/train --work=data/rgbx_v2_X \
+#         --init=jaxdistill/models/rgbx_rooms --fresh_unet --latent_bits=8 --stage=export FLAGS_X ...
+#
+# Candidates (the same data, batch, learning rate, schedule and seed; only the UNet differs):
+#   a: blocks 32,64,64,64, 1 layer each (v1's UNet: the same cost in the main job)
+#   b: blocks 32,64,64,64, 2 layers each
+#   c: blocks 48,96,96,96, 1 layer each
+# MINUTES (default 6): each candidate's --unet_minutes (steps chosen by its own measured speed,
+# kept in unet_steps_X.json); "steps:N" trains N steps instead (a quick check of this script).
+# OUT_DIR gets gpu.txt, train.log (the three logs' ends), unet_ema_X.npz (the EMA weights, float16:
+# what the float16 export ships) and runs.json ({X: {flags, steps (unet_steps.json), loss (the
+# loss log)}}).
+set -uo pipefail
+latents=${1:?usage: train_rgbx_gpu.sh LATENTS OUT_DIR [MINUTES] [WORK_DIR]}
+out=${2:?usage: train_rgbx_gpu.sh LATENTS OUT_DIR [MINUTES] [WORK_DIR]}
+minutes=${3:-6}
+work=${4:-${TMPDIR:-/tmp}/jaxdistill-rgbx-v2}
+mkdir -p "$out" "$work"
+export PYTHONUNBUFFERED=1
+nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv > "$out/gpu.txt" 2>&1 || true
+python3 -c "import jax, flax, optax; print('jax', jax.__version__, jax.devices(), 'flax', flax.__version__, 'optax', optax.__version__)" \
+  2>&1 | tee -a "$out/gpu.txt"
+case "$minutes" in
+  steps:*) length="--unet_steps=${minutes#steps:}" ;;
+  *) length="--unet_minutes=$minutes" ;;
+esac
+declare -A flags=([a]="--unet_blocks=32,64,64,64 --unet_layers_per_block=1"
+                  [b]="--unet_blocks=32,64,64,64 --unet_layers_per_block=2"
+                  [c]="--unet_blocks=48,96,96,96 --unet_layers_per_block=1")
+for x in a b c; do
+  mkdir -p "$work/$x" && cp "$latents" "$work/$x/latents.npz"
+  # three processes share the card: each may take a quarter of its memory
+  XLA_PYTHON_CLIENT_MEM_FRACTION=0.25 python3 scripts/train_rgbx.py --data=data/rgbx/train --work="$work/$x" \
+    --init=jaxdistill/models/rgbx_rooms --fresh_unet --latent_bits=8 --stage=unet --unet_batch=256 \
+    --ckpt_every=10000 $length ${flags[$x]} > "$out/train_$x.log" 2>&1 &
+done
+wait
+for x in a b c; do
+  echo "== $x: ${flags[$x]}"
+  tr '\r' '\n' < "$out/train_$x.log" | grep -v "step/s\]$" | tail -15
+  rm "$out/train_$x.log"
+  [ -f "$work/$x/unet_ema.npz" ] && python3 -c "import numpy as np, sys; z = np.load(sys.argv[1]); np.savez(sys.argv[2], **{k: z[k].astype(np.float16) for k in z.files})" \
+    "$work/$x/unet_ema.npz" "$out/unet_ema_$x.npz"
+done > "$out/train.log" 2>&1
+cat "$out/train.log"
+python3 - "$work" "$out/runs.json" "${flags[a]}" "${flags[b]}" "${flags[c]}" <<'PY'
+import json, sys
+from pathlib import Path
+work, runs = Path(sys.argv[1]), {}
+for x, flags in zip("abc", sys.argv[3:]):
+    steps, loss = work / x / "unet_steps.json", work / x / "unet_loss.jsonl"
+    runs[x] = {"flags": flags, "steps": json.loads(steps.read_text()) if steps.is_file() else None,
+               "loss": [json.loads(line) for line in loss.read_text().splitlines()] if loss.is_file() else []}
+Path(sys.argv[2]).write_text(json.dumps(runs, indent=1))
+PY
+ls -la "$out"
