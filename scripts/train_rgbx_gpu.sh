@@ -22,9 +22,10 @@
 #   c: blocks 48,96,96,96, 1 layer each
 # MINUTES (default 6): each candidate's --unet_minutes (steps chosen by its own measured speed,
 # kept in unet_steps_X.json); "steps:N" trains N steps instead (a quick check of this script).
-# OUT_DIR gets gpu.txt, train.log (the three logs' ends), unet_ema_X.npz (the EMA weights, float16:
-# what the float16 export ships) and runs.json ({X: {flags, steps (unet_steps.json), loss (the
-# loss log)}}).
+# OUT_DIR gets train.log (the card, the versions, the three logs' ends), unet_ema_X.npz (the final EMA weights,
+# float16: what the float16 export ships), unet_ema_X_half.npz (the EMA weights at the checkpoint
+# nearest half the steps, to tell on the validation rooms whether the second half paid) and
+# runs.json ({X: {flags, steps (unet_steps.json), half (that checkpoint's step), loss (the loss log)}}).
 set -uo pipefail
 latents=${1:?usage: train_rgbx_gpu.sh LATENTS OUT_DIR [MINUTES] [WORK_DIR]}
 out=${2:?usage: train_rgbx_gpu.sh LATENTS OUT_DIR [MINUTES] [WORK_DIR]}
@@ -47,16 +48,22 @@ for x in a b c; do
   # three processes share the card: each may take a quarter of its memory
   XLA_PYTHON_CLIENT_MEM_FRACTION=0.25 python3 scripts/train_rgbx.py --data=data/rgbx/train --work="$work/$x" \
     --init=jaxdistill/models/rgbx_rooms --fresh_unet --latent_bits=8 --stage=unet --unet_batch=256 \
-    --ckpt_every=10000 $length ${flags[$x]} > "$out/train_$x.log" 2>&1 &
+    --ckpt_every=10000 --ema_snapshots $length ${flags[$x]} > "$out/train_$x.log" 2>&1 &
 done
 wait
 for x in a b c; do
   echo "== $x: ${flags[$x]}"
   tr '\r' '\n' < "$out/train_$x.log" | grep -v "step/s\]$" | tail -15
   rm "$out/train_$x.log"
-  [ -f "$work/$x/unet_ema.npz" ] && python3 -c "import numpy as np, sys; z = np.load(sys.argv[1]); np.savez(sys.argv[2], **{k: z[k].astype(np.float16) for k in z.files})" \
-    "$work/$x/unet_ema.npz" "$out/unet_ema_$x.npz"
+  [ -f "$work/$x/unet_ema.npz" ] || continue
+  half=$(python3 -c "import json, sys; s = json.load(open(sys.argv[1]))['steps'] // 2; print(round(s / 10000) * 10000)" "$work/$x/unet_steps.json" 2>/dev/null)
+  for pair in "unet_ema.npz:unet_ema_$x.npz" "unet_ema_$half.npz:unet_ema_${x}_half.npz"; do
+    [ -f "$work/$x/${pair%%:*}" ] && python3 -c "import numpy as np, sys; z = np.load(sys.argv[1]); np.savez(sys.argv[2], **{k: z[k].astype(np.float16) for k in z.files})" \
+      "$work/$x/${pair%%:*}" "$out/${pair#*:}"
+  done
+  echo "half: step $half"
 done > "$out/train.log" 2>&1
+cat "$out/gpu.txt" "$out/train.log" > "$out/train.all" && mv "$out/train.all" "$out/train.log" && rm "$out/gpu.txt"
 cat "$out/train.log"
 python3 - "$work" "$out/runs.json" "${flags[a]}" "${flags[b]}" "${flags[c]}" <<'PY'
 import json, sys
@@ -64,7 +71,8 @@ from pathlib import Path
 work, runs = Path(sys.argv[1]), {}
 for x, flags in zip("abc", sys.argv[3:]):
     steps, loss = work / x / "unet_steps.json", work / x / "unet_loss.jsonl"
-    runs[x] = {"flags": flags, "steps": json.loads(steps.read_text()) if steps.is_file() else None,
+    chosen = json.loads(steps.read_text()) if steps.is_file() else None
+    runs[x] = {"flags": flags, "steps": chosen, "half": round(chosen["steps"] // 2 / 10000) * 10000 if chosen else None,
                "loss": [json.loads(line) for line in loss.read_text().splitlines()] if loss.is_file() else []}
 Path(sys.argv[2]).write_text(json.dumps(runs, indent=1))
 PY

@@ -214,9 +214,13 @@ def test_a_unet_trained_from_8_bit_latents_elsewhere_exports_from_its_weights_fi
     (there / "latents.npz").write_bytes((here / "latents.npz").read_bytes())
     with np.load(here / "latents.npz") as z:
         assert z["albedo"].dtype == np.uint8 and z["albedo_lo"].shape == (4,)
-    assert train_prior.main(["--data", str(tmp_path / "no_shards_here"), "--work", str(there), "--stage=unet"] + common) == 0
+    assert train_prior.main(["--data", str(tmp_path / "no_shards_here"), "--work", str(there), "--stage=unet",
+                             "--ema_snapshots", "--ckpt_every=1"] + common) == 0
     with np.load(there / "unet_ema.npz") as z:
         carried = {k: z[k].astype(np.float16) for k in z.files}
+        with np.load(there / "unet_ema_2.npz") as last, np.load(there / "unet_ema_1.npz") as first:
+            assert all(np.array_equal(z[k], last[k]) for k in z.files)            # the final snapshot is the weights
+            assert not all(np.array_equal(z[k], first[k]) for k in z.files)       # the first is a step earlier
     np.savez(here / "unet_ema.npz", **carried)
     assert train_prior.main(["--data", str(tmp_path / "data"), "--work", str(here), "--stage=export"] + common) == 0
     out = load_rgbx(here / "model")

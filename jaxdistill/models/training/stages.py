@@ -45,13 +45,14 @@ class Budget:
 
 
 def run_stage(name: str, work: Path, init_state: Callable[[], Any], step_fn, batch_fn, steps: int, ckpt_every: int,
-              config: dict, budget: Budget):
+              config: dict, budget: Budget, on_save: Callable[[int, Any], None] | None = None):
     """Runs `state = step_fn(state, batch_fn(step))` from the newest checkpoint of stage `name`
     to `steps`, with a progress bar (loss, ETA) and orbax checkpoints; returns the final state.
     `init_state()` gives the state of step 0 and is computed only when the stage has no
     checkpoint: a resumed stage restores into its shapes (`jax.eval_shape`, no initialisation run,
     which for a network's Flax init is most of a short run's time).
-    SIGINT/SIGTERM save and exit with 130/143; a spent `budget` saves and exits with 75."""
+    SIGINT/SIGTERM save and exit with 130/143; a spent `budget` saves and exits with 75.
+    `on_save(step, state)`, if given, runs after each checkpoint is written."""
     with CheckpointStore(work / f"ckpt_{name}", max_to_keep=2) as store:
         start = store.latest_step() or 0
         if not start:
@@ -73,6 +74,8 @@ def run_stage(name: str, work: Path, init_state: Callable[[], Any], step_fn, bat
                 halt = stop.requested or budget.spent()
                 if (step + 1) % ckpt_every == 0 or step + 1 == steps or halt:
                     store.save(step + 1, pack(state), {**config, LAYOUT: layout(state)})
+                    if on_save is not None:
+                        on_save(step + 1, state)
                     with open(work / f"{name}_loss.jsonl", "a") as f:
                         f.write(json.dumps({"step": step + 1, "loss": float(np.mean(jax.device_get(losses)))}) + "\n")
                     losses = []

@@ -14,7 +14,9 @@ project's own Flax modules (`jaxdistill.models`) and optax:
    CLIP is frozen too): it only has to give the five prompts and "" distinct embeddings; the
    tokenizer is `vocabulary.write_prior_tokenizer`'s.
 4. `export`: a diffusers folder (`export_model`), read back by our loader and checked equal.
-   The UNet stage leaves its EMA weights in WORK/unet_ema.npz, and `--stage=export` reads them
+   The UNet stage leaves its EMA weights in WORK/unet_ema.npz (with `--ema_snapshots`, those of
+   every checkpoint too, in WORK/unet_ema_<step>.npz: a training length can then be chosen on
+   validation rooms), and `--stage=export` reads them
    from there when that file exists: a UNet trained on another machine (a GPU without torch,
    `scripts/train_rgbx_gpu.sh`) is exported where torch is.
 
@@ -325,8 +327,11 @@ def train_unet(args, latents, contexts, scaling, init_params=None):
     def step(state, batch):
         return unet_step(state, batch, ctx)
 
+    def snapshot(at, state):          # the EMA weights at every checkpoint: the training length can be chosen later
+        save_unet(args.work / f"unet_ema_{at}.npz", state["ema"])
+
     state = run_stage("unet", args.work, init_state, step, batch, steps, args.ckpt_every, {"stage": "unet", **config},
-                      args.budget)
+                      args.budget, on_save=snapshot if args.ema_snapshots else None)
     return unet, state["ema"]
 
 
@@ -417,6 +422,8 @@ def main(argv=None) -> int:
     parser.add_argument("--unet_minutes", type=float, default=0.0,
                         help="choose --unet_steps to train about this long on this machine (timed after compiling; "
                              "kept in WORK/unet_steps.json and the model record)")
+    parser.add_argument("--ema_snapshots", action="store_true",
+                        help="also write the UNet's EMA weights at every checkpoint (WORK/unet_ema_<step>.npz)")
     parser.add_argument("--latent_bits", type=int, choices=(32, 8), default=32,
                         help="store the encoded latents as float32, or as 8-bit codes per channel (a quarter of the "
                              "file, to carry to another machine); the UNet trains on what is stored")
