@@ -38,7 +38,9 @@ python3 -c "import jax, flax, optax; print('jax', jax.__version__, jax.devices()
   2>&1 | tee -a "$out/gpu.txt"
 case "$minutes" in
   steps:*) length="--unet_steps=${minutes#steps:}" ;;
-  *) length="--unet_minutes=$minutes" ;;
+  # a backstop a minute later: a slower step than the one timed stops with a checkpoint and its
+  # EMA snapshot, which is then what comes back
+  *) length="--unet_minutes=$minutes --time_limit=$(python3 -c "print($minutes + 1)")" ;;
 esac
 declare -A flags=([a]="--unet_blocks=32,64,64,64 --unet_layers_per_block=1"
                   [b]="--unet_blocks=32,64,64,64 --unet_layers_per_block=2"
@@ -55,7 +57,12 @@ for x in a b c; do
   echo "== $x: ${flags[$x]}"
   tr '\r' '\n' < "$out/train_$x.log" | grep -v "step/s\]$" | tail -15
   rm "$out/train_$x.log"
-  [ -f "$work/$x/unet_ema.npz" ] || continue
+  if [ ! -f "$work/$x/unet_ema.npz" ]; then
+    last=$(python3 -c "import sys, pathlib; f = sorted(pathlib.Path(sys.argv[1]).glob('unet_ema_*.npz'), key=lambda p: int(p.stem.split('_')[-1])); print(f[-1] if f else '')" "$work/$x")
+    [ -n "$last" ] || continue
+    echo "stopped early: the newest snapshot, $last, comes back as unet_ema_$x.npz"
+    cp "$last" "$work/$x/unet_ema.npz"
+  fi
   half=$(python3 -c "import json, sys; s = json.load(open(sys.argv[1]))['steps'] // 2; print(round(s / 10000) * 10000)" "$work/$x/unet_steps.json" 2>/dev/null)
   for pair in "unet_ema.npz:unet_ema_$x.npz" "unet_ema_$half.npz:unet_ema_${x}_half.npz"; do
     [ -f "$work/$x/${pair%%:*}" ] && python3 -c "import numpy as np, sys; z = np.load(sys.argv[1]); np.savez(sys.argv[2], **{k: z[k].astype(np.float16) for k in z.files})" \
