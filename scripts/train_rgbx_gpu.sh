@@ -1,13 +1,13 @@
 #!/usr/bin/env bash
-# The UNet of our RGB<->X-family model v2, trained on one NVIDIA GPU: three candidates at once,
-# each for about MINUTES, from latents encoded beforehand by the shipped model's VAE. The one
-# chosen on the validation rooms is exported where torch is (see the v2 model card).
+# The UNet of our RGB<->X-family model v2, trained on one NVIDIA GPU for about MINUTES, from
+# latents encoded beforehand by the shipped model's VAE; exported where torch is, and shipped only
+# if it beats the shipped model on the validation rooms (docs/benchmarks.md §9d).
 #
 #     # where the shards are (2 CPU cores are enough; 8-bit latents, about 5 KB an image):
 #     python scripts/train_rgbx.py --data=data/rgbx/train --work=data/rgbx_v2 \
 #         --init=jaxdistill/models/rgbx_rooms --latent_bits=8 --stage=latents
 #     # on the GPU machine, whose Python has jax with CUDA, flax, optax, orbax-checkpoint and tqdm:
-#     PYTHONPATH=$PWD bash scripts/train_rgbx_gpu.sh data/rgbx_v2/latents.npz OUT_DIR [MINUTES] [WORK_DIR]
+#     PYTHONPATH=$PWD bash scripts/train_rgbx_gpu.sh data/rgbx_v2/latents.npz OUT_DIR [MINUTES] [WORK_DIR] [CANDIDATES]
 #     # back where torch is, for the candidate chosen (X = a, b or c, with its flags below):
 #     mkdir -p data/rgbx_v2_X && cp OUT_DIR/unet_ema_X.npz data/rgbx_v2_X/unet_ema.npz \
 #         && cp data/rgbx_v2/latents.npz data/rgbx_v2_X/ \
@@ -16,10 +16,13 @@
 #     python scripts/train_rgbx.py --data=data/rgbx/train --work=data/rgbx_v2_X \
 #         --init=jaxdistill/models/rgbx_rooms --fresh_unet --latent_bits=8 --stage=export FLAGS_X ...
 #
-# Candidates (the same data, batch, learning rate, schedule and seed; only the UNet differs):
+# CANDIDATES (default a; several, e.g. abc, train at once on the one card):
 #   a: blocks 32,64,64,64, 1 layer each (v1's UNet: the same cost in the main job)
 #   b: blocks 32,64,64,64, 2 layers each
 #   c: blocks 48,96,96,96, 1 layer each
+# Measured on an H200 (§9d): the three at once took 73-125 ms a step after 3-4 minutes of
+# compilation, so none fitted 6.5 minutes; a alone took about 60 ms a step (batch 256) after about
+# 80 s. So one candidate fits a 15-minute lease (about 8 minutes: 6,000-7,000 steps).
 # MINUTES (default 6): each candidate's --unet_minutes (steps chosen by its own measured speed,
 # kept in unet_steps_X.json); "steps:N" trains N steps instead (a quick check of this script).
 # OUT_DIR gets train.log (the card, the versions, the three logs' ends), unet_ema_X.npz (the final EMA weights,
@@ -31,6 +34,7 @@ latents=${1:?usage: train_rgbx_gpu.sh LATENTS OUT_DIR [MINUTES] [WORK_DIR]}
 out=${2:?usage: train_rgbx_gpu.sh LATENTS OUT_DIR [MINUTES] [WORK_DIR]}
 minutes=${3:-6}
 work=${4:-${TMPDIR:-/tmp}/jaxdistill-rgbx-v2}
+candidates=$(echo "${5:-a}" | grep -o '[abc]' | tr '\n' ' ')
 mkdir -p "$out" "$work"
 export PYTHONUNBUFFERED=1
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv > "$out/gpu.txt" 2>&1 || true
@@ -45,15 +49,15 @@ esac
 declare -A flags=([a]="--unet_blocks=32,64,64,64 --unet_layers_per_block=1"
                   [b]="--unet_blocks=32,64,64,64 --unet_layers_per_block=2"
                   [c]="--unet_blocks=48,96,96,96 --unet_layers_per_block=1")
-for x in a b c; do
+for x in $candidates; do
   mkdir -p "$work/$x" && cp "$latents" "$work/$x/latents.npz"
-  # three processes share the card: each may take a quarter of its memory
+  # the processes share the card: each may take a quarter of its memory
   XLA_PYTHON_CLIENT_MEM_FRACTION=0.25 python3 scripts/train_rgbx.py --data=data/rgbx/train --work="$work/$x" \
     --init=jaxdistill/models/rgbx_rooms --fresh_unet --latent_bits=8 --stage=unet --unet_batch=256 \
     --ckpt_every=10000 --ema_snapshots $length ${flags[$x]} > "$out/train_$x.log" 2>&1 &
 done
 wait
-for x in a b c; do
+for x in $candidates; do
   echo "== $x: ${flags[$x]}"
   tr '\r' '\n' < "$out/train_$x.log" | grep -v "step/s\]$" | tail -15
   rm "$out/train_$x.log"
