@@ -269,6 +269,14 @@ def test_fit_steps_fills_the_minutes_after_compiling_and_keeps_its_choice(tmp_pa
     assert fit(partial(step, cost=0.01)) == 4000
     assert json.loads((tmp_path / "unet_steps.json").read_text())["steps"] == 4000
     assert fit(partial(step, cost=1.0)) == 4000              # kept: a resumed run keeps its schedule
+    with pytest.raises(SystemExit, match=r"unet_steps.json: this stage's steps were fitted to --unet_minutes=1.0, not 2.0"):
+        train_prior.fit_steps(tmp_path, 2.0, partial(step, cost=0.01), lambda: 0, lambda i: None, probe=10)
+    (tmp_path / "unet_steps.json").write_text("null")
+    with pytest.raises(SystemExit, match=r"unet_steps.json: not a record of --unet_minutes' choice"):
+        train_prior.fit_steps(tmp_path, 1.0, partial(step, cost=0.01), lambda: 0, lambda i: None, probe=10)
+    (tmp_path / "steps_run" / "ckpt_unet" / "500").mkdir(parents=True)      # a stage begun with --unet_steps
+    with pytest.raises(SystemExit, match=r"ckpt_unet: this stage was started with --unet_steps"):
+        train_prior.fit_steps(tmp_path / "steps_run", 1.0, partial(step, cost=0.01), lambda: 0, lambda i: None)
     with pytest.raises(SystemExit, match=r"--unet_minutes=1.0: .* fewer than 1000 steps fit"):
         train_prior.fit_steps(tmp_path / "slow", 1.0, partial(step, cost=0.1), lambda: 0, lambda i: None, probe=10)
 

@@ -264,7 +264,15 @@ def fit_steps(work: Path, minutes: float, step_fn, init_state, batch_fn, probe: 
     work/unet_steps.json, so a resumed run keeps its schedule."""
     record = work / "unet_steps.json"
     if record.is_file():
-        return int(json.loads(record.read_text())["steps"])
+        kept = read_steps(record)
+        if kept["minutes"] != minutes:
+            raise SystemExit(f"{record}: this stage's steps were fitted to --unet_minutes={kept['minutes']}, not "
+                             f"{minutes}; resume with that flag (its learning-rate schedule is that of "
+                             f"{kept['steps']} steps), or use another --work")
+        return int(kept["steps"])
+    if (work / "ckpt_unet").is_dir() and any(p.name.isdigit() for p in (work / "ckpt_unet").iterdir()):
+        raise SystemExit(f"{work / 'ckpt_unet'}: this stage was started with --unet_steps, not --unet_minutes; "
+                         f"resume with the same --unet_steps, or use another --work")
     start = time.perf_counter()
     state = init_state()
     for i in range(2):
@@ -286,6 +294,18 @@ def fit_steps(work: Path, minutes: float, step_fn, init_state, batch_fn, probe: 
     print(f"--unet_minutes={minutes}: {per_step * 1e3:.2f} ms a step after {compile_s:.0f} s of compilation on "
           f"{jax.devices()[0]}: {steps} steps")
     return steps
+
+
+def read_steps(record: Path) -> dict:
+    """{"minutes", "steps", ...} of a work folder's unet_steps.json (`fit_steps`); SystemExit naming
+    the file when it is not such a record."""
+    try:
+        kept = json.loads(record.read_text())
+        int(kept["steps"]), float(kept["minutes"])
+    except (ValueError, TypeError, KeyError) as e:
+        raise SystemExit(f"{record}: not a record of --unet_minutes' choice ({e!r}); it holds "
+                         f"{{\"minutes\": M, \"steps\": N, ...}}: delete it, or pass --unet_steps") from None
+    return kept
 
 
 def train_unet(args, latents, contexts, scaling, init_params=None):
@@ -500,7 +520,8 @@ def main(argv=None) -> int:
     if args.stage == "export" and (args.work / UNET_EMA).is_file():
         unet_params = load_unet(args.work / UNET_EMA, args, latents, contexts)
         if (args.work / "unet_steps.json").is_file():             # the steps --unet_minutes chose there
-            args.unet_steps = int(json.loads((args.work / "unet_steps.json").read_text())["steps"])
+            kept = read_steps(args.work / "unet_steps.json")
+            args.unet_steps, args.unet_minutes = int(kept["steps"]), float(kept["minutes"])
     else:
         _, unet_params = train_unet(args, latents, contexts, scaling,
                                     init.params["unet"] if init and not args.fresh_unet else None)
