@@ -13,7 +13,9 @@
 #     mkdir -p data/rgbx_v2_X && cp OUT_DIR/unet_ema_X.npz data/rgbx_v2_X/unet_ema.npz \
 #         && cp data/rgbx_v2/latents.npz data/rgbx_v2_X/ \
 #         && python -c "import json; r = json.load(open('OUT_DIR/runs.json'))['X']; print(json.dumps(r['steps']))" \
-#            > data/rgbx_v2_X/unet_steps.json
+#            > data/rgbx_v2_X/unet_steps.json \
+#         && python -c "import json; [print(json.dumps(l)) for l in json.load(open('OUT_DIR/runs.json'))['X']['loss']]" \
+#            > data/rgbx_v2_X/unet_loss.jsonl         # the model record's final loss
 #     python scripts/train_rgbx.py --data=data/rgbx/train --work=data/rgbx_v2_X \
 #         --init=jaxdistill/models/rgbx_rooms --fresh_unet --latent_bits=8 --stage=export --unet_batch=256 FLAGS_X
 #

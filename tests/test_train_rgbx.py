@@ -5,6 +5,7 @@ networks; training stages resume bit-identically (tiny sizes)."""
 from __future__ import annotations
 
 import json
+import os
 from functools import partial
 from pathlib import Path
 
@@ -240,6 +241,10 @@ def test_a_unet_trained_from_8_bit_latents_elsewhere_exports_from_its_weights_fi
     with pytest.raises(SystemExit, match=r"unet_ema\.npz: its UNet is not the one asked for"):
         train_prior.main(["--data", str(tmp_path / "data"), "--work", str(here), "--stage=export",
                           "--unet_layers_per_block=2"] + common)
+    future = (there / "unet_ema.npz").stat().st_mtime + 60          # a checkpoint newer than the weights file
+    os.utime(there / "ckpt_unet" / "2", (future, future))
+    with pytest.raises(SystemExit, match=r"unet_ema\.npz: older than the UNet stage's checkpoint .*ckpt_unet/2"):
+        train_prior.main(["--data", str(tmp_path / "data"), "--work", str(there), "--stage=export"] + common)
     with pytest.raises(SystemExit, match=r"latents\.npz: its latents are stored in 8 bits, but --latent_bits=32"):
         train_prior.main(["--data", str(tmp_path / "data"), "--work", str(here), "--stage=export", "--init",
                           str(folder), "--fresh_unet"])

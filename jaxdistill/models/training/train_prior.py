@@ -369,6 +369,12 @@ def save_unet(path: Path, params) -> None:
     tmp.replace(path)
 
 
+def newest_checkpoint(folder: Path) -> Path | None:
+    """The newest step folder of a stage's checkpoints, or None."""
+    steps = [p for p in folder.iterdir() if p.name.isdigit()] if folder.is_dir() else []
+    return max(steps, key=lambda p: int(p.name)) if steps else None
+
+
 def load_unet(path: Path, args, latents, contexts):
     """`save_unet`'s weights, checked against the UNet the flags ask for (SystemExit naming the file)."""
     from flax import traverse_util
@@ -518,6 +524,10 @@ def main(argv=None) -> int:
     else:
         text_params, contexts = init_prompts(init, tokenizer)
     if args.stage == "export" and (args.work / UNET_EMA).is_file():
+        newest = newest_checkpoint(args.work / "ckpt_unet")
+        if newest is not None and newest.stat().st_mtime > (args.work / UNET_EMA).stat().st_mtime:
+            raise SystemExit(f"{args.work / UNET_EMA}: older than the UNet stage's checkpoint {newest}; finish or "
+                             f"rerun the stage (--stage=unet), which writes the weights again, then export")
         unet_params = load_unet(args.work / UNET_EMA, args, latents, contexts)
         if (args.work / "unet_steps.json").is_file():             # the steps --unet_minutes chose there
             kept = read_steps(args.work / "unet_steps.json")
