@@ -90,6 +90,7 @@ PY
       "${pair%%:*}" "$out/${pair#*:}"
   done
   echo "half-way snapshot: ${half:-none}"
+  basename "${half:-}" .npz | sed -n 's/^unet_ema_\([0-9]*\)$/\1/p' > "$work/$x/half_step"
 done > "$out/train.log" 2>&1
 cat "$out/gpu.txt" "$out/train.log" > "$out/train.all" && mv "$out/train.all" "$out/train.log" && rm "$out/gpu.txt"
 cat "$out/train.log"
@@ -100,10 +101,8 @@ work, runs = Path(sys.argv[1]), {}
 for x, flags in zip("abc", sys.argv[3:]):
     steps, loss = work / x / "unet_steps.json", work / x / "unet_loss.jsonl"
     chosen = json.loads(steps.read_text()) if steps.is_file() else None
-    snaps = sorted(int(p.stem.rsplit("_", 1)[1]) for p in (work / x).glob("unet_ema_*.npz") if p.stem.rsplit("_", 1)[1].isdigit())
-    end = chosen["steps"] if chosen else (snaps[-1] if snaps else 0)
-    middle = [s for s in snaps if s < end]
-    runs[x] = {"flags": flags, "steps": chosen, "half": min(middle, key=lambda s: abs(s - end / 2)) if middle else None,
+    half = (work / x / "half_step").read_text().strip() if (work / x / "half_step").is_file() else ""
+    runs[x] = {"flags": flags, "steps": chosen, "half": int(half) if half else None,
                "loss": [json.loads(line) for line in loss.read_text().splitlines()] if loss.is_file() else []}
 Path(sys.argv[2]).write_text(json.dumps(runs, indent=1))
 PY

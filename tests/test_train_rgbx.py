@@ -18,6 +18,7 @@ torch = pytest.importorskip("torch")
 diffusers = pytest.importorskip("diffusers")
 transformers = pytest.importorskip("transformers")
 
+from jaxdistill.io import checkpoint  # noqa: E402
 from jaxdistill.models.clip import CLIPTextConfig, CLIPTextTransformer  # noqa: E402
 from jaxdistill.models.convert import load_rgbx  # noqa: E402
 from jaxdistill.models.tokenizer import load_tokenizer  # noqa: E402
@@ -279,7 +280,9 @@ def test_fit_steps_fills_the_minutes_after_compiling_and_keeps_its_choice(tmp_pa
     (tmp_path / "unet_steps.json").write_text("null")
     with pytest.raises(SystemExit, match=r"unet_steps.json: not a record of --unet_minutes' choice"):
         train_prior.fit_steps(tmp_path, 1.0, partial(step, cost=0.01), lambda: 0, lambda i: None, probe=10)
-    (tmp_path / "steps_run" / "ckpt_unet" / "500").mkdir(parents=True)      # a stage begun with --unet_steps
+    begun = tmp_path / "steps_run" / "ckpt_unet" / "500"                    # a stage begun with --unet_steps
+    begun.mkdir(parents=True)
+    (begun / checkpoint._COMMIT_FILE).touch()                                 # a complete checkpoint, as orbax marks it
     with pytest.raises(SystemExit, match=r"ckpt_unet: this stage was started with --unet_steps"):
         train_prior.fit_steps(tmp_path / "steps_run", 1.0, partial(step, cost=0.01), lambda: 0, lambda i: None)
     with pytest.raises(SystemExit, match=r"--unet_minutes=1.0: .* fewer than 1000 steps fit"):

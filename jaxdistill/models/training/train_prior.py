@@ -53,6 +53,7 @@ from jaxdistill.models.tokenizer import load_tokenizer
 from jaxdistill.models.training import recipe
 from jaxdistill.models.training.export_model import check_export, export
 from jaxdistill.models.training.recipe import MAPS
+from jaxdistill.io.checkpoint import is_committed
 from jaxdistill.models.training.stages import Budget, adamw, run_stage
 from jaxdistill.models.training.vocabulary import write_prior_tokenizer
 from jaxdistill.models.unet import UNet2DCondition, UNetConfig
@@ -270,7 +271,7 @@ def fit_steps(work: Path, minutes: float, step_fn, init_state, batch_fn, probe: 
                              f"{minutes}; resume with that flag (its learning-rate schedule is that of "
                              f"{kept['steps']} steps), or use another --work")
         return int(kept["steps"])
-    if (work / "ckpt_unet").is_dir() and any(p.name.isdigit() for p in (work / "ckpt_unet").iterdir()):
+    if newest_checkpoint(work / "ckpt_unet") is not None:
         raise SystemExit(f"{work / 'ckpt_unet'}: this stage was started with --unet_steps, not --unet_minutes; "
                          f"resume with the same --unet_steps, or use another --work")
     start = time.perf_counter()
@@ -370,8 +371,8 @@ def save_unet(path: Path, params) -> None:
 
 
 def newest_checkpoint(folder: Path) -> Path | None:
-    """The newest step folder of a stage's checkpoints, or None."""
-    steps = [p for p in folder.iterdir() if p.name.isdigit()] if folder.is_dir() else []
+    """The newest complete step folder of a stage's checkpoints (orbax's partial writes are not), or None."""
+    steps = [p for p in folder.iterdir() if p.name.isdigit() and is_committed(p)] if folder.is_dir() else []
     return max(steps, key=lambda p: int(p.name)) if steps else None
 
 
