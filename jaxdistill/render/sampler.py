@@ -72,7 +72,11 @@ def sample_many(pyramid, plans) -> tuple:
     """`sample` of each of several plans that share the pyramid's chain, their taps read by one
     gather: its transpose is one scatter-add into the pyramid (into each part of a split one),
     where a gather per plan would leave a cotangent of the pyramid's size per plan, all of them
-    added up by every reader of the gradient. One plan: `sample` itself."""
+    added up by every reader of the gradient. The taps are weighted together too, and the pixels
+    (not the taps) split into the plans' images: slicing the (sum P, T, C) taps per plan would
+    copy them, and its transpose pad each plan's part back to the taps' size and add the parts,
+    three passes over T times the pixels' bytes in every step (docs/benchmarks.md §7). One plan:
+    `sample` itself."""
     if len(plans) == 1:
         return (sample(pyramid, plans[0]),)
     taps = [p.index.shape[-1] for p in plans]
@@ -80,10 +84,12 @@ def sample_many(pyramid, plans) -> tuple:
         raise ValueError(f"sample_many: the plans read {taps} taps a pixel; one gather needs the same count")
     rows = [int(np.prod(p.index.shape[:-1])) for p in plans]
     values = _taps(pyramid, jnp.concatenate([p.index.reshape(n, -1) for p, n in zip(plans, rows)]))  # (sum P, T, C)
+    weights = jnp.concatenate([p.weight.reshape(n, -1) for p, n in zip(plans, rows)]).astype(values.dtype)
+    pixels = jnp.einsum("pt,ptc->pc", weights, values)                                            # (sum P, C)
     images, start = [], 0
     for plan, n in zip(plans, rows):
-        part = values[start:start + n].reshape(*plan.index.shape, values.shape[-1])
-        images.append(_weighted(plan, part))
+        images.append(pixels[start:start + n].reshape(*plan.index.shape[:-2], plan.height, plan.width,
+                                                      values.shape[-1]))
         start += n
     return tuple(images)
 
