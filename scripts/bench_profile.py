@@ -4,32 +4,37 @@
         [--profile_json=FILE] [--profile_trace=DIR]
 
 Builds the main job's problem (`build_problem`) and its step compiled ahead (`loop.prepare_step`,
-as `python -m jaxdistill.main` does), runs two warm-up steps, then --profile_steps cycles of
---reuse_steps steps (with --reuse_steps=2: a step with the prior's pass, then one reusing its
-x-hat-0), timing each kind of step apart (medians). Then one more cycle under `jax.profiler`:
-every XLA operation's time on the host's threads, each attributed to a stage of the step by the
-name JAX gave the operation it came from (the compiled program's `op_name` metadata):
+as `python -m jaxdistill.main` does), runs two cycles of --reuse_steps steps to warm up, then
+--profile_steps cycles (with --reuse_steps=2: a step with the prior's pass, then one reusing its
+x-hat-0), timing each kind of step apart (medians). Then the first two steps of one more cycle (one
+of each kind; with --reuse_steps=1, two with the prior) under `jax.profiler`: every XLA operation's
+time on the host's threads, each given to a stage by the name JAX recorded for its source in the
+compiled program (`op_name`: the networks' modules, and the named scopes of `render.sampler` and
+`engine.step`):
 
-  gathers                       the texels' and the pyramid's rows each pixel's taps read, and the
-                                pyramid's coarse levels (means of gathered entries), with whatever
-                                XLA fused into a gather (the taps' weighting, say)
-  gather's transpose            the scatter-adds into the texels and the pyramid, their zeroed
-                                buffers and the taps' cotangents
-  pyramid, render and losses    the rest of the forward pass outside the networks (the mip
-                                pyramid, weighting the taps, the photo term, the smoothness terms)
-  backward (other)              the rest of the gradient
-  VAE encode / UNet / VAE decode  the prior's networks (only in the steps that run the prior)
-  prior's pass (other)          the rest of the prior's branch (its noise, the schedule)
-  AdamW and the finite gate     the optimiser's update and the gate that keeps a non-finite step
-                                from the state
-  unlabelled                    operations XLA created without a name whose operands have none
-                                either, by their kind (one without a name takes its first named
-                                operand's: a tree reduction's first pass, its input's stage)
+  taps (gathers)                 the pyramid's rows each pixel's taps read (`sampler` "taps")
+  taps' transpose (scatter-adds)  their gradient: scatter-adds into the texels and the pyramid
+  taps weighted                  the taps' weighting into pixels, and its transpose
+  pyramid                        the mip pyramid, and its transpose (its pull-back to the texels)
+  photo term                     the photos re-rendered and compared, with its gradient
+  rest of the forward / backward  what is left of the differentiated part (the renders' rotation,
+                                 the SDS loss, the smoothness terms)
+  VAE encode / UNet / VAE decode  the prior's networks (only in the steps that run them)
+  prior's pass (other)           the rest of the prior's branch (its noise, the schedule); with
+                                 --reuse_steps=1 there is no branch and these go to "other"
+  AdamW and the finite gate      the update and the gate that keeps a non-finite step out
+  metrics (gradient norm)        the step's metrics, the gradient's norm most of it
+  other / unlabelled             anything else, by JAX's name or, with none, XLA's kind of op
 
-The stage times are thread times: two threads running at once count twice, so they add up to
-more than the step's wall time on 2 cores. XLA's cost analysis gives the step's FLOPs (both kinds
-in one program: the prior's branch counted once). Prints the table; --profile_json writes it,
---profile_trace keeps the profiler's trace (TensorBoard's or Perfetto's viewer reads it).
+An operation XLA made without a name (a tree reduction's first pass) takes its operand's; a fusion
+holding a gather outside the named scopes counts as taps. The stage times are thread times: two
+threads at once count twice, and the time between operations (the runtime's own) counts nowhere,
+so their sum is not the step's wall time (on the default bedroom step with 2 threads it fell below
+it). One step of each kind is traced, so a stage swings between runs (by up to 3x for a small
+stage); the medians of whole steps are the figures to compare. XLA's cost analysis gives the
+step's FLOPs (both kinds in one program: the prior's branch counted once). Prints the table;
+--profile_json writes it, with each traced step's longest operations; --profile_trace keeps the
+profiler's trace (TensorBoard's or Perfetto's viewer reads it).
 """
 
 from __future__ import annotations
@@ -55,16 +60,23 @@ flags.DEFINE_integer("profile_steps", 5, "timed cycles of --reuse_steps steps")
 flags.DEFINE_string("profile_json", None, "write the table as JSON here")
 flags.DEFINE_string("profile_trace", None, "keep the profiler's trace in this folder (default: a temporary one)")
 
-STAGES = ("gathers", "gather's transpose", "pyramid, render and losses", "backward (other)", "VAE encode",
-          "UNet", "VAE decode", "prior's pass (other)", "AdamW and the finite gate")
-
-
+STAGES = ("taps (gathers)", "taps' transpose (scatter-adds)", "taps weighted", "pyramid", "photo term",
+          "rest of the forward", "rest of the backward", "VAE encode", "UNet", "VAE decode", "prior's pass (other)",
+          "AdamW and the finite gate", "metrics (gradient norm)", "other")
 TOP_OPS = 15
 
 
+def _scope(op_name: str, name: str) -> bool:
+    """`name` is a named scope on the way to the operation (`jax.named_scope`: .../name/... or
+    jvp(name), transpose(jvp(name)))."""
+    return re.search(rf"[(/]{re.escape(name)}[)/]", op_name) is not None
+
+
 def stage_of(op_name: str, instruction: str, gathers: bool = False) -> str:
-    """The stage of an XLA operation from JAX's name for its source (`op_name`), else its kind;
-    `gathers`: the operation reads rows by index (a gather, or a fusion holding one)."""
+    """The stage of an XLA operation from JAX's name for its source (`op_name`: the networks'
+    modules and the step's named scopes, `sampler` and `engine.step`), else its kind. `gathers`:
+    the operation reads rows by index (a gather, or a fusion holding one) where no scope says more."""
+    backward = "transpose(" in op_name
     if "AutoencoderKL.encode" in op_name:
         return "VAE encode"
     if "AutoencoderKL.decode" in op_name:
@@ -73,15 +85,18 @@ def stage_of(op_name: str, instruction: str, gathers: bool = False) -> str:
         return "UNet"
     if "/cond/" in op_name:                  # the prior's branch outside its networks: noise, schedule
         return "prior's pass (other)"
-    if "jit(_where)" in op_name or "GatedAdamW" in op_name or "adam" in op_name.lower() or "is_finite" in op_name:
-        return "AdamW and the finite gate"
-    if "transpose(jvp(" in op_name:
-        return ("gather's transpose" if any(k in op_name for k in ("scatter", "broadcast_in_dim", "add_any", "pad"))
-                else "backward (other)")
-    if gathers and "jvp(" in op_name:
-        return "gathers"
+    if _scope(op_name, "taps"):
+        return "taps' transpose (scatter-adds)" if backward else "taps (gathers)"
+    for scope, stage in (("weighting", "taps weighted"), ("pyramid", "pyramid"), ("photo_term", "photo term"),
+                         ("update", "AdamW and the finite gate"), ("metrics", "metrics (gradient norm)")):
+        if _scope(op_name, scope):
+            return stage
+    if gathers and "jvp(" in op_name and not backward:
+        return "taps (gathers)"
+    if backward:
+        return "rest of the backward"
     if "jvp(" in op_name:
-        return "pyramid, render and losses"
+        return "rest of the forward"
     if op_name:
         return "other"
     return "unlabelled: " + re.sub(r"^(wrapped_|bitcast_)*|(\.\d+)+$", "", instruction)
@@ -112,7 +127,8 @@ def gathering(hlo_text: str) -> set[str]:
 
 def op_names(hlo_text: str) -> dict[str, str]:
     """Instruction name -> JAX's op_name, from the compiled program's text. An instruction XLA made
-    without one (a tree reduction's first pass, a fusion of such) takes its first operand's."""
+    without one (a tree reduction's first pass, a fusion of such) takes that of its first operand
+    that has one from the step's code (`jit(...)/...`; a parameter's is its argument's name)."""
     lines = {m.group(1): m.group(2) for m in re.finditer(r"^\s*(?:ROOT )?%?([\w.\-]+) = ([^\n]*)$", hlo_text, re.M)}
     named = {}
     for name, line in lines.items():
@@ -123,7 +139,7 @@ def op_names(hlo_text: str) -> dict[str, str]:
         for name, line in lines.items():
             if name not in named:
                 operands = re.findall(r"%([\w.\-]+)", line)
-                source = next((named[o] for o in operands if o in named), None)
+                source = next((named[o] for o in operands if named.get(o, "").startswith("jit(")), None)
                 if source is not None:
                     named[name] = source
     return named
@@ -195,15 +211,19 @@ def main(argv) -> int:
     trace_dir = Path(fv.profile_trace or tempfile.mkdtemp(prefix="jaxdistill-profile-"))
     first = warm + fv.profile_steps * cycle
     jax.profiler.start_trace(str(trace_dir))
-    clock = []                   # each traced step's kind and wall
-    for step in range(first, first + min(cycle, 2)):
-        clock.append((kind(step), *run(step)))
+    clock = []                   # each traced step's kind
+    for step in range(first, first + 2):
+        run(step)
+        clock.append(kind(step))
     jax.profiler.stop_trace()
     trace_file = Path(sorted(glob.glob(str(trace_dir / "**" / "*.trace.json.gz"), recursive=True))[-1])
     module = re.match(r"HloModule (\S+?),", hlo).group(1)
-    traced = stage_seconds(trace_file, names, gathering(hlo), module)[-len(clock):]
-    by_kind = {k: s for (k, *_), (s, _) in zip(clock, traced)}
-    top_ops = {k: top for (k, *_), (_, top) in zip(clock, traced)}
+    traced = stage_seconds(trace_file, names, gathering(hlo), module)
+    if len(traced) != len(clock):
+        raise SystemExit(f"the trace in {trace_file} holds {len(traced)} runs of {module}, not the {len(clock)} "
+                         "steps traced: nothing else should run the step while it is profiled")
+    by_kind = {k: s for k, (s, _) in zip(clock, traced)}         # with --reuse_steps=1: the second prior step
+    top_ops = {k: top for k, (_, top) in zip(clock, traced)}
     stages = list(STAGES) + sorted({s for v in by_kind.values() for s in v} - set(STAGES))
     table = {"config": {"reuse_steps": cycle, "views_per_step": config.views_per_step,
                         "render_size": config.render_size, "maps": list(config.maps),

@@ -1,7 +1,8 @@
 """`scripts/bench_profile.py` as a user runs it: the main job's compiled step profiled stage by
 stage on a tiny scene with a tiny RGB↔X model, x̂0 reused every second step (as
 configs/bedroom.cfg) and the re-rendering term on. The prior's networks show only in the step
-that runs them; the texels' stages (the taps' gather among them) in both."""
+that runs them; the texels' stages (found by the named scopes of `render.sampler` and
+`engine.step`) in both, and the longest operations each in the stage of its scope."""
 
 from __future__ import annotations
 
@@ -33,10 +34,19 @@ def test_the_profile_splits_each_kind_of_step_into_its_stages(run_rgbx_dir, tmp_
     prior, reused = doc["stages_s"]["prior"], doc["stages_s"]["reused"]
     for stage in ("VAE encode", "UNet", "VAE decode"):          # the prior's pass: only where it runs
         assert prior[stage] > 0 and reused[stage] == 0, stage
-    # the texels' side in both (a gather found inside the fusion XLA made of it and its readers)
-    for stage in ("gathers", "gather's transpose", "pyramid, render and losses", "AdamW and the finite gate"):
+    # the texels' side in both, each stage found by the named scope of the code it came from
+    for stage in ("taps (gathers)", "taps' transpose (scatter-adds)", "taps weighted", "pyramid", "photo term",
+                  "AdamW and the finite gate"):
         assert prior[stage] > 0 and reused[stage] > 0, stage
-    assert all(op["stage"] for ops in doc["top_ops"].values() for op in ops) and doc["top_ops"]["prior"]
+    scoped = {"transpose(jvp(taps))": "taps' transpose (scatter-adds)", "jvp(taps)/": "taps (gathers)",
+              "/update/": "AdamW and the finite gate", "UNet2DCondition": "UNet"}
+    tops = [op for ops in doc["top_ops"].values() for op in ops]
+    assert tops and all(op["stage"] for op in tops)
+    for op in tops:                                   # the longest operations: each in the stage of its scope
+        for marker, stage in scoped.items():
+            if marker in op["op_name"]:
+                assert op["stage"] == stage, op
+                break
     assert "UNet" in done.stdout and "all operations" in done.stdout
     assert list((tmp_path / "trace").rglob("*.trace.json.gz"))             # the trace kept for a viewer
     bad = subprocess.run([sys.executable, "scripts/bench_profile.py", f"--scene={scene}", "--profile_steps=0"],

@@ -247,16 +247,18 @@ def make_step(prior: Prior, settings: StepSettings, optimizer: optax.GradientTra
         grads = list(pullback(grad_features))
         photo_metrics = {}
         if settings.photo_weight > 0:       # the photos re-rendered from the texels (photo.py)
-            (photo_value, photo_metrics), photo_grad = jax.value_and_grad(
-                _photo_of_image(settings, batch), has_aux=True)(images[1])
+            with jax.named_scope("photo_term"):
+                (photo_value, photo_metrics), photo_grad = jax.value_and_grad(
+                    _photo_of_image(settings, batch), has_aux=True)(images[1])
             loss = loss + settings.photo_weight * photo_value
             grads.append(settings.photo_weight * photo_grad)
         (grad,) = images_pullback(tuple(grads))
         (grad,) = pyramid_pullback(grad)
-        finite = jnp.isfinite(loss) & jnp.all(jnp.isfinite(grad)) & jnp.all(jnp.isfinite(grad_gains))
-        ok = finite & ~state.halted            # after a non-finite step, nothing moves any more
+        with jax.named_scope("update"):        # the finite gate and AdamW (a stage of scripts/bench_profile.py)
+            finite = jnp.isfinite(loss) & jnp.all(jnp.isfinite(grad)) & jnp.all(jnp.isfinite(grad_gains))
+            ok = finite & ~state.halted            # after a non-finite step, nothing moves any more
+            texels, opt_state = gated_step(optimizer, grad, state.opt_state, state.texels, ok)
         keep_new = functools.partial(jnp.where, ok)
-        texels, opt_state = gated_step(optimizer, grad, state.opt_state, state.texels, ok)
         new_align = state.align
         if aligned:
             gain_updates, gain_opt = align_optimizer.update(grad_gains, state.align["opt"], log_gains)
@@ -268,8 +270,9 @@ def make_step(prior: Prior, settings: StepSettings, optimizer: optax.GradientTra
                                  reused=(jax.tree.map(keep_new, reused, state.reused) if settings.reuse_steps > 1
                                          else state.reused), align=new_align)
         per_map = {f"loss_{m}": term for m, term in terms.items()}
-        metrics = {"loss": loss, "finite": ok.astype(jnp.int32), "grad_norm": optax.tree.norm(grad),
-                   "t_mean": jnp.mean(t.astype(jnp.float32)), **per_map, **photo_metrics}
+        with jax.named_scope("metrics"):
+            metrics = {"loss": loss, "finite": ok.astype(jnp.int32), "grad_norm": optax.tree.norm(grad),
+                       "t_mean": jnp.mean(t.astype(jnp.float32)), **per_map, **photo_metrics}
         if aligned:
             metrics["gain_spread"] = jnp.std(align_lib.centred(new_align["log_gains"]))
         return new_state, metrics

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -34,6 +35,11 @@ def build_pyramid(texels: jnp.ndarray, chain: MipChain, *, split: bool = False):
     tile), then the coarse entries above one tile (means of 4 entries of the level below).
     One concatenation at the end: no level is copied more than once. With `split` (and any level
     above the texels) a `SplitPyramid` of the same entries instead, with no concatenation."""
+    with jax.named_scope("pyramid"):          # the profile's stage (scripts/bench_profile.py)
+        return _pyramid(texels, chain, split)
+
+
+def _pyramid(texels: jnp.ndarray, chain: MipChain, split: bool):
     b, channels = chain.tile, texels.shape[-1]
     level = texels.reshape(-1, b, b, channels)
     parts = [texels]
@@ -84,8 +90,9 @@ def sample_many(pyramid, plans) -> tuple:
         raise ValueError(f"sample_many: the plans read {taps} taps a pixel; one gather needs the same count")
     rows = [int(np.prod(p.index.shape[:-1])) for p in plans]
     values = _taps(pyramid, jnp.concatenate([p.index.reshape(n, -1) for p, n in zip(plans, rows)]))  # (sum P, T, C)
-    weights = jnp.concatenate([p.weight.reshape(n, -1) for p, n in zip(plans, rows)]).astype(values.dtype)
-    pixels = jnp.einsum("pt,ptc->pc", weights, values)                                            # (sum P, C)
+    with jax.named_scope("weighting"):
+        weights = jnp.concatenate([p.weight.reshape(n, -1) for p, n in zip(plans, rows)]).astype(values.dtype)
+        pixels = jnp.einsum("pt,ptc->pc", weights, values)                                        # (sum P, C)
     images, start = [], 0
     for plan, n in zip(plans, rows):
         images.append(pixels[start:start + n].reshape(*plan.index.shape[:-2], plan.height, plan.width,
@@ -96,6 +103,11 @@ def sample_many(pyramid, plans) -> tuple:
 
 def _taps(pyramid, index: jnp.ndarray) -> jnp.ndarray:
     """(..., T, C): the pyramid's rows at `index` (..., T)."""
+    with jax.named_scope("taps"):
+        return _rows(pyramid, index)
+
+
+def _rows(pyramid, index: jnp.ndarray) -> jnp.ndarray:
     if isinstance(pyramid, SplitPyramid):
         n, n_coarse = pyramid.texels.shape[0], pyramid.coarse.shape[0]
         fine = index < n
@@ -106,7 +118,8 @@ def _taps(pyramid, index: jnp.ndarray) -> jnp.ndarray:
 
 def _weighted(plan: GatherPlan, values: jnp.ndarray) -> jnp.ndarray:
     """The plan's image (..., H, W, C) from its taps' values (..., P, T, C)."""
-    image = jnp.einsum("...pt,...ptc->...pc", plan.weight.astype(values.dtype), values)
+    with jax.named_scope("weighting"):
+        image = jnp.einsum("...pt,...ptc->...pc", plan.weight.astype(values.dtype), values)
     return image.reshape(*plan.index.shape[:-2], plan.height, plan.width, values.shape[-1])
 
 
