@@ -93,12 +93,10 @@ def sample_many(pyramid, plans) -> tuple:
     with jax.named_scope("weighting"):
         weights = jnp.concatenate([p.weight.reshape(n, -1) for p, n in zip(plans, rows)]).astype(values.dtype)
         pixels = jnp.einsum("pt,ptc->pc", weights, values)                                        # (sum P, C)
-    images, start = [], 0
-    for plan, n in zip(plans, rows):
-        images.append(pixels[start:start + n].reshape(*plan.index.shape[:-2], plan.height, plan.width,
-                                                      values.shape[-1]))
-        start += n
-    return tuple(images)
+    # split (its transpose a concatenation), not sliced (each slice's transpose a pixels-sized pad, then their sum)
+    parts = jnp.split(pixels, np.cumsum(rows)[:-1], axis=0)
+    return tuple(part.reshape(*plan.index.shape[:-2], plan.height, plan.width, values.shape[-1])
+                 for plan, part in zip(plans, parts))
 
 
 def _taps(pyramid, index: jnp.ndarray) -> jnp.ndarray:
