@@ -206,6 +206,17 @@ def test_sample_many_reads_several_plans_as_sample_reads_each(room):
 
     pair = [plan, plan.select(np.array([2, 0]))]
     assert gathers_from_texels(lambda t: sample_many(build_pyramid(t, plan.chain, split=True), pair)) == 1
+
+    def primitives(jaxpr):                 # every primitive of a jaxpr and the jaxprs inside it
+        for e in jaxpr.eqns:
+            yield e.primitive.name
+            for sub in jax.core.jaxprs_in_params(e.params):
+                yield from primitives(sub)
+
+    # the pixels split, not sliced: the gradient concatenates the plans' cotangents, with no pixels-sized pads
+    grad = jax.make_jaxpr(jax.grad(lambda t: sum(jnp.sum(i) for i in sample_many(
+        build_pyramid(t, plan.chain, split=True), pair))))(x.astype(jnp.float32))
+    assert "pad" not in set(primitives(grad.jaxpr))
     assert gathers_from_texels(lambda t: [sample(build_pyramid(t, plan.chain, split=True), p) for p in pair]) == 2
     with pytest.raises(ValueError, match="taps"):
         sample_many(build_pyramid(x, plan.chain), [plan, plan.replace(index=plan.index[..., :4],
