@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -444,15 +445,27 @@ def test_imported_irradiance_times_albedo_is_the_photo_on_diffuse_surfaces(tmp_p
 # ----------------------------------------------------------------------------- the README's commands
 
 
-def run_command(command: list[str], cwd: Path, cache: Path | None = None) -> str:
+def run_command(command: list[str], cwd: Path, cache: Path | None = None, timeout: float = 300) -> str:
     """Runs a README command from the repository root; its output, or a failure that shows it."""
     env = {**os.environ, "PYTHONPATH": str(REPO), "JAX_PLATFORMS": "cpu"}
     if cache is not None:
         env["JAXDISTILL_CACHE"] = str(cache)
     env.pop("JAXDISTILL_RGBX_DIR", None)
-    done = subprocess.run([sys.executable, *command], cwd=cwd, env=env, capture_output=True, text=True, timeout=300)
-    assert done.returncode == 0, f"{' '.join(command)} exited {done.returncode}:\n{done.stdout}\n{done.stderr}"
-    return done.stdout + done.stderr
+    env["PYTHONFAULTHANDLER"] = "1"          # SIGABRT prints every thread's Python stack (a stalled command, below)
+    child = subprocess.Popen([sys.executable, *command], cwd=cwd, env=env, stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True)
+    try:
+        stdout, stderr = child.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:       # say where it stalled, not only that it did
+        child.send_signal(signal.SIGABRT)
+        try:
+            stdout, stderr = child.communicate(timeout=60)
+        except subprocess.TimeoutExpired:
+            child.kill()
+            stdout, stderr = child.communicate()
+        pytest.fail(f"{' '.join(command)} ran past {timeout} s; its threads' stacks at SIGABRT:\n{stdout}\n{stderr}")
+    assert child.returncode == 0, f"{' '.join(command)} exited {child.returncode}:\n{stdout}\n{stderr}"
+    return stdout + stderr
 
 
 @pytest.mark.parametrize("source", ["room", "staircase2"])

@@ -4,8 +4,11 @@ off-centre camera, and the run without usd-core (one log line, no crash)."""
 
 from __future__ import annotations
 
+import ast
 import logging
 import math
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -163,3 +166,41 @@ def test_blender_imports_the_stage(tiny_run, tmp_path):
     bpy.ops.wm.usd_import(filepath=str(out / "scene.usdc"))
     names = {o.name for o in bpy.data.objects}
     assert {o.type for o in bpy.data.objects} >= {"MESH", "CAMERA"}, names
+
+
+def test_pxr_modules_names_every_pxr_module_the_writer_imports():
+    """`usd_available` loads `PXR_MODULES` up front (see the next test): every pxr module usd.py imports
+    anywhere must be among them, or its first import could still happen on the outputs' thread."""
+    tree = ast.parse(Path(usd.__file__).read_text())
+    imported = {alias.name for node in ast.walk(tree) if isinstance(node, ast.ImportFrom) and node.module == "pxr"
+                for alias in node.names}
+    imported |= {alias.name.split(".")[1] for node in ast.walk(tree) if isinstance(node, ast.Import)
+                 for alias in node.names if alias.name.startswith("pxr.")}
+    assert imported and imported <= set(usd.PXR_MODULES), imported - set(usd.PXR_MODULES)
+
+
+def test_the_outputs_load_pxr_on_the_calling_thread_before_they_start_their_thread(tmp_path, monkeypatch):
+    """pxr's first import on the outputs' thread, while the calling thread imported matplotlib for the
+    loss plot, deadlocked a run (both threads in dlopen: pxr's registries waiting for the GIL inside
+    the loader's lock). `write_outputs` loads pxr on the calling thread before it starts that thread."""
+    events = []
+
+    class Pool(ThreadPoolExecutor):
+        def __init__(self, *args, **kwargs):
+            events.append(("thread started", threading.current_thread()))
+            super().__init__(*args, **kwargs)
+
+    class Stop(Exception):
+        pass
+
+    def stop(*args):
+        raise Stop
+
+    monkeypatch.setattr(usd, "usd_available", lambda: events.append(("pxr", threading.current_thread())) or True)
+    monkeypatch.setattr(outputs, "ThreadPoolExecutor", Pool)
+    monkeypatch.setattr(outputs, "map_files_beside", lambda problem: True)
+    monkeypatch.setattr(outputs, "write_map_files", lambda *args: [])
+    monkeypatch.setattr(outputs, "_main_line", stop)            # the outputs' own line stops at once
+    with pytest.raises(Stop):
+        outputs.write_outputs(DistillConfig(scene="unused", out_dir=str(tmp_path)), None, None, {}, None, None, None)
+    assert events[:2] == [("pxr", threading.current_thread()), ("thread started", threading.current_thread())], events

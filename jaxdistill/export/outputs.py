@@ -186,6 +186,8 @@ def write_outputs(config: DistillConfig, problem: Problem, texels: np.ndarray, h
     # two lines of work: the map files, then the scores, in a thread (`map_files_beside`); the
     # renders, evidence, plots here. Without the thread, the same in this order.
     beside = map_files_beside(problem)
+    if beside:      # pxr's first import, here: on the thread, beside the plots' imports, it can deadlock (`usd_available`)
+        usd.usd_available()
     with ThreadPoolExecutor(max_workers=1) as pool:
         later = pool.submit if beside else _done
         maps_job = later(map_files)

@@ -4,6 +4,7 @@ run's texture files, and the views as cameras. Needs usd-core (`pip install -e "
 
 from __future__ import annotations
 
+import importlib
 import os
 import re
 from pathlib import Path
@@ -28,10 +29,20 @@ SURFACE_INPUTS = {"albedo": ("diffuseColor", "rgb", "Color3f", "sRGB"),
                   "normal": ("normal", "rgb", "Normal3f", "raw")}
 
 
+PXR_MODULES = ("Gf", "Sdf", "Usd", "UsdGeom", "UsdShade", "Vt")   # every pxr module this file imports
+
+
 def usd_available() -> bool:
-    """Whether usd-core's `pxr` can be imported."""
+    """Whether usd-core's `pxr` can be imported; imports the modules this file's writer uses.
+
+    Call it on the thread that starts other threads, before they may write USD: a pxr module's first
+    import runs its C++ registries inside the dynamic loader's lock and there waits for the GIL
+    (`TfPyLock`), so if it happens on one thread while another loads any extension module (seen:
+    matplotlib's, for the loss plot), each waits on the other for ever. Once loaded, they are not
+    loaded again."""
     try:
-        import pxr.Usd  # noqa: F401
+        for name in PXR_MODULES:
+            importlib.import_module(f"pxr.{name}")
     except ImportError:
         return False
     return True
