@@ -9,6 +9,7 @@ import json
 import os
 import shutil
 from collections import namedtuple
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
@@ -18,7 +19,7 @@ from jaxdistill.engine.config import DistillConfig
 from jaxdistill.engine.problem import build_problem
 from jaxdistill.errors import InputError
 from jaxdistill.io import view_rows
-from jaxdistill.io.view_rows import ViewFolder, ViewRows, placement, view_array
+from jaxdistill.io.view_rows import RaggedRows, ViewFolder, ViewRows, placement, view_array
 from jaxdistill.render.fragments import FRAGMENT_FIELDS, FragmentRows
 from jaxdistill.scene.model import read_scene
 from tiny_scene import write_tiny_scene
@@ -75,6 +76,45 @@ def test_rows_refuse_what_they_cannot_hold_and_a_full_disk_is_named(tmp_path, mo
         folder.rows("plan_index", (4, 1024, 4), np.int32)
     assert str(folder.root) in str(err.value) and "plan_index do not fit" in str(err.value)
     assert "--view_data=memory" in str(err.value)
+
+
+def test_ragged_rows_read_back_each_views_arrays_as_written(tmp_path, monkeypatch):
+    """Per-view tuples of arrays of varying length (the seam pairs): read back as written, in any
+    order and from two threads at once; the file nameless and its size what was written; a full
+    disk named."""
+    rng = np.random.default_rng(0)
+    views = [tuple(rng.integers(0, 1000, n).astype(np.int32) for _ in range(2)) for n in (5, 0, 17, 1)]
+    folder = ViewFolder(tmp_path)
+    rows = folder.ragged("seams", np.int32, 2)
+    for pair in views:
+        rows.append(pair)
+    assert list(folder.root.iterdir()) == [] and len(rows) == 4
+    assert rows.nbytes == os.fstat(rows._fd).st_size == sum(a.nbytes for pair in views for a in pair)
+    for v in (2, 0, 3, 1, -1):
+        got = rows[v]
+        assert len(got) == 2 and all(a.dtype == np.int32 for a in got)
+        for a, b in zip(got, views[v], strict=True):
+            np.testing.assert_array_equal(a, b)
+    assert [len(a) for a, _ in rows[1:3]] == [0, 17]
+    with ThreadPoolExecutor(2) as pool:
+        for got, pair in zip(pool.map(rows.__getitem__, [2, 0, 2, 3] * 8), [views[i] for i in [2, 0, 2, 3] * 8]):
+            np.testing.assert_array_equal(got[1], pair[1])
+    with pytest.raises(IndexError):
+        rows[4]
+    with pytest.raises(ValueError, match="2 1-D arrays"):
+        rows.append((np.zeros(3, np.int32),))
+
+    def full(fd, offset, length):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(os, "posix_fallocate", full)
+    with pytest.raises(InputError) as err:
+        rows.append((np.zeros(3, np.int32), np.zeros(3, np.int32)))
+    assert str(folder.root) in str(err.value) and "--view_data=memory" in str(err.value)
+    monkeypatch.undo()
+    rows.close()
+    with pytest.raises(ValueError, match="is closed"):
+        rows[0]
 
 
 def test_view_array_is_numpy_in_memory_and_rows_on_disk(tmp_path):
@@ -181,8 +221,11 @@ def test_a_problem_on_disk_reads_the_batches_and_scores_of_one_in_memory(tiny_sc
     for one, other in zip(*renders):
         for m in one:
             np.testing.assert_array_equal(one[m], other[m])
-    for one, other in zip(memory_ctx.seams, disk_ctx.seams):
-        for x, y in zip(one, other):
+    assert isinstance(disk_ctx.seams, RaggedRows) and isinstance(memory_ctx.seams, list)
+    assert sum(len(a) for a, _ in memory_ctx.seams) > 0
+    for one, other in zip(memory_ctx.seams, disk_ctx.seams, strict=True):
+        for x, y in zip(one, other, strict=True):
+            assert x.dtype == y.dtype
             np.testing.assert_array_equal(x, y)
 
 

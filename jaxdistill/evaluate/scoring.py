@@ -31,7 +31,7 @@ class EvalContext:
     gt_maps: list | None
     masks: list
     plan: GatherPlan
-    seams: list
+    seams: Sequence          # per view, its (a, b) seam pairs: a list, or a `RaggedRows` file with --view_data on disk
 
 
 def training_plan(problem: Problem) -> GatherPlan:
@@ -61,9 +61,14 @@ def evaluation_context(config: DistillConfig, problem: Problem) -> EvalContext:
     gt, gt_maps = evaluation.view_ground_truth(scene, frags)
     masks = evaluation.evaluation_masks(gt, scene, frags)
     owner = evaluation.dominant_views(problem.plan_index, problem.plan_weight, problem.space.pyramid_size)
-    seams = [metrics.seam_pairs(region, f.object_id, m)
-             for region, f, m in zip(evaluation.seam_regions(plan, frags, owner), frags, masks)]
-    return EvalContext(gt, [f.shape for f in frags], cameras, gt_maps, masks, plan, seams)
+    # every view's seam pairs, kept for the scores: with --view_data on disk in a file (about 4 MiB a view of
+    # 876x584 on the capture room, 2.4 GiB of a run's memory at 600 views; docs/benchmarks.md §10)
+    shapes = [f.shape for f in frags]
+    seams = ([] if problem.view_folder is None else
+             problem.view_folder.ragged("seams", np.int32 if max(h * w for h, w in shapes) < 2 ** 31 else np.int64, 2))
+    for region, f, m in zip(evaluation.seam_regions(plan, frags, owner), frags, masks):
+        seams.append(metrics.seam_pairs(region, f.object_id, m))
+    return EvalContext(gt, shapes, cameras, gt_maps, masks, plan, seams)
 
 
 def quick_psnr(state, problem: Problem, ctx: EvalContext) -> float:

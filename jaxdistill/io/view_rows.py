@@ -49,14 +49,14 @@ def placement(view_data: str, nbytes: int) -> bool:
     return view_data == "disk" or (view_data == "auto" and nbytes > AUTO_DISK_BYTES)
 
 
-def _reserve(fd: int, nbytes: int, path: Path) -> None:
-    """Takes the file's disk space now (not a sparse file that fails half-way through a run),
-    with an InputError naming the folder when the disk is full."""
+def _reserve(fd: int, nbytes: int, path: Path, offset: int = 0) -> None:
+    """Takes the file's disk space from `offset` on now (not a sparse file that fails half-way
+    through a run), with an InputError naming the folder when the disk is full."""
     try:
         if hasattr(os, "posix_fallocate"):
-            os.posix_fallocate(fd, 0, nbytes)
+            os.posix_fallocate(fd, offset, nbytes)
         else:                                       # (macOS) sparse: the space check before compute stands
-            os.ftruncate(fd, nbytes)
+            os.ftruncate(fd, offset + nbytes)
     except OSError as err:
         if err.errno not in DISK_FULL:
             raise
@@ -148,6 +148,65 @@ class ViewRows:
         self._finalizer()
 
 
+class RaggedRows(Sequence):
+    """Per view, a tuple of `parts` 1-D arrays of `dtype` whose lengths vary from view to view
+    (a view's seam pairs), in a file created at `path` and unlinked at once, like `ViewRows`.
+    `rows.append(arrays)` writes the next view's (taking their disk space then: a full disk is an
+    InputError naming the folder); `rows[v]` reads view v's back into new arrays. The views'
+    offsets and lengths stay in memory (a few integers a view)."""
+
+    def __init__(self, path: Path, dtype, parts: int):
+        self.path, self.dtype, self.parts = Path(path), np.dtype(dtype), int(parts)
+        self._views: list[tuple[int, tuple[int, ...]]] = []       # (offset, lengths) per view
+        self.nbytes = 0                                           # on disk, so far
+        fd = _open_unlinked(self.path)
+        self._fd = fd
+        self._finalizer = weakref.finalize(self, os.close, fd)
+
+    def __len__(self) -> int:
+        return len(self._views)
+
+    def append(self, arrays) -> None:
+        if not self._finalizer.alive:
+            raise ValueError(f"{self.path.name} is closed")
+        arrays = [np.ascontiguousarray(a, self.dtype) for a in arrays]
+        if len(arrays) != self.parts or any(a.ndim != 1 for a in arrays):
+            raise ValueError(f"a view of {self.path.name} is {self.parts} 1-D arrays, got "
+                             f"{[a.shape for a in arrays]}")
+        size = sum(a.nbytes for a in arrays)
+        if size:
+            _reserve(self._fd, size, self.path, offset=self.nbytes)
+        offset = self.nbytes
+        for a in arrays:
+            if a.nbytes and os.pwrite(self._fd, a.data.cast("B"), offset) != a.nbytes:
+                raise OSError(f"wrote less than {a.nbytes} bytes of view {len(self._views)} to {self.path}")
+            offset += a.nbytes
+        self._views.append((self.nbytes, tuple(len(a) for a in arrays)))
+        self.nbytes = offset
+
+    def __getitem__(self, v):
+        if isinstance(v, slice):
+            return [self[i] for i in range(*v.indices(len(self)))]
+        if not self._finalizer.alive:
+            raise ValueError(f"{self.path.name} is closed")
+        v = int(v)
+        if not -len(self) <= v < len(self):
+            raise IndexError(f"view {v} of {len(self)}")
+        offset, lengths = self._views[v]
+        out = []
+        for n in lengths:
+            a = np.empty(n, self.dtype)
+            if a.nbytes and os.preadv(self._fd, [a.data.cast("B")], offset) != a.nbytes:
+                raise OSError(f"read less than {a.nbytes} bytes of view {v} from {self.path}")
+            out.append(a)
+            offset += a.nbytes
+        return tuple(out)
+
+    def close(self) -> None:
+        """Closes the file now, which frees its disk space (collecting the object does too)."""
+        self._finalizer()
+
+
 class ViewFolder:
     """Where `ViewRows` files are opened: `cache`/view_rows (created on first use)."""
 
@@ -180,6 +239,11 @@ class ViewFolder:
         rows = ViewRows(self._path(name), shape, dtype)
         self.nbytes += rows.nbytes
         return rows
+
+    def ragged(self, name: str, dtype, parts: int) -> RaggedRows:
+        """A `RaggedRows` file here (its bytes are not in `nbytes`, which counts the files whose size
+        is known when they are opened: `RaggedRows.nbytes` has its own)."""
+        return RaggedRows(self._path(name), dtype, parts)
 
 
 def view_array(name: str, shape: tuple[int, ...], dtype, folder: ViewFolder | None):
