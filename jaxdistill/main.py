@@ -52,6 +52,8 @@ def main(argv) -> None:
         config = config_lib.config_from_flags(FLAGS)
         distributed.initialize(config.coordinator_address, config.num_processes, config.process_id)
         if "view" in FLAGS and FLAGS.view and distributed.is_primary():
+            from jaxdistill.export import usd
+            usd.usd_available()       # pxr loaded before the viewer's threads start (`usd.usd_available`)
             follower = start_viewer(config)
         summary = pipeline.run(config)
     except InputError as err:

@@ -107,10 +107,17 @@ def test_ragged_rows_read_back_each_views_arrays_as_written(tmp_path, monkeypatc
     def full(fd, offset, length):
         raise OSError(errno.ENOSPC, "No space left on device")
 
+    with pytest.raises(ValueError, match="values it cannot hold"):
+        rows.append((np.zeros(3, np.int32), np.array([2 ** 40, 0, 1])))
+    with pytest.raises(ValueError, match="values it cannot hold"):
+        rows.append((np.zeros(3, np.int32), np.zeros(3, np.float32)))
+    with pytest.raises(TypeError):
+        rows[0.9]
     monkeypatch.setattr(os, "posix_fallocate", full)
     with pytest.raises(InputError) as err:
         rows.append((np.zeros(3, np.int32), np.zeros(3, np.int32)))
     assert str(folder.root) in str(err.value) and "--view_data=memory" in str(err.value)
+    assert len(rows) == 4 and rows.nbytes == sum(a.nbytes for pair in views for a in pair)     # nothing half-written
     monkeypatch.undo()
     rows.close()
     with pytest.raises(ValueError, match="is closed"):

@@ -16,6 +16,7 @@ from jaxdistill.engine.config import DistillConfig
 from jaxdistill.engine.problem import Problem
 from jaxdistill.evaluate import ground_truth as evaluation, metrics
 from jaxdistill.models import estimates as model_estimates
+from jaxdistill.render.fragments import FragmentRows
 from jaxdistill.render.gather_plan import GatherPlan, build_gather_plans
 from jaxdistill.scene.maps import MapChannels
 
@@ -63,11 +64,13 @@ def evaluation_context(config: DistillConfig, problem: Problem) -> EvalContext:
     owner = evaluation.dominant_views(problem.plan_index, problem.plan_weight, problem.space.pyramid_size)
     # every view's seam pairs, kept for the scores: with --view_data on disk in a file (about 4 MiB a view of
     # 876x584 on the capture room, 2.4 GiB of a run's memory at 600 views; docs/benchmarks.md §10)
-    shapes = [f.shape for f in frags]
+    shapes = [frags.shape] * len(frags) if isinstance(frags, FragmentRows) else [f.shape for f in frags]  # (no read)
     seams = ([] if problem.view_folder is None else
              problem.view_folder.ragged("seams", np.int32 if max(h * w for h, w in shapes) < 2 ** 31 else np.int64, 2))
     for region, f, m in zip(evaluation.seam_regions(plan, frags, owner), frags, masks):
         seams.append(metrics.seam_pairs(region, f.object_id, m))
+    if problem.view_folder is not None:
+        problem.view_folder.nbytes += seams.nbytes           # metrics.json's view_data.disk_bytes counts them
     return EvalContext(gt, shapes, cameras, gt_maps, masks, plan, seams)
 
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import errno
 import math
+import operator
 import os
 import shutil
 import socket
@@ -60,7 +61,7 @@ def _reserve(fd: int, nbytes: int, path: Path, offset: int = 0) -> None:
     except OSError as err:
         if err.errno not in DISK_FULL:
             raise
-        raise _disk_full(path, f"{nbytes / 2 ** 30:.2f} GB for {path.name.split('-')[0]} do not fit") from err
+        raise _disk_full(path, f"{(offset + nbytes) / 2 ** 30:.2f} GB for {path.name.split('-')[0]} do not fit") from err
 
 
 DISK_FULL = (errno.ENOSPC, errno.EDQUOT)
@@ -169,10 +170,15 @@ class RaggedRows(Sequence):
     def append(self, arrays) -> None:
         if not self._finalizer.alive:
             raise ValueError(f"{self.path.name} is closed")
-        arrays = [np.ascontiguousarray(a, self.dtype) for a in arrays]
+        arrays = [np.asarray(a) for a in arrays]
         if len(arrays) != self.parts or any(a.ndim != 1 for a in arrays):
             raise ValueError(f"a view of {self.path.name} is {self.parts} 1-D arrays, got "
                              f"{[a.shape for a in arrays]}")
+        if any(not np.can_cast(a.dtype, self.dtype, "same_kind") or (a.dtype.kind in "iu" and a.size and (
+                a.min() < np.iinfo(self.dtype).min or a.max() > np.iinfo(self.dtype).max)) for a in arrays):
+            raise ValueError(f"{self.path.name} holds {self.dtype}; got {[str(a.dtype) for a in arrays]} "
+                             "with values it cannot hold")
+        arrays = [np.ascontiguousarray(a, self.dtype) for a in arrays]
         size = sum(a.nbytes for a in arrays)
         if size:
             _reserve(self._fd, size, self.path, offset=self.nbytes)
@@ -189,7 +195,7 @@ class RaggedRows(Sequence):
             return [self[i] for i in range(*v.indices(len(self)))]
         if not self._finalizer.alive:
             raise ValueError(f"{self.path.name} is closed")
-        v = int(v)
+        v = operator.index(v)
         if not -len(self) <= v < len(self):
             raise IndexError(f"view {v} of {len(self)}")
         offset, lengths = self._views[v]
