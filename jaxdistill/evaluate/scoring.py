@@ -65,8 +65,8 @@ def evaluation_context(config: DistillConfig, problem: Problem) -> EvalContext:
     # every view's seam pairs, kept for the scores: with --view_data on disk in a file (about 4 MiB a view of
     # 876x584 on the capture room, 2.4 GiB of a run's memory at 600 views; docs/benchmarks.md §10)
     shapes = [frags.shape] * len(frags) if isinstance(frags, FragmentRows) else [f.shape for f in frags]  # (no read)
-    seams = ([] if problem.view_folder is None else
-             problem.view_folder.ragged("seams", np.int32 if max((h * w for h, w in shapes), default=0) < 2 ** 31 else np.int64, 2))
+    index = np.int32 if max((h * w for h, w in shapes), default=0) < 2 ** 31 else np.int64   # as seam_pairs gives
+    seams = [] if problem.view_folder is None else problem.view_folder.ragged("seams", index, 2)
     for region, f, m in zip(evaluation.seam_regions(plan, frags, owner), frags, masks):
         seams.append(metrics.seam_pairs(region, f.object_id, m))
     if problem.view_folder is not None:
