@@ -89,7 +89,7 @@ def test_ragged_rows_read_back_each_views_arrays_as_written(tmp_path, monkeypatc
     for pair in views:
         rows.append(pair)
     assert list(folder.root.iterdir()) == [] and len(rows) == 4
-    assert rows.nbytes == os.fstat(rows._fd).st_size == sum(a.nbytes for pair in views for a in pair)
+    assert rows.nbytes == os.fstat(rows._fd).st_size == sum(a.nbytes for pair in views for a in pair) == folder.nbytes
     for v in (2, 0, 3, 1, -1):
         got = rows[v]
         assert len(got) == 2 and all(a.dtype == np.int32 for a in got)
@@ -117,7 +117,8 @@ def test_ragged_rows_read_back_each_views_arrays_as_written(tmp_path, monkeypatc
     with pytest.raises(InputError) as err:
         rows.append((np.zeros(3, np.int32), np.zeros(3, np.int32)))
     assert str(folder.root) in str(err.value) and "--view_data=memory" in str(err.value)
-    assert len(rows) == 4 and rows.nbytes == sum(a.nbytes for pair in views for a in pair)     # nothing half-written
+    written = sum(a.nbytes for pair in views for a in pair)
+    assert len(rows) == 4 and rows.nbytes == written == folder.nbytes           # nothing half-written or counted
     monkeypatch.undo()
     rows.close()
     with pytest.raises(ValueError, match="is closed"):

@@ -69,8 +69,6 @@ def evaluation_context(config: DistillConfig, problem: Problem) -> EvalContext:
     seams = [] if problem.view_folder is None else problem.view_folder.ragged("seams", index, 2)
     for region, f, m in zip(evaluation.seam_regions(plan, frags, owner), frags, masks):
         seams.append(metrics.seam_pairs(region, f.object_id, m))
-    if problem.view_folder is not None:
-        problem.view_folder.nbytes += seams.nbytes           # metrics.json's view_data.disk_bytes counts them
     return EvalContext(gt, shapes, cameras, gt_maps, masks, plan, seams)
 
 

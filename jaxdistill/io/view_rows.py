@@ -81,7 +81,25 @@ def _open_unlinked(path: Path) -> int:
     return fd
 
 
-class ViewRows:
+class _UnlinkedFile:
+    """A file created at `path` and unlinked at once: its descriptor is closed, and its disk space
+    freed, when the object is collected or `close`d."""
+
+    def _open(self, path: Path) -> None:
+        self.path = Path(path)
+        self._fd = _open_unlinked(self.path)
+        self._finalizer = weakref.finalize(self, os.close, self._fd)
+
+    def _check_open(self) -> None:
+        if not self._finalizer.alive:
+            raise ValueError(f"{self.path.name} is closed")
+
+    def close(self) -> None:
+        """Closes the file now, which frees its disk space (collecting the object does too)."""
+        self._finalizer()
+
+
+class ViewRows(_UnlinkedFile):
     """A (V, ...) array of `dtype` in a file created at `path` and unlinked at once (its space is
     freed when the object is collected or `close`d). `rows[v] = row` writes row v; `rows[ids]`
     reads rows `ids` (an int or an int array) into a new array."""
@@ -94,14 +112,12 @@ class ViewRows:
         if not self.row_shape:
             raise ValueError(f"{self.path.name}: rows of shape () are not supported; hold a (V,) array in memory")
         self.row_bytes = math.prod(self.row_shape) * self.dtype.itemsize
-        fd = _open_unlinked(self.path)
+        self._open(self.path)
         try:
-            _reserve(fd, self.nbytes, self.path)
+            _reserve(self._fd, self.nbytes, self.path)
         except BaseException:
-            os.close(fd)
+            self.close()
             raise
-        self._fd = fd
-        self._finalizer = weakref.finalize(self, os.close, fd)
 
     @property
     def ndim(self) -> int:
@@ -116,8 +132,7 @@ class ViewRows:
         return self.shape[0]
 
     def _row(self, v) -> int:
-        if not self._finalizer.alive:
-            raise ValueError(f"{self.path.name} is closed")
+        self._check_open()
         v = int(v)
         if not -self.shape[0] <= v < self.shape[0]:
             raise IndexError(f"row {v} of {self.shape[0]}")
@@ -144,32 +159,25 @@ class ViewRows:
                 raise OSError(f"read {got} of {self.row_bytes} bytes of row {v} from {self.path}")
         return out
 
-    def close(self) -> None:
-        """Closes the file now, which frees its disk space (collecting the object does too)."""
-        self._finalizer()
 
-
-class RaggedRows(Sequence):
+class RaggedRows(_UnlinkedFile, Sequence):
     """Per view, a tuple of `parts` 1-D arrays of `dtype` whose lengths vary from view to view
     (a view's seam pairs), in a file created at `path` and unlinked at once, like `ViewRows`.
     `rows.append(arrays)` writes the next view's (taking their disk space then: a full disk is an
-    InputError naming the folder); `rows[v]` reads view v's back into new arrays. The views'
-    offsets and lengths stay in memory (a few integers a view)."""
+    InputError naming the folder; `on_write(nbytes)` is told of each write); `rows[v]` reads view v's
+    back into new arrays. The views' offsets and lengths stay in memory (a few integers a view)."""
 
-    def __init__(self, path: Path, dtype, parts: int):
-        self.path, self.dtype, self.parts = Path(path), np.dtype(dtype), int(parts)
+    def __init__(self, path: Path, dtype, parts: int, on_write: Callable[[int], None] | None = None):
+        self.dtype, self.parts, self._on_write = np.dtype(dtype), int(parts), on_write
         self._views: list[tuple[int, tuple[int, ...]]] = []       # (offset, lengths) per view
         self.nbytes = 0                                           # on disk, so far
-        fd = _open_unlinked(self.path)
-        self._fd = fd
-        self._finalizer = weakref.finalize(self, os.close, fd)
+        self._open(path)
 
     def __len__(self) -> int:
         return len(self._views)
 
     def append(self, arrays) -> None:
-        if not self._finalizer.alive:
-            raise ValueError(f"{self.path.name} is closed")
+        self._check_open()
         arrays = [np.asarray(a) for a in arrays]
         if len(arrays) != self.parts or any(a.ndim != 1 for a in arrays):
             raise ValueError(f"a view of {self.path.name} is {self.parts} 1-D arrays, got "
@@ -189,12 +197,13 @@ class RaggedRows(Sequence):
             offset += a.nbytes
         self._views.append((self.nbytes, tuple(len(a) for a in arrays)))
         self.nbytes = offset
+        if self._on_write is not None:
+            self._on_write(size)
 
     def __getitem__(self, v):
         if isinstance(v, slice):
             return [self[i] for i in range(*v.indices(len(self)))]
-        if not self._finalizer.alive:
-            raise ValueError(f"{self.path.name} is closed")
+        self._check_open()
         v = operator.index(v)
         if not -len(self) <= v < len(self):
             raise IndexError(f"view {v} of {len(self)}")
@@ -207,10 +216,6 @@ class RaggedRows(Sequence):
             out.append(a)
             offset += a.nbytes
         return tuple(out)
-
-    def close(self) -> None:
-        """Closes the file now, which frees its disk space (collecting the object does too)."""
-        self._finalizer()
 
 
 class ViewFolder:
@@ -247,9 +252,11 @@ class ViewFolder:
         return rows
 
     def ragged(self, name: str, dtype, parts: int) -> RaggedRows:
-        """A `RaggedRows` file here (its bytes are not in `nbytes`, which counts the files whose size
-        is known when they are opened: `RaggedRows.nbytes` has its own)."""
-        return RaggedRows(self._path(name), dtype, parts)
+        """A `RaggedRows` file here; `nbytes` counts what it writes as it writes it."""
+        return RaggedRows(self._path(name), dtype, parts, on_write=self._written)
+
+    def _written(self, nbytes: int) -> None:
+        self.nbytes += nbytes
 
 
 def view_array(name: str, shape: tuple[int, ...], dtype, folder: ViewFolder | None):
