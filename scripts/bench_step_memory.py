@@ -17,7 +17,9 @@ With --bench_loop it first runs the main job's set-up and loop as `pipeline.run`
 evaluation context built, the fragments let go, --steps steps with the evaluation every
 --eval_every, no checkpoint), with the step as the main job builds it, and reports the peak RSS by
 the loop's end (the operating system's accounting) and the loop's seconds: the figure
-`metrics.json` records as `peak_host_memory_gb["loop"]`, without the outputs after it.
+`metrics.json` records as `peak_host_memory_gb["loop"]`, without the outputs after it. The step is
+compiled before the first step (timed apart), and the seconds a step are the median over the
+windows between the loop's metric fetches (--log_every steps each), evaluations left out.
 
 For each form: XLA's own buffer assignment of the compiled step (`memory_analysis`: arguments, i.e.
 texels, AdamW's two moments and the batch, and temporaries), in GB and in arrays of the texels'
@@ -77,15 +79,37 @@ def main(argv) -> int:
     if fv.bench_loop:
         context = scoring.evaluation_context(config, problem)
         problem = problem.without_fragments()
-        evaluate = (lambda state: scoring.quick_psnr(state, problem, context)) if context.gt_maps is not None else None
+        marks = []            # (steps done, time) whenever the loop fetched metrics; 0: compiled
+        evaluate = None
+        if context.gt_maps is not None:
+            def evaluate(state):
+                psnr = scoring.quick_psnr(state, problem, context)
+                marks[-1] = (marks[-1][0], time.perf_counter())    # the evaluation is not a step's time
+                return psnr
+
+        def before_steps(step_fn, state, batch, frozen):
+            jax.block_until_ready((state, frozen))
+            begin = time.perf_counter()
+            compiled = step_fn.lower(state, batch, frozen).compile()
+            loop_run["compile_s"] = time.perf_counter() - begin
+            marks.append((0, time.perf_counter()))
+            return compiled
+
+        hooks = loop.LoopHooks(before_steps=before_steps, checkpoints=False,
+                               after_fetch=lambda done, _: marks.append((done, time.perf_counter())))
         start = time.perf_counter()
         result = loop.run_loop(config, problem, loop.recorded_config(config, problem.choice.kind), None,
-                               evaluate=evaluate, progress=False, hooks=loop.LoopHooks(checkpoints=False))
+                               evaluate=evaluate, progress=False, hooks=hooks)
+        # seconds a step between fetches (--log_every), the compilation and evaluations left out
+        windows = [(b - a) / (j - i) for (i, a), (j, b) in zip(marks, marks[1:]) if j > i]
         loop_run.update(loop_s=time.perf_counter() - start, loop_peak_gb=peak_rss_gb(),
-                        loss=result.history["loss"][-1], albedo_psnr=result.history["albedo_psnr"])
+                        s_per_step=statistics.median(windows), loss=result.history["loss"][-1],
+                        albedo_psnr=result.history["albedo_psnr"])
         result = None
         print(f"set-up {loop_run['setup_s']:.1f} s (peak RSS {loop_run['setup_peak_gb']:.2f} GB), loop of "
-              f"{config.steps} steps {loop_run['loop_s']:.1f} s: peak RSS {loop_run['loop_peak_gb']:.2f} GB", flush=True)
+              f"{config.steps} steps {loop_run['loop_s']:.1f} s (compilation {loop_run['compile_s']:.1f} s, "
+              f"{loop_run['s_per_step']:.3f} s a step, median over --log_every windows): "
+              f"peak RSS {loop_run['loop_peak_gb']:.2f} GB", flush=True)
     n, c = problem.space.num_texels, problem.channels.num_channels
     array = n * c * 4
     first = problem.batch(loop.batch_views(problem, config, 0))
