@@ -16,7 +16,7 @@ import pytest
 
 from jaxdistill.engine import config as config_lib
 from jaxdistill.engine.config import DistillConfig
-from jaxdistill.engine.problem import build_problem
+from jaxdistill.engine.problem import build_problem, view_data_bytes
 from jaxdistill.errors import InputError
 from jaxdistill.io import view_rows
 from jaxdistill.io.view_rows import RaggedRows, ViewFolder, ViewRows, placement, view_array
@@ -200,11 +200,11 @@ def test_a_problem_on_disk_reads_the_batches_and_scores_of_one_in_memory(tiny_sc
                                                    views_per_step=2, prior="views", view_data=view_data,
                                                    render_size=16, **terms))
         built = build_problem(config, cache_dir=tmp_path / "cache")
-        return built, scoring.evaluation_context(config, built)
+        return built, scoring.evaluation_context(config, built), config
 
-    (memory, memory_ctx), (disk, disk_ctx) = problem("memory"), problem("disk")
-    on_disk = [disk.plan_index, disk.plan_weight, disk.pixel_weight, disk.prior.target_images,
-               disk_ctx.plan.index, disk_ctx.plan.weight]
+    (memory, memory_ctx, _), (disk, disk_ctx, config) = problem("memory"), problem("disk")
+    on_disk = [disk.plan_index, disk.plan_weight, disk.plan_hit, disk.pixel_weight, disk.prior.target_images,
+               disk_ctx.plan.index, disk_ctx.plan.weight, disk_ctx.plan.hit, disk_ctx.masks]
     assert all(isinstance(a, ViewRows) for a in on_disk)
     assert isinstance(memory.plan_index, np.ndarray) and isinstance(memory.prior.target_images, np.ndarray)
     assert isinstance(memory.fragments, list) and isinstance(disk.fragments, FragmentRows)
@@ -215,7 +215,11 @@ def test_a_problem_on_disk_reads_the_batches_and_scores_of_one_in_memory(tiny_sc
                 np.testing.assert_array_equal(getattr(one, name), getattr(other, name), err_msg=name)
     if terms:
         assert all(isinstance(a, ViewRows) for a in (disk.photos.photos, disk.photos.guide, disk.photos.index,
-                                                     disk.photos.pixel_weight))
+                                                     disk.photos.hit, disk.photos.pixel_weight))
+    # what the set-up checked against the free space before any compute is what the files took, to the byte
+    # (the seam pairs apart: their size is known only once they are made)
+    checked = view_data_bytes(config, disk.scene, disk.choice, disk.channels, (disk.height, disk.width))
+    assert checked == disk.view_folder.nbytes - disk_ctx.seams.nbytes > 0
     for ids in ([0, 1], [3, 3], [2, 0]):
         a, b = memory.batch(np.array(ids)), disk.batch(np.array(ids))
         assert a.keys() == b.keys() and ("photo" in a) == bool(terms)
@@ -230,6 +234,11 @@ def test_a_problem_on_disk_reads_the_batches_and_scores_of_one_in_memory(tiny_sc
         for m in one:
             np.testing.assert_array_equal(one[m], other[m])
     assert isinstance(disk_ctx.seams, RaggedRows) and isinstance(memory_ctx.seams, list)
+    assert isinstance(memory_ctx.masks, list) and sum(m.sum() for m in memory_ctx.masks) > 0
+    for one, other in zip(memory_ctx.masks, disk_ctx.masks, strict=True):
+        np.testing.assert_array_equal(one, other)
+    for one, other in zip(memory_ctx.plan.hit_images(), disk_ctx.plan.hit_images(), strict=True):
+        np.testing.assert_array_equal(one, other)
     assert sum(len(a) for a, _ in memory_ctx.seams) > 0
     for one, other in zip(memory_ctx.seams, disk_ctx.seams, strict=True):
         for x, y in zip(one, other, strict=True):

@@ -468,34 +468,46 @@ def _needs_of(arrays: dict, layout) -> list[list[np.ndarray]]:
     return out
 
 
+def view_data_bytes(config: DistillConfig, scene: Scene, choice: PriorChoice, channels: MapChannels,
+                    render: tuple[int, int], *, views: Sequence | None = None, evaluation: bool = True) -> int:
+    """Bytes of the per-view arrays the set-up and the evaluation context make for `views` (the
+    views this process holds, default all) when they are files (--view_data on disk): the fragments
+    (44 bytes a pixel) and gather plans (T taps of an int32 index and a float32 weight, a float32
+    pixel weight and a 1-byte hit mask) at the render size, the views prior's targets (C float32
+    channels) there, and with the re-rendering term fragments, plans, photos (3 float32) and chroma
+    guides (2, --albedo_smoothness) at the photo size; the evaluation's (`evaluation`: the primary's)
+    1-byte masks at the photos' own size, with fragments and plans (no pixel weight) there when
+    neither size is theirs. Not counted: the evaluation's seam pairs, whose size is known only once
+    they are made (`scoring.evaluation_context`)."""
+    held = scene.views if views is None else views
+    taps = TAPS[config.sampler]
+    frag, plan = fr.BYTES_PER_PIXEL, 8 * taps + 4 + 1
+    per_pixel = {render: frag + plan + (4 * channels.num_channels if choice.kind == "views" else 0)}
+    if config.photo_weight > 0:
+        photo = render_shape(scene, config.photo_size, flag="--photo_size")
+        images = 4 * (3 + (2 if config.albedo_smoothness > 0 else 0))
+        # the photos' own pixel weights even where they share the render size's fragments and plans
+        per_pixel[photo] = per_pixel.get(photo, 0) + images + (4 if photo in per_pixel else frag + plan)
+    sizes = {(v.camera.height, v.camera.width) for v in scene.views}
+    native = next(iter(sizes)) if len(sizes) == 1 else None
+    if evaluation and native is not None:
+        # the masks; the fragments and plans too (the hit mask, no pixel weight) when no other size is theirs
+        per_pixel[native] = per_pixel.get(native, frag + plan - 4) + 1
+    return sum(len(held) * h * w * nbytes for (h, w), nbytes in per_pixel.items())
+
+
 def _view_data_folder(config: DistillConfig, scene: Scene, choice: PriorChoice, channels: MapChannels,
                       render: tuple[int, int], cache_dir, *, views: Sequence | None = None,
                       evaluation: bool = True) -> ViewFolder | None:
     """Where the per-view arrays are held (--view_data): None for memory, else the cache's
-    `ViewFolder`, its disk space checked before any compute. They are, 4 bytes a value: the
-    fragments (11 values a pixel) and gather plans (T taps of index and weight, and the pixel
-    weight) at the render size, the views prior's targets (C channels) there, and with the
-    re-rendering term fragments, plans, photos (3) and chroma guides (2, --albedo_smoothness) at
-    the photo size; fragments and plans at the photos' own size when neither size is theirs (and
-    `evaluation`: the primary's). `views`: the views this process holds (default all)."""
+    `ViewFolder`, its disk space checked before any compute (`view_data_bytes`, with the ray casts
+    not cached yet). `views`: the views this process holds (default all)."""
     held = scene.views if views is None else views
-    views, taps = len(held), TAPS[config.sampler]
-    frag, plan = fr.BYTES_PER_PIXEL // 4, 2 * taps + 1
-    per_pixel = {render: frag + plan + (channels.num_channels if choice.kind == "views" else 0)}
-    if config.photo_weight > 0:
-        photo = render_shape(scene, config.photo_size, flag="--photo_size")
-        images = 3 + (2 if config.albedo_smoothness > 0 else 0)
-        # the photos' own pixel weights even where they share the render size's fragments and plans
-        per_pixel[photo] = per_pixel.get(photo, 0) + images + (1 if photo in per_pixel else frag + plan)
-    sizes = {(v.camera.height, v.camera.width) for v in scene.views}
-    native = next(iter(sizes)) if len(sizes) == 1 else None
-    if evaluation and native is not None and native not in per_pixel:
-        per_pixel[native] = frag + 2 * taps                         # the evaluation's fragments and plans
-    nbytes = sum(views * h * w * values * 4 for (h, w), values in per_pixel.items())
+    nbytes = view_data_bytes(config, scene, choice, channels, render, views=held, evaluation=evaluation)
     if not placement(config.view_data, nbytes):
         return None
     folder = ViewFolder(Path(cache_dir) if cache_dir else fr.default_cache_dir())
-    what = f"the per-view arrays of {views} views (--view_data={config.view_data})"
+    what = f"the per-view arrays of {len(held)} views (--view_data={config.view_data})"
     # the ray casts still to be cached go to the same disk: both must fit
     casts = fr.uncached_bytes(scene.mesh, _cameras_cast(config, scene, render, held, evaluation), cache_dir)
     folder.check_space(nbytes + casts, what + (f" and the ray casts not cached yet ({casts / 2 ** 30:.2f} GB)"

@@ -117,17 +117,23 @@ def gt_view_maps(gt: GroundTruth, scene: Scene, fragments: Sequence) -> list[dic
     return out
 
 
-def evaluation_masks(gt: GroundTruth | None, scene: Scene, fragments: Sequence) -> list[np.ndarray]:
-    """Per view (H, W) bool: hit pixels not on excluded (emitter) objects nor masked by the view's mask."""
+def evaluation_masks(gt: GroundTruth | None, scene: Scene, fragments: Sequence, out=None) -> Sequence[np.ndarray]:
+    """Per view (H, W) bool: hit pixels not on excluded (emitter) objects nor masked by the view's
+    mask. A list, or written a view at a time into `out` (V, H, W) (such as a `ViewRows` file) and
+    that returned."""
     from jaxdistill.io.view_images import read_mask
 
     excluded = [scene.mesh.object_names.index(o) for o in (gt.exclude_objects if gt else ())]
-    masks = []
-    for view, f in zip(scene.views, fragments):
+    masks = [] if out is None else out
+    for v, (view, f) in enumerate(zip(scene.views, fragments)):
         drop = np.isin(f.object_id, excluded)
         if view.mask is not None:
             drop |= ~read_mask(view.mask, *f.shape)
-        masks.append(metrics.evaluation_mask(f.hit, drop))
+        mask = metrics.evaluation_mask(f.hit, drop)
+        if out is None:
+            masks.append(mask)
+        else:
+            out[v] = mask
     return masks
 
 

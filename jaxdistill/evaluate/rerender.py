@@ -27,7 +27,7 @@ def rerender_scores(texels: np.ndarray, problem: Problem, plan, cameras) -> dict
     if not {"albedo", "irradiance"} <= set(channels.maps):
         return None
     renders = evaluation.render_views(texels, plan, cameras, channels, lazy=problem.views_on_disk)
-    hits = np.asarray(plan.hit).reshape(-1, plan.height, plan.width)
+    hits = plan.hit_images()
     per_view, scales = {}, {}
     for view, render, hit in zip(problem.scene.views, renders, hits):
         height, width = hit.shape

@@ -30,7 +30,7 @@ class EvalContext:
     shapes: list
     cameras: list
     gt_maps: list | None
-    masks: list
+    masks: Sequence          # per view (H, W) bool: a list, or a `ViewRows` file with --view_data on disk
     plan: GatherPlan
     seams: Sequence          # per view, its (a, b) seam pairs: a list, or a `RaggedRows` file with --view_data on disk
 
@@ -60,7 +60,9 @@ def evaluation_context(config: DistillConfig, problem: Problem) -> EvalContext:
     else:
         plan = build_gather_plans(frags, problem.space, config.sampler, empty=problem.empty_views)
     gt, gt_maps = evaluation.view_ground_truth(scene, frags)
-    masks = evaluation.evaluation_masks(gt, scene, frags)
+    # with --view_data on disk (the fragments in files, one size) the masks go in a file too: 1 byte a pixel
+    masks = evaluation.evaluation_masks(gt, scene, frags, out=problem.empty_views(
+        "eval_masks", (len(frags), *frags.shape), bool) if isinstance(frags, FragmentRows) else None)
     owner = evaluation.dominant_views(problem.plan_index, problem.plan_weight, problem.space.pyramid_size)
     # every view's seam pairs, kept for the scores: with --view_data on disk in a file (about 4 MiB a view of
     # 876x584 on the capture room, 2.4 GiB of a run's memory at 600 views; docs/benchmarks.md §10)

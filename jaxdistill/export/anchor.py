@@ -133,8 +133,7 @@ def anchor_to_baseline(config: DistillConfig, problem: Problem, texels: np.ndarr
         # measured on the texels clipped to [-1, 1], as `anchored_texels` clips them before scaling
         renders = evaluation.render_views(np.clip(texels, -1.0, 1.0), ctx.plan, ctx.cameras, problem.channels,
                                           lazy=problem.views_on_disk)
-        hits = np.asarray(ctx.plan.hit).reshape(-1, ctx.plan.height, ctx.plan.width)
-        gains = anchor_gains(renders, baseline.views, list(hits), problem.channels.maps)
+        gains = anchor_gains(renders, baseline.views, ctx.plan.hit_images(), problem.channels.maps)
     if not gains:
         if config.anchor == "estimates":     # asked for by name: say why nothing happened (auto: no colour map)
             logging.warning("--anchor=%s: nothing to anchor: %s has no %s for the distilled maps; the maps keep their "
@@ -206,8 +205,8 @@ def anchor_to_photos(config: DistillConfig, problem: Problem, texels: np.ndarray
         return None
     renders = evaluation.render_views(np.clip(texels, -1.0, 1.0), ctx.plan, ctx.cameras, problem.channels,
                                       lazy=problem.views_on_disk)
-    hits = np.asarray(ctx.plan.hit).reshape(-1, ctx.plan.height, ctx.plan.width)
-    gain, record = traced_light(problem.scene, renders, list(hits), texels, problem.channels, seed=config.seed)
+    gain, record = traced_light(problem.scene, renders, ctx.plan.hit_images(), texels, problem.channels,
+                                seed=config.seed)
     if trusted_only and (gain is None or not trace_trusted(record)):
         logging.info("--anchor=auto: the photos' traced light is not used (%s): anchoring to the estimates",
                      "too few points with a known light" if gain is None else

@@ -131,6 +131,10 @@ class ViewRows(_UnlinkedFile):
     def __len__(self) -> int:
         return self.shape[0]
 
+    def __iter__(self):
+        """Row by row, each read when reached."""
+        return (self[v] for v in range(self.shape[0]))
+
     def _row(self, v) -> int:
         self._check_open()
         v = int(v)

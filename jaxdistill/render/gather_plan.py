@@ -27,6 +27,7 @@ import flax.struct
 import jax.numpy as jnp
 import numpy as np
 
+from jaxdistill.io.view_rows import LazyViews
 from jaxdistill.render.fragments import Fragments
 from jaxdistill.render.layout import TextureLayout, pixel_footprint
 from jaxdistill.threads import ordered_map
@@ -54,8 +55,9 @@ class GatherPlan:
 
     index (..., P, T) int32 into the compact pyramid; weight (..., P, T) float32, summing to 1
     on hit pixels and 0 on misses; hit (..., P) bool; chain: how coarser levels are built.
-    A plan of all views may hold index and weight in files read a few views at a time
-    (`io.view_rows.ViewRows`): outside jit, take views with `select` before computing on them.
+    A plan of all views may hold index, weight and hit in files read a few views at a time
+    (`io.view_rows.ViewRows`): outside jit, take views with `select` (or `hit_images`) before
+    computing on them.
     """
 
     index: jnp.ndarray
@@ -64,6 +66,12 @@ class GatherPlan:
     chain: MipChain
     height: int = flax.struct.field(pytree_node=False, default=0)
     width: int = flax.struct.field(pytree_node=False, default=0)
+
+    def hit_images(self) -> Sequence[np.ndarray]:
+        """Per view, its (H, W) bool hit mask, read when asked for (a view at a time from a file)."""
+        if self.index.ndim != 3:
+            return [np.asarray(self.hit).reshape(self.height, self.width)]
+        return LazyViews(self.num_views, lambda v: [np.asarray(self.hit[v]).reshape(self.height, self.width)])
 
     def select(self, views) -> "GatherPlan":
         """The plan restricted to `views` (int or index array), sharing the mip chain."""
@@ -374,8 +382,8 @@ def build_gather_plans(fragments: Sequence[Fragments], space: TexelSpace, sample
                        empty: Callable | None = None) -> GatherPlan:
     """Batched gather plan of all views (same resolution), indexing the compact pyramid of `space`,
     built one view at a time into its arrays: `empty(name, shape, dtype)` allocates the (V, P, T)
-    "plan_index" and "plan_weight" arrays (default NumPy; anything that takes `a[v] = row` and
-    gives rows by `a[ids]`, such as the file-backed `io.view_rows.ViewRows`); hit (V, P) is NumPy."""
+    "plan_index" and "plan_weight" arrays and the (V, P) "plan_hit" mask (default NumPy; anything
+    that takes `a[v] = row` and gives rows by `a[ids]`, such as the file-backed `io.view_rows.ViewRows`)."""
     if not fragments:
         raise ValueError("no views to plan")
     shapes = {f.shape for f in fragments}
@@ -387,7 +395,7 @@ def build_gather_plans(fragments: Sequence[Fragments], space: TexelSpace, sample
     shape = (len(fragments), height * width, TAPS[sampler])
     empty = empty or (lambda name, shape, dtype: np.empty(shape, dtype))
     index, weight = empty("plan_index", shape, np.int32), empty("plan_weight", shape, np.float32)
-    hit = np.empty(shape[:2], bool)
+    hit = empty("plan_hit", shape[:2], bool)
 
     def plan_view(frag):
         page, level, row, col, w = view_taps(frag, space.layout, sampler)
