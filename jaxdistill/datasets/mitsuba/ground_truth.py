@@ -111,6 +111,7 @@ class GroundTruthEvaluator:
 
 
 IRRADIANCE_VARIANT = "llvm_ad_rgb"
+IRRADIANCE_LANES = 1 << 20              # rays a wavefront at most when a view's samples are batched (fewer pixels)
 IRRADIANCE_TARGET_PERCENTILE = 99.0     # targets: scene-wide scale putting this percentile at 0.9
 
 
@@ -126,8 +127,9 @@ def render_irradiance(xml_path, cameras: Sequence[Camera], *, spp: int, seed: in
     Estimator per sample: emitter sampling and a cosine-sampled direction combined by MIS (balance
     heuristic); beyond the first bounce Mitsuba's `path` integrator, one bounce shorter than the
     scene integrator's max_depth (so E / pi x albedo is what the photos show on diffuse surfaces).
-    Runs in Mitsuba's vectorised `llvm_ad_rgb` variant (one wavefront per view and sample), then
-    switches back. The scene is loaded again in that variant from `xml_text` when given (an
+    Runs in Mitsuba's vectorised `llvm_ad_rgb` variant (one wavefront per view and sample, or
+    several samples of a view's pixels in one wavefront of up to IRRADIANCE_LANES rays when it
+    has fewer pixels), then switches back. The scene is loaded again in that variant from `xml_text` when given (an
     upgraded Mitsuba 0.x file, with absolute file names), else from `xml_path`. progress: a bar per view.
     """
     depth = _integrator_max_depth(Path(xml_path), xml_text)
@@ -144,10 +146,17 @@ def render_irradiance(xml_path, cameras: Sequence[Camera], *, spp: int, seed: in
         bar = tqdm(cameras, desc=f"irradiance (spp {spp})", unit="view", disable=not progress, dynamic_ncols=True)
         for v, cam in enumerate(bar):
             origins, directions = cam.pixel_rays()
-            total = np.zeros((len(origins), 3))
-            for s in range(spp):
-                sampler.seed(dr.opaque(mi.UInt32, ((seed * 7919 + v) * 65537 + s) % 2 ** 32), len(origins))
-                total += _irradiance_sample(mi, dr, scene, nested, sampler, origins, directions)
+            n = len(origins)
+            # k samples of every pixel in one wavefront of up to IRRADIANCE_LANES rays: each wavefront costs
+            # Mitsuba a trace of the integrator (about 0.2 s), which small images would otherwise pay per sample
+            per = max(1, min(spp, IRRADIANCE_LANES // max(n, 1)))
+            total = np.zeros((n, 3))
+            for first in range(0, spp, per):
+                k = min(per, spp - first)
+                sampler.seed(dr.opaque(mi.UInt32, ((seed * 7919 + v) * 65537 + first) % 2 ** 32), n * k)
+                samples = _irradiance_sample(mi, dr, scene, nested, sampler, np.tile(origins, (k, 1)),
+                                             np.tile(directions, (k, 1)))
+                total += samples.reshape(k, n, 3).sum(axis=0)
             out.append((total / spp).reshape(cam.height, cam.width, 3).astype(np.float32))
         return out
     finally:
