@@ -59,18 +59,19 @@ def test_model_info_names_user_and_shipped_weights(rgbx_dir):
         assert info["source"] == "shipped" and info["name"] and info["version"]
 
 
-def test_batched_cached_estimates_equal_the_estimate_command(rgbx_dir, tmp_path, monkeypatch):
+def test_batched_cached_estimates_equal_the_estimate_command(run_rgbx_dir, tmp_path, monkeypatch):
     """The baseline of an rgbx run is what `python -m jaxdistill.estimate` writes for each view
-    (same noise per view and map), computed once per (weights, photos, size, settings)."""
+    (same noise per view and map), computed once per (weights, photos, size, settings). On the run-sized
+    tiny model: what is tested is the batching and the cache, not the networks' structure."""
     scene = read_scene(write_tiny_scene(tmp_path / "scene", views=3, width=32, height=24))
     photos = [(v.name, v.photo, v.exposure) for v in scene.views]
     maps = ("albedo", "normal", "roughness")
-    model = rgbx.load_prior(convert.load_rgbx(rgbx_dir))
+    model = rgbx.load_prior(convert.load_rgbx(run_rgbx_dir))
     cache = tmp_path / "cache"
     folder = model_estimates.cached_estimates(model, photos, maps, 24, 32, steps=4, seed=3, cache_dir=cache,
                                               progress=False)
     reference = tmp_path / "cli"
-    estimate.run(estimate.EstimateConfig(prior_dir=str(rgbx_dir), out_dir=str(reference), scene=str(scene.root),
+    estimate.run(estimate.EstimateConfig(prior_dir=str(run_rgbx_dir), out_dir=str(reference), scene=str(scene.root),
                                          maps=maps, steps=4, seed=3))
     for name, _, _ in photos:
         for m in maps:
