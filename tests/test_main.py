@@ -251,6 +251,39 @@ def test_a_nan_loss_stops_the_run_and_keeps_the_last_good_state(tiny_scene, tmp_
     assert np.isfinite(np.asarray(state.texels)).all()
 
 
+def test_the_loop_runs_one_step_ahead_of_the_running_one_and_no_further(tiny_scene, tmp_path):
+    """JAX returns from a step before it has run, on the CPU too: the loop places the next step's batch
+    while a step runs, and no further ahead (each step dispatched ahead holds its batch in memory until
+    it runs: up to --log_every of them between the metric fetches otherwise). Each step's metrics are
+    made slow to finish here; when a step is dispatched, every step before the last has finished."""
+    import jax.numpy as jnp
+
+    from jaxdistill.engine.problem import build_problem
+
+    @jax.jit
+    def slow(metrics):
+        x = jax.lax.fori_loop(0, 40, lambda _, x: jnp.tanh(x @ x), jnp.full((512, 512), 0.01, jnp.float32))
+        return jax.tree.map(lambda a: a + (0 * x[0, 0]).astype(a.dtype) if jnp.issubdtype(a.dtype, jnp.floating)
+                            else a, metrics)
+
+    outputs, unfinished = [], []
+
+    def before_steps(step_fn, state, batch, frozen):
+        def step(state, batch, frozen):
+            unfinished.append(sum(not a.is_ready() for m in outputs[:-1] for a in jax.tree.leaves(m)))
+            state, metrics = step_fn(state, batch, frozen)
+            outputs.append(slow(metrics))
+            return state, outputs[-1]
+        return step
+
+    config = tiny_config(tiny_scene, tmp_path / "out", steps=6, log_every=6, eval_every=0, renders=False)
+    problem = build_problem(config, cache_dir=tmp_path / "cache")
+    result = loop.run_loop(config, problem, loop.recorded_config(config, "views"), None, progress=False,
+                           hooks=loop.LoopHooks(before_steps=before_steps, checkpoints=False))
+    assert unfinished == [0] * 6
+    assert len(result.history["loss"]) == 6 and loop.PREFETCH_STEPS == 1
+
+
 def test_configs_parse_into_valid_configs():
     for cfg in sorted((REPO / "configs").glob("*.cfg")):
         fv = flags.FlagValues()
