@@ -77,8 +77,9 @@ def rescore(run: Path) -> dict:
             raise SystemExit(f"{config.scene}: no ground truth to score against")
         texels = CheckpointStore(run / "checkpoints").read_texels()
         baseline = scoring.per_view_baseline(config, problem, ctx.shapes)
-        renders = evaluation.render_views(np.clip(texels, -1.0, 1.0), ctx.plan, ctx.cameras, problem.channels)
-        hits = list(np.asarray(ctx.plan.hit).reshape(-1, ctx.plan.height, ctx.plan.width))
+        renders = evaluation.render_views(np.clip(texels, -1.0, 1.0), ctx.plan, ctx.cameras, problem.channels,
+                                          lazy=problem.views_on_disk)
+        hits = ctx.plan.hit_images()
         gains = anchor_lib.anchor_gains(renders, baseline.views, hits, problem.channels.maps)
         traced, record = anchor_lib.traced_light(problem.scene, renders, hits, texels, problem.channels,
                                                  seed=config.seed)

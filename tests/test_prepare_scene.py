@@ -21,6 +21,7 @@ from jaxdistill.scene.model import read_scene
 mi = pytest.importorskip("mitsuba")
 pytest.importorskip("xatlas")
 from jaxdistill.datasets.mitsuba import bridge as mb
+from jaxdistill.datasets.mitsuba import ground_truth as gt_lib
 from jaxdistill.datasets.mitsuba import prepare
 from jaxdistill.datasets.mitsuba import shapes as mitsuba_shapes
 from jaxdistill.datasets.mitsuba.ground_truth import GroundTruthEvaluator, render_irradiance
@@ -376,7 +377,7 @@ def write_xml(folder: Path, shapes: str) -> Path:
     return path
 
 
-def test_irradiance_under_a_disk_light_is_the_analytic_formula(tmp_path):
+def test_irradiance_under_a_disk_light_is_the_analytic_formula(tmp_path, monkeypatch):
     """A black floor under a downward disk emitter (radius r, height h, radiance L): E / pi at a
     floor point at distance rho from the axis is L/2 (1 - (h^2 + rho^2 - r^2) / sqrt((h^2 + rho^2 +
     r^2)^2 - 4 r^2 rho^2)) (the configuration factor of a parallel disk)."""
@@ -388,15 +389,20 @@ def test_irradiance_under_a_disk_light_is_the_analytic_formula(tmp_path):
     <translate z="{h}"/></transform><emitter type="area">{rgb("radiance", radiance)}</emitter></shape>""")
     cam = look_at_camera((0.0, 0.0, 0.6), (0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0), width=24, height=18)
     before = mb.load_mitsuba().variant()
-    image = render_irradiance(xml, [cam], spp=32, seed=3)[0].reshape(-1, 3)
+    image = render_irradiance(xml, [cam], spp=32, seed=3)[0].reshape(-1, 3)       # one wavefront of 32 samples
     assert mi.variant() == before                     # the llvm variant is left again
+    # wavefronts of 5 samples: 6 of them and one of the 2 left (each pixel's samples summed across them)
+    monkeypatch.setattr(gt_lib, "IRRADIANCE_LANES", 5 * cam.height * cam.width + 3)
+    split = render_irradiance(xml, [cam], spp=32, seed=3)[0].reshape(-1, 3)
     o, d = cam.pixel_rays()
     rho = np.hypot(*(o + d * (-o[:, 2:] / d[:, 2:]))[:, :2].T)
     expected = 0.5 * (1 - (h ** 2 + rho ** 2 - r ** 2) / np.sqrt((h ** 2 + rho ** 2 + r ** 2) ** 2
                                                                   - 4 * r ** 2 * rho ** 2))
     expected = expected[:, None] * radiance
-    np.testing.assert_allclose(image.mean(0), expected.mean(0), rtol=0.02)        # unbiased
-    assert np.median(np.abs(image - expected) / expected) < 0.1                     # per pixel, 32 samples
+    for estimate in (image, split):
+        np.testing.assert_allclose(estimate.mean(0), expected.mean(0), rtol=0.02)     # unbiased
+        assert np.median(np.abs(estimate - expected) / expected) < 0.1                  # per pixel, 32 samples
+    assert not np.array_equal(image, split)            # other seeds: other samples, the same estimate
 
 
 def test_irradiance_in_a_closed_glowing_box_counts_every_bounce(tmp_path):
