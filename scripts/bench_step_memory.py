@@ -79,31 +79,20 @@ def main(argv) -> int:
     if fv.bench_loop:
         context = scoring.evaluation_context(config, problem)
         problem = problem.without_fragments()
-        marks = []            # (steps done, time) whenever the loop fetched metrics; 0: compiled
+        clock = loop.StepClock()
         evaluate = None
         if context.gt_maps is not None:
             def evaluate(state):
                 psnr = scoring.quick_psnr(state, problem, context)
-                marks[-1] = (marks[-1][0], time.perf_counter())    # the evaluation is not a step's time
+                clock.exclude_since_mark()                     # the evaluation is not a step's time
                 return psnr
 
-        def before_steps(step_fn, state, batch, frozen):
-            jax.block_until_ready((state, frozen))
-            begin = time.perf_counter()
-            compiled = step_fn.lower(state, batch, frozen).compile()
-            loop_run["compile_s"] = time.perf_counter() - begin
-            marks.append((0, time.perf_counter()))
-            return compiled
-
-        hooks = loop.LoopHooks(before_steps=before_steps, checkpoints=False,
-                               after_fetch=lambda done, _: marks.append((done, time.perf_counter())))
         start = time.perf_counter()
         result = loop.run_loop(config, problem, loop.recorded_config(config, problem.choice.kind), None,
-                               evaluate=evaluate, progress=False, hooks=hooks)
+                               evaluate=evaluate, progress=False, hooks=clock.hooks())
         # seconds a step between fetches (--log_every), the compilation and evaluations left out
-        windows = [(b - a) / (j - i) for (i, a), (j, b) in zip(marks, marks[1:]) if j > i]
-        loop_run.update(loop_s=time.perf_counter() - start, loop_peak_gb=peak_rss_gb(),
-                        s_per_step=statistics.median(windows), loss=result.history["loss"][-1],
+        loop_run.update(loop_s=time.perf_counter() - start, loop_peak_gb=peak_rss_gb(), compile_s=clock.compile_s,
+                        s_per_step=statistics.median(clock.seconds_per_step()), loss=result.history["loss"][-1],
                         albedo_psnr=result.history["albedo_psnr"])
         result = None
         print(f"set-up {loop_run['setup_s']:.1f} s (peak RSS {loop_run['setup_peak_gb']:.2f} GB), loop of "

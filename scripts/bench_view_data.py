@@ -48,7 +48,6 @@ def parse_args(argv=None):
 
 def one_case(args) -> dict:
     """The child: one setting's set-up and loop, timed."""
-    import jax
     import numpy as np
 
     from jaxdistill.engine import config as config_lib, loop
@@ -72,19 +71,10 @@ def one_case(args) -> dict:
         return batch
 
     object.__setattr__(problem, "batch", timed_batch)        # a frozen dataclass: time its batches
-    marks = []
-
-    def before_steps(step_fn, state, batch, frozen):
-        jax.block_until_ready((state, frozen))
-        compiled = step_fn.lower(state, batch, frozen).compile()
-        marks.append((0, time.perf_counter()))
-        return compiled
-
-    hooks = loop.LoopHooks(before_steps=before_steps, checkpoints=False,
-                           after_fetch=lambda done, _: marks.append((done, time.perf_counter())))
+    clock = loop.StepClock()
     loop.run_loop(config, problem, loop.recorded_config(config, problem.choice.kind), None, progress=False,
-                  hooks=hooks)
-    windows = [(b[1] - a[1]) / (b[0] - a[0]) for a, b in zip(marks, marks[1:])]
+                  hooks=clock.hooks())
+    windows = clock.seconds_per_step()
     return {"view_data": args.one, "on_disk": problem.view_folder is not None, "setup_s": setup_s,
             "s_per_step": float(np.median(windows)), "batch_s": float(np.median(batch_s[2:] or batch_s)),
             "views": problem.num_views, "render_hw": [problem.height, problem.width],

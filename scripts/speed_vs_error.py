@@ -347,7 +347,6 @@ def available_gb() -> float:
 def run_point(spec: dict) -> dict:
     """Runs one sweep point in this process (the child); returns its row."""
     t0 = time.perf_counter()
-    import jax
     import numpy as np
     from absl import logging
 
@@ -378,26 +377,15 @@ def run_point(spec: dict) -> dict:
                 "import_s": import_s, "setup_s": time.perf_counter() - t0, "setup_timings": problem.timings,
                 "need_gb": need_gb, "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20}
 
-    # the main job's loop; the hooks mark the end of the setup, compile the step ahead of time (so
-    # that the steps are timed apart) and note when each --log_every window's metrics come back
-    times, marks = {}, []
-
-    def before_steps(step_fn, state, batch, frozen):
-        jax.block_until_ready((state, frozen))
-        times["setup_end"] = time.perf_counter()
-        compiled = step_fn.lower(state, batch, frozen).compile()
-        times["compiled"] = time.perf_counter()
-        marks.append((0, times["compiled"]))
-        return compiled
-
-    hooks = loop.LoopHooks(before_steps=before_steps, after_fetch=lambda done, _: marks.append((done, time.perf_counter())),
-                           checkpoints=False)
+    # the main job's loop; the clock marks the end of the setup, compiles the step ahead of time (so
+    # that the steps are timed apart) and notes when each --log_every window's metrics come back
+    clock = loop.StepClock()
     result = loop.run_loop(config, problem, loop.recorded_config(config, problem.choice.kind), None, progress=False,
-                           hooks=hooks)
-    setup_s = times["setup_end"] - t0
-    compile_s = times["compiled"] - times["setup_end"]
-    steps_s = marks[-1][1] - marks[0][1]
-    windows = [(b[1] - a[1]) / (b[0] - a[0]) for a, b in zip(marks, marks[1:])]
+                           hooks=clock.hooks())
+    setup_s = clock.start - t0
+    compile_s = clock.compile_s
+    steps_s = clock.marks[-1][1] - clock.marks[0][1]
+    windows = clock.seconds_per_step()
 
     # evaluation at the photos' native size, as --eval_every does
     t0 = time.perf_counter()

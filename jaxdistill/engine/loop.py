@@ -159,10 +159,43 @@ class LoopHooks:
     checkpoints: bool = True
 
 
+class StepClock:
+    """Times `run_loop` from outside, for benchmarks: `hooks()` compiles the step before the first step
+    (`compile_s`, from `start`, when the state and constants are on the devices) and marks the time of
+    every metrics fetch (`marks`: (steps done, time), the first (0, compiled)); `seconds_per_step()`
+    gives each window between fetches per step; `exclude_since_mark()` moves the last mark to now, so
+    that time spent after a fetch on something else (an evaluation) is in no window."""
+
+    def __init__(self):
+        self.start: float | None = None
+        self.compile_s: float | None = None
+        self.marks: list[tuple[int, float]] = []
+
+    def _before_steps(self, step_fn, state, batch, frozen):
+        jax.block_until_ready((state, frozen))
+        self.start = time.perf_counter()
+        compiled = step_fn.lower(state, batch, frozen).compile()
+        self.compile_s = time.perf_counter() - self.start
+        self.marks.append((0, time.perf_counter()))
+        return compiled
+
+    def _after_fetch(self, done: int, _) -> None:
+        self.marks.append((done, time.perf_counter()))
+
+    def hooks(self, checkpoints: bool = False) -> LoopHooks:
+        return LoopHooks(before_steps=self._before_steps, after_fetch=self._after_fetch, checkpoints=checkpoints)
+
+    def exclude_since_mark(self) -> None:
+        self.marks[-1] = (self.marks[-1][0], time.perf_counter())
+
+    def seconds_per_step(self) -> list[float]:
+        return [(b - a) / (j - i) for (i, a), (j, b) in zip(self.marks, self.marks[1:]) if j > i]
+
+
 # Steps dispatched ahead of the one running. JAX dispatches a step and returns before it has run (on
 # the CPU too), so the loop would otherwise place batch after batch up to the next metrics fetch
 # (--log_every steps), each held in memory until its step runs: about 0.3 GB a batch of 8 views of
-# 876x584 and 1.3 GB at 1752x1168. One step ahead still reads the next batch while a step runs.
+# 876x584 and 1.2 GB at 1752x1168. One step ahead still reads the next batch while a step runs.
 PREFETCH_STEPS = 1
 
 

@@ -124,16 +124,12 @@ def evaluation_masks(gt: GroundTruth | None, scene: Scene, fragments: Sequence, 
     from jaxdistill.io.view_images import read_mask
 
     excluded = [scene.mesh.object_names.index(o) for o in (gt.exclude_objects if gt else ())]
-    masks = [] if out is None else out
+    masks = [None] * len(fragments) if out is None else out
     for v, (view, f) in enumerate(zip(scene.views, fragments)):
         drop = np.isin(f.object_id, excluded)
         if view.mask is not None:
             drop |= ~read_mask(view.mask, *f.shape)
-        mask = metrics.evaluation_mask(f.hit, drop)
-        if out is None:
-            masks.append(mask)
-        else:
-            out[v] = mask
+        masks[v] = metrics.evaluation_mask(f.hit, drop)
     return masks
 
 
