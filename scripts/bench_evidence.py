@@ -6,10 +6,11 @@ checkout's against another revision's, side by side on one problem (docs/benchma
 
 Builds the main job's problem, evaluation context and per-view estimates once (`build_problem`,
 `scoring.evaluation_context`, `scoring.per_view_baseline`: the estimates from the cache when they
-are there), then takes the statistics of every map as `outputs.write_evidence` does (one map at a
-time, the estimates through `outputs.evidence_images`) with `render/visibility.py` as it is here
-and as it was at `--against` (loaded from git as its own module), alternated `--bench_repeats`
-times. The first repeat of each side includes its compilation and is reported apart. Prints the
+are there), then takes the statistics of every map as `outputs.write_evidence` does (the estimates
+through `outputs.evidence_images`; in the passes of `outputs.evidence_passes`, or one map at a time
+with a `render/visibility.py` that has no `texel_view_statistics_of`) with `render/visibility.py` as
+it is here and as it was at `--against` (loaded from git as its own module), alternated
+`--bench_repeats` times. The first repeat of each side includes its compilation and is reported apart. Prints the
 median seconds of each side over the other repeats (or the first, with one repeat), their ratio,
 and how far the two sides' statistics are apart (counts equal; mean and variance: the largest
 difference relative to each array's largest magnitude).
@@ -50,12 +51,18 @@ def module_at(revision: str):
     return module
 
 
-def statistics_of(module, plan, images_of, maps, num_texels) -> tuple[float, dict]:
-    """(seconds, {map: (count, mean, variance)}) of `module.texel_view_statistics`, map by map."""
+def statistics_of(module, plan, images_of, passes, num_texels) -> tuple[float, dict]:
+    """(seconds, {map: (count, mean, variance)}) of `module`'s statistics as the export takes them:
+    `texel_view_statistics_of` a pass of maps at a time, or without it `texel_view_statistics` a map
+    at a time. images_of(maps): per view a tuple of those maps' images."""
     out = {}
     start = time.perf_counter()
-    for m in maps:
-        out[m] = module.texel_view_statistics(plan, images_of(m), num_texels)
+    for maps in passes:
+        if hasattr(module, "texel_view_statistics_of"):
+            out.update(zip(maps, module.texel_view_statistics_of(plan, images_of(maps), num_texels)))
+        else:
+            for m in maps:
+                out[m] = module.texel_view_statistics(plan, (t[0] for t in images_of((m,))), num_texels)
     return time.perf_counter() - start, out
 
 
@@ -98,13 +105,14 @@ def main(argv) -> int:
         sys.exit("the problem has no per-view estimates or targets: the evidence has no statistics to take")
     plan = outputs.training_plan(problem)
     maps = problem.channels.maps
-    images_of = lambda m: outputs.evidence_images(problem, ctx, baseline.views, m)   # noqa: E731
+    images_of = lambda ms: outputs.evidence_images(problem, ctx, baseline.views, ms)   # noqa: E731
+    passes = outputs.evidence_passes(maps, problem.space.num_texels)
     sides = {"now": visibility, "then": then}
     seconds = {side: [] for side in sides}
     results = {}
     for repeat in range(fv.bench_repeats):
         for side, module in sides.items():
-            s, results[side] = statistics_of(module, plan, images_of, maps, problem.space.num_texels)
+            s, results[side] = statistics_of(module, plan, images_of, passes, problem.space.num_texels)
             seconds[side].append(s)
             print(f"repeat {repeat}: {side} {s:.2f} s", flush=True)
     timed = {side: (s[1:] if len(s) > 1 else s) for side, s in seconds.items()}
@@ -112,6 +120,7 @@ def main(argv) -> int:
     doc = {"what": "texel_view_statistics of every map, as the evidence export takes them",
            "scene": config.scene, "against": fv.against, "num_texels": problem.space.num_texels,
            "views": problem.num_views, "render": [problem.height, problem.width], "maps": list(maps),
+           "passes": [list(p) for p in passes],
            "seconds": seconds, "first_repeat_s": {side: s[0] for side, s in seconds.items()},
            "median_s": median, "now_over_then": median["now"] / median["then"],
            "apart": apart(results["now"], results["then"])}

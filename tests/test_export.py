@@ -505,3 +505,20 @@ def test_material_images_built_one_map_at_a_time(maps):
         for key, want in expected.items():
             assert page[key].dtype == np.uint8
             np.testing.assert_allclose(page[key].astype(int), want.astype(int), atol=1, err_msg=key)
+
+
+def test_evidence_passes_take_as_many_maps_a_pass_as_fit_the_budget():
+    """The evidence's maps in order, in as few passes over the views as keep each pass's work arrays
+    (8 bytes a texel and 12 a texel a channel) within the budget; a map alone over it gets a pass."""
+    from jaxdistill.export.outputs import EVIDENCE_PASS_BYTES, evidence_passes
+
+    maps = ("albedo", "normal", "roughness", "metallic", "irradiance")       # 3, 3, 1, 1, 3 channels
+    assert evidence_passes(maps, 4_097_280) == [maps]                       # the bedroom: 0.57 GiB, one pass
+    assert EVIDENCE_PASS_BYTES == 1 << 30
+    assert evidence_passes(maps, 60_000_000) == [(m,) for m in maps]       # a capture's texels: a map a pass
+    n = 1000
+    assert evidence_passes(maps, n, budget=n * (8 + 12 * 7)) == [("albedo", "normal", "roughness"),
+                                                                 ("metallic", "irradiance")]
+    assert evidence_passes(maps, n, budget=n * (8 + 12 * 7) - 1) == [("albedo", "normal"),
+                                                                     ("roughness", "metallic", "irradiance")]
+    assert evidence_passes(("albedo",), n, budget=1) == [("albedo",)]

@@ -5,6 +5,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from jaxdistill.io import images as imageio
 from jaxdistill.render.gather_plan import build_gather_plans, build_texel_space, view_taps
@@ -221,3 +222,32 @@ def test_texel_trust_expands_to_the_page_trust_of_the_expanded_evidence():
     assert any((e > 0).any() and (e < 1).any() for e in expected)                 # partial trust really occurs
     for e, g in zip(expected, got):
         np.testing.assert_array_equal(g[..., 0], e)
+
+
+def test_several_quantities_in_one_pass_give_each_ones_statistics_alone(monkeypatch):
+    """`texel_view_statistics_of` with three quantities a view (3, 1 and 2 channels, as albedo,
+    roughness and a 2-channel map): each quantity's count, mean and variance equal, bit for bit, what
+    `texel_view_statistics` gives for its images alone (chunks of 37 read texels, so several
+    `_accumulate` calls a view); the count, from the plan alone, is one array for all."""
+    from jaxdistill.render import visibility
+
+    mesh, frags = scene_views()
+    layout = make_layout(len(mesh.object_names), "pages", 32, frags, mipmaps=True)
+    space = build_texel_space(frags, layout, "trilinear")
+    plan = build_gather_plans(frags, space, "trilinear")
+    rng = np.random.default_rng(13)
+    widths = (3, 1, 2)
+    images = [[rng.uniform(-1, 1, (*f.shape, c)).astype(np.float32) for c in widths] for f in frags]
+    for chunk in (visibility.READ_CHUNK, 37):
+        monkeypatch.setattr(visibility, "READ_CHUNK", chunk)
+        together = visibility.texel_view_statistics_of(plan, (tuple(i) for i in images), space.num_texels)
+        alone = [texel_view_statistics(plan, (i[k] for i in images), space.num_texels) for k in range(len(widths))]
+        assert len(together) == len(widths)
+        for k, (a, b) in enumerate(zip(together, alone)):
+            assert a[1].shape == (space.num_texels, widths[k])
+            for x, y in zip(a, b):
+                np.testing.assert_array_equal(x, y)
+        assert all(t[0] is together[0][0] for t in together)
+        assert (together[0][0] >= 2).sum() > 100 and np.abs(together[0][2]).max() > 0.01     # spreads really there
+    with pytest.raises(ValueError, match="no images"):
+        visibility.texel_view_statistics_of(plan, iter(()), space.num_texels)

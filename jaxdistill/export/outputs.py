@@ -23,11 +23,15 @@ from jaxdistill.io import images as imageio
 from jaxdistill.io.view_images import resize
 from jaxdistill.render import charts
 from jaxdistill.render.sampler import expand
-from jaxdistill.render.visibility import texel_view_statistics
+from jaxdistill.render import visibility
 from jaxdistill.scene.cameras import rgbx_camera_rotation
+from jaxdistill.scene.maps import CHANNELS
 
 
 MAP_FILES_BESIDE_BYTES = 1 << 30     # `map_files_beside`: one map's full pages up to 1 GiB (30 pages of 2048²: 1.4 GiB)
+# `evidence_passes`: the evidence's work arrays of one pass over the views up to 1 GiB (the bedroom's five
+# maps, 4.1M texels x 11 channels: 0.57 GiB in one pass; a capture's 60M texels: a map a pass, as before)
+EVIDENCE_PASS_BYTES = 1 << 30
 
 
 class OutputPhases:
@@ -112,28 +116,50 @@ def write_evidence(out: Path, problem: Problem, ctx: EvalContext, baseline: list
     map with per-view estimates, how much they disagree (`disagreement_<map>`: RMS deviation of
     the views' values from their mean, in file space, normals in world space; NaN where fewer
     than two views see the texel), both as the fusion sees them: through the training plans, the
-    estimates at the render size. Where the fusion had little or conflicting evidence."""
+    estimates at the render size. Where the fusion had little or conflicting evidence. The maps'
+    statistics are taken in as few passes over the views as `evidence_passes` allows."""
     space, channels = problem.space, problem.channels
     pages = {"visibility": expand(problem.counts.astype(np.float32)[:, None], space, 0.0, dilation=0)}
     if baseline:
         plan = training_plan(problem)
-        for m in channels.maps:             # per map: work arrays of 1-3 channels, not all 11
-            count, _, variance = texel_view_statistics(plan, evidence_images(problem, ctx, baseline, m),
-                                                       space.num_texels)
-            spread = np.where(count >= 2, np.sqrt(variance.sum(axis=1)), np.nan).astype(np.float32)
-            del variance
-            pages[f"disagreement_{m}"] = expand(spread[:, None], space, np.nan, dilation=0)
+        for maps in evidence_passes(channels.maps, space.num_texels):
+            stats = visibility.texel_view_statistics_of(plan, evidence_images(problem, ctx, baseline, maps),
+                                                        space.num_texels)
+            for m, (count, _, variance) in zip(maps, stats):
+                spread = np.where(count >= 2, np.sqrt(variance.sum(axis=1)), np.nan).astype(np.float32)
+                pages[f"disagreement_{m}"] = expand(spread[:, None], space, np.nan, dilation=0)
+            del stats, variance
     return page_files.write_evidence(out, pages, problem.scene.mesh.object_names, space.layout.object_page)
 
 
-def evidence_images(problem: Problem, ctx: EvalContext, baseline: list[dict], m: str):
-    """Map `m` of every view's estimate as the evidence reads it: at the render size, normals
-    turned from RGB<->X camera space into world space (the texels'), one view at a time."""
+def evidence_passes(maps, num_texels: int, budget: int = EVIDENCE_PASS_BYTES) -> list[tuple[str, ...]]:
+    """`maps` in order, grouped into passes of `visibility.texel_view_statistics_of` whose work arrays
+    (`visibility.EVIDENCE_BYTES_*`) fit `budget` bytes: each pass computes the views' read weights once
+    for its maps. A map over the budget alone gets a pass of its own (as every map had before)."""
+    def nbytes(group):
+        return num_texels * (visibility.EVIDENCE_BYTES_PER_TEXEL +
+                             visibility.EVIDENCE_BYTES_PER_CHANNEL * sum(CHANNELS[m] for m in group))
+
+    passes: list[tuple[str, ...]] = []
+    for m in maps:
+        if passes and nbytes(passes[-1] + (m,)) <= budget:
+            passes[-1] += (m,)
+        else:
+            passes.append((m,))
+    return passes
+
+
+def evidence_images(problem: Problem, ctx: EvalContext, baseline: list[dict], maps):
+    """Per view, a tuple of the estimates of `maps` as the evidence reads them: at the render size,
+    normals turned from RGB<->X camera space into world space (the texels'), one view at a time."""
     for camera, per_view in zip(ctx.cameras, baseline):
-        image = resize(per_view[m], problem.height, problem.width)
-        if m == "normal":
-            image = image @ rgbx_camera_rotation(camera.c2w).T.astype(np.float32)
-        yield image
+        images = []
+        for m in maps:
+            image = resize(per_view[m], problem.height, problem.width)
+            if m == "normal":
+                image = image @ rgbx_camera_rotation(camera.c2w).T.astype(np.float32)
+            images.append(image)
+        yield tuple(images)
 
 
 def write_contact_sheets(out: Path, config: DistillConfig, problem: Problem, pred: list[dict], ctx: EvalContext,

@@ -89,30 +89,53 @@ def texel_view_statistics(plan: GatherPlan, images: Iterable[np.ndarray], num_te
     `_accumulate`, a chunk of them per call), so the update's cost goes with what a view sees; the
     transposes it starts from (the read weight, `_evidence`, and one per channel, `_channel_sum`)
     are still dense over the texels. A NaN or infinite value on a missed pixel is not read. The
-    work arrays are (C, N), so a caller with many channels asks per map and holds a few at once."""
+    work arrays are (C, N), so a caller with many channels asks per map and holds a few at once
+    (or several maps in one pass, `texel_view_statistics_of`)."""
+    return texel_view_statistics_of(plan, ((image,) for image in images), num_texels)[0]
+
+
+def texel_view_statistics_of(plan: GatherPlan, images: Iterable[Sequence[np.ndarray]], num_texels: int
+                             ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """`texel_view_statistics` of several quantities in one pass over the views: `images` gives per
+    view a tuple of images (H, W, C_k), one per quantity (e.g. per map; the same quantities for
+    every view). A list of (count, mean, variance), one per quantity, each as
+    `texel_view_statistics` gives it for that quantity's images alone; the count, which depends on
+    the plan alone, is one array shared by all. What depends on the view's plan alone (its read
+    weight, `_evidence`, and the texels it reads, `_read_texels`) is computed once per view for all
+    the quantities, so K maps in one pass cost one of them K - 1 times less; the work arrays are then
+    K quantities' (sum C_k, N) at once (`EVIDENCE_BYTES_PER_CHANNEL` a texel a channel)."""
     state = None
     zeros = jnp.zeros((num_texels, 1), jnp.float32)
-    for v, image in enumerate(images):
-        image = jnp.asarray(image, jnp.float32)
+    for v, group in enumerate(images):
+        group = tuple(jnp.asarray(image, jnp.float32) for image in group)
         if state is None:
-            channels = image.shape[-1]
-            state = (jnp.zeros(num_texels, jnp.int32), jnp.zeros((channels, num_texels), jnp.float32),
-                     jnp.zeros((channels, num_texels), jnp.float32))
+            state = (jnp.zeros(num_texels, jnp.int32),
+                     tuple(jnp.zeros((image.shape[-1], num_texels), jnp.float32) for image in group),
+                     tuple(jnp.zeros((image.shape[-1], num_texels), jnp.float32) for image in group))
         one = jax.device_put(plan.select(v))              # once for the view's several calls
         weight = _evidence(one, zeros)                     # the view's read weight w per texel
         read = _read_texels(np.asarray(weight), num_texels)
-        sums = tuple(_channel_sum(one, image[..., c], num_texels=num_texels) for c in range(image.shape[-1]))
+        sums = tuple(tuple(_channel_sum(one, image[..., c], num_texels=num_texels) for c in range(image.shape[-1]))
+                     for image in group)
         for start in range(0, len(read), READ_CHUNK):      # one compiled update for every view
             state = _accumulate(state, weight, sums, read[start:start + READ_CHUNK])
         state = jax.block_until_ready(state)              # one view's inputs in memory at a time
     if state is None:
         raise ValueError("texel_view_statistics: no images")
-    count, mean, squares = (np.array(a) for a in jax.device_get(state))
-    variance = np.maximum(squares, 0.0) / np.maximum(count, 1)      # rounding can leave -ulp where views agree
-    return count, np.ascontiguousarray(mean.T), np.ascontiguousarray(variance.T)
+    count = np.array(jax.device_get(state[0]))
+    out = []
+    for mean, squares in zip(state[1], state[2]):
+        mean, squares = np.array(jax.device_get(mean)), np.array(jax.device_get(squares))
+        variance = np.maximum(squares, 0.0) / np.maximum(count, 1)      # rounding can leave -ulp where views agree
+        out.append((count, np.ascontiguousarray(mean.T), np.ascontiguousarray(variance.T)))
+    return out
 
 
 READ_CHUNK = 1 << 18     # texels per `_accumulate` call: one compiled shape, whatever a view reads
+# bytes a texel a channel while `texel_view_statistics_of` runs: the running mean and sum of squares and
+# the view's channel sum (float32 each); plus, per texel whatever the channels, the count and read weight
+EVIDENCE_BYTES_PER_CHANNEL = 12
+EVIDENCE_BYTES_PER_TEXEL = 8
 
 
 def _read_texels(weight: np.ndarray, num_texels: int) -> np.ndarray:
@@ -134,22 +157,26 @@ def _channel_sum(plan: GatherPlan, plane: jnp.ndarray, *, num_texels: int) -> jn
 
 @functools.partial(jax.jit, donate_argnums=(0,))
 def _accumulate(state, weight: jnp.ndarray, sums: tuple, read: jnp.ndarray):
-    """One view's update of (count (N,), mean (C, N), sum of squared deviations (C, N)) at the
-    texels `read` (a chunk of `_read_texels`), from the view's read weight w (N,) (`_evidence`)
-    and its weighted sums s, C arrays (N,) (`_channel_sum`): the view's value s / w joins the
-    texels with w > 0. The texels outside `read` are left as they are, as a dense update would."""
-    count, mean, squares = state
+    """One view's update of (count (N,), means, sums of squared deviations: one (C_k, N) each per
+    quantity) at the texels `read` (a chunk of `_read_texels`), from the view's read weight w (N,)
+    (`_evidence`) and its weighted sums s, per quantity C_k arrays (N,) (`_channel_sum`): the view's
+    value s / w joins the texels with w > 0. The texels outside `read` are left as they are, as a
+    dense update would."""
+    count, means, squares = state
     at = lambda a: a.at[..., read].get(mode="fill", fill_value=0)
     w = at(weight)
     seen = w > 0
-    value = jnp.stack([at(s) for s in sums]) / jnp.where(seen, w, 1.0)
     n = at(count) + seen
-    old = at(mean)
-    delta = value - old
-    new = old + jnp.where(seen, delta / jnp.maximum(n, 1), 0.0)
-    squared = at(squares) + jnp.where(seen, delta * (value - new), 0.0)
-    return (count.at[read].set(n, mode="drop"), mean.at[:, read].set(new, mode="drop"),
-            squares.at[:, read].set(squared, mode="drop"))
+    new_means, new_squares = [], []
+    for mean, square, quantity in zip(means, squares, sums):
+        value = jnp.stack([at(s) for s in quantity]) / jnp.where(seen, w, 1.0)
+        old = at(mean)
+        delta = value - old
+        new = old + jnp.where(seen, delta / jnp.maximum(n, 1), 0.0)
+        squared = at(square) + jnp.where(seen, delta * (value - new), 0.0)
+        new_means.append(mean.at[:, read].set(new, mode="drop"))
+        new_squares.append(square.at[:, read].set(squared, mode="drop"))
+    return count.at[read].set(n, mode="drop"), tuple(new_means), tuple(new_squares)
 
 
 def pixel_weights(plan: GatherPlan, counts: np.ndarray, out=None) -> np.ndarray:
