@@ -21,17 +21,17 @@ from jaxdistill.evaluate.scoring import Baseline, EvalContext, training_plan
 from jaxdistill.export import gltf, pages as page_files, plots, run_dir as run_files, usd
 from jaxdistill.io import images as imageio
 from jaxdistill.io.view_images import resize
-from jaxdistill.render import charts
+from jaxdistill.render import charts, visibility
 from jaxdistill.render.sampler import expand
-from jaxdistill.render import visibility
 from jaxdistill.scene.cameras import rgbx_camera_rotation
 from jaxdistill.scene.maps import CHANNELS
 
 
 MAP_FILES_BESIDE_BYTES = 1 << 30     # `map_files_beside`: one map's full pages up to 1 GiB (30 pages of 2048²: 1.4 GiB)
-# `evidence_passes`: the evidence's work arrays of one pass over the views up to 1 GiB (the bedroom's five
-# maps, 4.1M texels x 11 channels: 0.57 GiB in one pass; a capture's 60M texels: a map a pass, as before)
-EVIDENCE_PASS_BYTES = 1 << 30
+# `evidence_passes`: what one pass over the views holds at most, 512 MiB (the bedroom's 4.1M texels: albedo
+# and normal in one pass, roughness, metallic and irradiance in another, 0.49 and 0.41 GiB; a capture's 60M
+# texels: a map a pass, as before). One pass of all five maps there held 0.36 GB more at the run's peak.
+EVIDENCE_PASS_BYTES = 1 << 29
 
 
 class OutputPhases:

@@ -103,7 +103,7 @@ def texel_view_statistics_of(plan: GatherPlan, images: Iterable[Sequence[np.ndar
     the plan alone, is one array shared by all. What depends on the view's plan alone (its read
     weight, `_evidence`, and the texels it reads, `_read_texels`) is computed once per view for all
     the quantities, so K maps in one pass cost one of them K - 1 times less; the work arrays are then
-    K quantities' (sum C_k, N) at once (`EVIDENCE_BYTES_PER_CHANNEL` a texel a channel)."""
+    K quantities' (sum C_k, N) at once (`EVIDENCE_BYTES_PER_CHANNEL` a texel a channel at most)."""
     state = None
     zeros = jnp.zeros((num_texels, 1), jnp.float32)
     for v, group in enumerate(images):
@@ -123,18 +123,23 @@ def texel_view_statistics_of(plan: GatherPlan, images: Iterable[Sequence[np.ndar
     if state is None:
         raise ValueError("texel_view_statistics: no images")
     count = np.array(jax.device_get(state[0]))
+    means, squares = list(state[1]), list(state[2])
+    del state, sums, weight, group, one
     out = []
-    for mean, squares in zip(state[1], state[2]):
-        mean, squares = np.array(jax.device_get(mean)), np.array(jax.device_get(squares))
-        variance = np.maximum(squares, 0.0) / np.maximum(count, 1)      # rounding can leave -ulp where views agree
-        out.append((count, np.ascontiguousarray(mean.T), np.ascontiguousarray(variance.T)))
+    for k in range(len(means)):         # a quantity at a time, its device arrays let go as it is handed back
+        mean, square = (np.ascontiguousarray(np.asarray(jax.device_get(a)).T) for a in (means[k], squares[k]))
+        means[k] = squares[k] = None
+        variance = np.maximum(square, 0.0) / np.maximum(count, 1)[:, None]     # rounding can leave -ulp where views agree
+        del square
+        out.append((count, mean, variance))
     return out
 
 
 READ_CHUNK = 1 << 18     # texels per `_accumulate` call: one compiled shape, whatever a view reads
-# bytes a texel a channel while `texel_view_statistics_of` runs: the running mean and sum of squares and
-# the view's channel sum (float32 each); plus, per texel whatever the channels, the count and read weight
-EVIDENCE_BYTES_PER_CHANNEL = 12
+# bytes a texel a channel that `texel_view_statistics_of` holds at most: the running mean and sum of squares
+# and the view's channel sum on the device, the mean and variance it hands back (float32 each); plus, per
+# texel whatever the channels, the count and the view's read weight
+EVIDENCE_BYTES_PER_CHANNEL = 20
 EVIDENCE_BYTES_PER_TEXEL = 8
 
 
