@@ -509,17 +509,17 @@ def test_material_images_built_one_map_at_a_time(maps):
 
 def test_evidence_passes_take_as_many_maps_a_pass_as_fit_the_budget():
     """The evidence's maps in order, in as few passes over the views as keep what each pass holds
-    (8 bytes a texel and 20 a texel a channel) within the budget; a map alone over it gets a pass."""
+    (12 bytes a texel and 20 a texel a channel) within the budget; a map alone over it gets a pass."""
     from jaxdistill.export.outputs import EVIDENCE_PASS_BYTES, evidence_passes
 
     maps = ("albedo", "normal", "roughness", "metallic", "irradiance")       # 3, 3, 1, 1, 3 channels
     assert EVIDENCE_PASS_BYTES == 1 << 29
-    assert evidence_passes(maps, 4_097_280) == [("albedo", "normal"), ("roughness", "metallic", "irradiance")]
+    assert evidence_passes(maps, 4_097_280) == [("albedo",), ("normal", "roughness", "metallic"), ("irradiance",)]
     assert evidence_passes(maps, 60_000_000) == [(m,) for m in maps]       # a capture's texels: a map a pass
-    assert evidence_passes(maps, 1_000_000) == [maps]                        # 0.21 GiB
+    assert evidence_passes(maps, 1_000_000) == [maps]                        # 0.22 GiB
     n = 1000
-    assert evidence_passes(maps, n, budget=n * (8 + 20 * 7)) == [("albedo", "normal", "roughness"),
+    assert evidence_passes(maps, n, budget=n * (12 + 20 * 7)) == [("albedo", "normal", "roughness"),
                                                                  ("metallic", "irradiance")]
-    assert evidence_passes(maps, n, budget=n * (8 + 20 * 7) - 1) == [("albedo", "normal"),
+    assert evidence_passes(maps, n, budget=n * (12 + 20 * 7) - 1) == [("albedo", "normal"),
                                                                      ("roughness", "metallic", "irradiance")]
     assert evidence_passes(("albedo",), n, budget=1) == [("albedo",)]

@@ -28,9 +28,9 @@ from jaxdistill.scene.maps import CHANNELS
 
 
 MAP_FILES_BESIDE_BYTES = 1 << 30     # `map_files_beside`: one map's full pages up to 1 GiB (30 pages of 2048²: 1.4 GiB)
-# `evidence_passes`: what one pass over the views holds at most, 512 MiB (the bedroom's 4.1M texels: albedo
-# and normal in one pass, roughness, metallic and irradiance in another, 0.49 and 0.41 GiB; a capture's 60M
-# texels: a map a pass, as before). One pass of all five maps there held 0.36 GB more at the run's peak.
+# `evidence_passes`: about what one pass over the views holds, up to 512 MiB (the bedroom's 4.1M texels:
+# albedo; normal, roughness and metallic; irradiance, 0.27, 0.43 and 0.27 GiB; a capture's 60M texels: a map
+# a pass, as before). One pass of all five maps there held 0.36 GB more at the run's peak.
 EVIDENCE_PASS_BYTES = 1 << 29
 
 
@@ -133,9 +133,9 @@ def write_evidence(out: Path, problem: Problem, ctx: EvalContext, baseline: list
 
 
 def evidence_passes(maps, num_texels: int, budget: int = EVIDENCE_PASS_BYTES) -> list[tuple[str, ...]]:
-    """`maps` in order, grouped into passes of `visibility.texel_view_statistics_of` whose work arrays
-    (`visibility.EVIDENCE_BYTES_*`) fit `budget` bytes: each pass computes the views' read weights once
-    for its maps. A map over the budget alone gets a pass of its own (as every map had before)."""
+    """`maps` in order, grouped into passes of `visibility.texel_view_statistics_of` that hold about
+    `budget` bytes at most (`visibility.EVIDENCE_BYTES_*`): each pass computes the views' read weights
+    once for its maps. A map over the budget alone gets a pass of its own (as every map had before)."""
     def nbytes(group):
         return num_texels * (visibility.EVIDENCE_BYTES_PER_TEXEL +
                              visibility.EVIDENCE_BYTES_PER_CHANNEL * sum(CHANNELS[m] for m in group))

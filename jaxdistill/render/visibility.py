@@ -79,7 +79,8 @@ def texel_evidence(plan: GatherPlan, num_texels: int) -> np.ndarray:
 def texel_view_statistics(plan: GatherPlan, images: Iterable[np.ndarray], num_texels: int
                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """What the views say about each texel: (count (N,) int32 of views that read it, mean (N, C)
-    and variance (N, C) float32 of their values across those views; 0 where none reads it).
+    float32 and variance (N, C) float64 (float32 sums of squares over the counts) of their values
+    across those views; 0 where none reads it).
     A view's value at a texel is the gather-weighted mean of the pixels of its image (H, W, C)
     that read the texel (through the transpose of `render`), so every view counts once.
     `images` (one per view of `plan`, in order) may be a generator: one view's image is in memory
@@ -102,10 +103,10 @@ def texel_view_statistics_of(plan: GatherPlan, images: Iterable[Sequence[np.ndar
     `texel_view_statistics` gives it for that quantity's images alone; the count, which depends on
     the plan alone, is one array shared by all. What depends on the view's plan alone (its read
     weight, `_evidence`, and the texels it reads, `_read_texels`) is computed once per view for all
-    the quantities, so K maps in one pass cost one of them K - 1 times less; the work arrays are then
-    K quantities' (sum C_k, N) at once (`EVIDENCE_BYTES_PER_CHANNEL` a texel a channel at most)."""
+    the quantities, once instead of K times for K of them; the work arrays are then all K quantities'
+    at once (about `EVIDENCE_BYTES_PER_TEXEL` + `EVIDENCE_BYTES_PER_CHANNEL` * sum C_k bytes a texel). The
+    count is shared: a caller must not write into it."""
     state = None
-    zeros = jnp.zeros((num_texels, 1), jnp.float32)
     for v, group in enumerate(images):
         group = tuple(jnp.asarray(image, jnp.float32) for image in group)
         if state is None:
@@ -113,7 +114,7 @@ def texel_view_statistics_of(plan: GatherPlan, images: Iterable[Sequence[np.ndar
                      tuple(jnp.zeros((image.shape[-1], num_texels), jnp.float32) for image in group),
                      tuple(jnp.zeros((image.shape[-1], num_texels), jnp.float32) for image in group))
         one = jax.device_put(plan.select(v))              # once for the view's several calls
-        weight = _evidence(one, zeros)                     # the view's read weight w per texel
+        weight = _read_weight(one, num_texels=num_texels)  # the view's read weight w per texel
         read = _read_texels(np.asarray(weight), num_texels)
         sums = tuple(tuple(_channel_sum(one, image[..., c], num_texels=num_texels) for c in range(image.shape[-1]))
                      for image in group)
@@ -124,7 +125,7 @@ def texel_view_statistics_of(plan: GatherPlan, images: Iterable[Sequence[np.ndar
         raise ValueError("texel_view_statistics: no images")
     count = np.array(jax.device_get(state[0]))
     means, squares = list(state[1]), list(state[2])
-    del state, sums, weight, group, one
+    del state, sums, weight, read, group, one
     out = []
     for k in range(len(means)):         # a quantity at a time, its device arrays let go as it is handed back
         mean, square = (np.ascontiguousarray(np.asarray(jax.device_get(a)).T) for a in (means[k], squares[k]))
@@ -136,11 +137,13 @@ def texel_view_statistics_of(plan: GatherPlan, images: Iterable[Sequence[np.ndar
 
 
 READ_CHUNK = 1 << 18     # texels per `_accumulate` call: one compiled shape, whatever a view reads
-# bytes a texel a channel that `texel_view_statistics_of` holds at most: the running mean and sum of squares
-# and the view's channel sum on the device, the mean and variance it hands back (float32 each); plus, per
-# texel whatever the channels, the count and the view's read weight
+# about what `texel_view_statistics_of` holds, in bytes a texel a channel: while it runs, the running mean and
+# sum of squares and the view's channel sum (float32 each: 12); while it hands them back, the mean (float32)
+# and variance (float64) handed back (12) beside the running arrays not handed back yet (8 each). And a
+# texel whatever the channels: the count, the view's read weight and the ids of the texels it reads
+# (int32, up to one a texel)
 EVIDENCE_BYTES_PER_CHANNEL = 20
-EVIDENCE_BYTES_PER_TEXEL = 8
+EVIDENCE_BYTES_PER_TEXEL = 12
 
 
 def _read_texels(weight: np.ndarray, num_texels: int) -> np.ndarray:
@@ -148,6 +151,12 @@ def _read_texels(weight: np.ndarray, num_texels: int) -> np.ndarray:
     writes are dropped) to a multiple of READ_CHUNK."""
     read = np.flatnonzero(weight > 0).astype(np.int32)
     return np.pad(read, (0, -len(read) % READ_CHUNK), constant_values=num_texels)
+
+
+@functools.partial(jax.jit, static_argnames=("num_texels",))
+def _read_weight(plan: GatherPlan, *, num_texels: int) -> jnp.ndarray:
+    """(N,) float32: `_evidence` with the texel count as a number (no (N, 1) array to say it)."""
+    return _transposed(plan, plan.hit, num_texels)
 
 
 @functools.partial(jax.jit, static_argnames=("num_texels",))
