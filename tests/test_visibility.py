@@ -194,7 +194,7 @@ def test_texel_view_statistics_do_not_depend_on_how_the_read_texels_are_chunked(
     rng = np.random.default_rng(7)
     images = [rng.uniform(-1, 1, (*f.shape, 3)).astype(np.float32) for f in frags]
     whole = texel_view_statistics(plan, images, space.num_texels)
-    read = [int((visibility._evidence(plan.select(v), jnp.zeros((space.num_texels, 1))) > 0).sum())
+    read = [int((visibility._evidence(plan.select(v), num_texels=space.num_texels) > 0).sum())
             for v in range(plan.num_views)]
     assert max(read) <= visibility.READ_CHUNK                              # one chunk each by default
     monkeypatch.setattr(visibility, "READ_CHUNK", 37)

@@ -43,10 +43,9 @@ def visibility_weights(counts):
 
 def view_counts(plan: GatherPlan, num_texels: int) -> np.ndarray:
     """(N,) int32: number of views whose plan touches each compact texel."""
-    zeros = jnp.zeros((num_texels, 1), jnp.float32)
     counts = np.zeros(num_texels, np.int32)
     for v in range(plan.num_views):
-        counts += np.asarray(_evidence(plan.select(v), zeros) > 0)
+        counts += np.asarray(_evidence(plan.select(v), num_texels=num_texels) > 0)
     return counts
 
 
@@ -58,10 +57,10 @@ def _transposed(plan: GatherPlan, plane: jnp.ndarray, num_texels: int) -> jnp.nd
     return grad[:, 0]
 
 
-@jax.jit
-def _evidence(plan: GatherPlan, num_texels_like: jnp.ndarray) -> jnp.ndarray:
-    """(N,) float32: the transpose of the single-view `plan` applied to its hit mask."""
-    return _transposed(plan, plan.hit, num_texels_like.shape[0])
+@functools.partial(jax.jit, static_argnames=("num_texels",))
+def _evidence(plan: GatherPlan, *, num_texels: int) -> jnp.ndarray:
+    """(N,) float32: the transpose of the single-view `plan` applied to its hit mask (its read weight)."""
+    return _transposed(plan, plan.hit, num_texels)
 
 
 def texel_evidence(plan: GatherPlan, num_texels: int) -> np.ndarray:
@@ -69,10 +68,9 @@ def texel_evidence(plan: GatherPlan, num_texels: int) -> np.ndarray:
     (the transpose of `render` applied to every view's hit mask). A texel that one pixel reads
     alone at level 0 gets 1; a read through mip level l spreads over 4^l texels, 4^-l each, so
     texels seen only at grazing angles or through coarse levels get little evidence."""
-    zeros = jnp.zeros((num_texels, 1), jnp.float32)
     total = np.zeros(num_texels, np.float64)
     for v in range(plan.num_views):
-        total += np.asarray(_evidence(plan.select(v), zeros), np.float64)
+        total += np.asarray(_evidence(plan.select(v), num_texels=num_texels), np.float64)
     return total.astype(np.float32)
 
 
@@ -114,7 +112,7 @@ def texel_view_statistics_of(plan: GatherPlan, images: Iterable[Sequence[np.ndar
                      tuple(jnp.zeros((image.shape[-1], num_texels), jnp.float32) for image in group),
                      tuple(jnp.zeros((image.shape[-1], num_texels), jnp.float32) for image in group))
         one = jax.device_put(plan.select(v))              # once for the view's several calls
-        weight = _read_weight(one, num_texels=num_texels)  # the view's read weight w per texel
+        weight = _evidence(one, num_texels=num_texels)     # the view's read weight w per texel
         read = _read_texels(np.asarray(weight), num_texels)
         sums = tuple(tuple(_channel_sum(one, image[..., c], num_texels=num_texels) for c in range(image.shape[-1]))
                      for image in group)
@@ -151,12 +149,6 @@ def _read_texels(weight: np.ndarray, num_texels: int) -> np.ndarray:
     writes are dropped) to a multiple of READ_CHUNK."""
     read = np.flatnonzero(weight > 0).astype(np.int32)
     return np.pad(read, (0, -len(read) % READ_CHUNK), constant_values=num_texels)
-
-
-@functools.partial(jax.jit, static_argnames=("num_texels",))
-def _read_weight(plan: GatherPlan, *, num_texels: int) -> jnp.ndarray:
-    """(N,) float32: `_evidence` with the texel count as a number (no (N, 1) array to say it)."""
-    return _transposed(plan, plan.hit, num_texels)
 
 
 @functools.partial(jax.jit, static_argnames=("num_texels",))
