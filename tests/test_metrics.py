@@ -427,6 +427,35 @@ def test_seam_pairs_and_energy_match_a_loop_reference():
         metrics.seam_pairs(region, object_id[:5])
 
 
+def test_seam_pairs_are_a_loop_references_pairs_in_order_and_their_packed_edges_round_trip():
+    """The pairs, in order, of a loop over pixels (right neighbours, then lower ones, each row-major),
+    from `seam_edges` and from its two bits a pixel packed and unpacked."""
+    rng = np.random.default_rng(3)
+    for h, w in ((11, 13), (1, 7), (6, 1), (5, 3)):
+        region, object_id, mask = rng.integers(0, 3, (h, w)), rng.integers(0, 2, (h, w)), rng.random((h, w)) > 0.2
+        expected = ([], [])
+        for dr, dc in ((0, 1), (1, 0)):
+            for r in range(h - dr):
+                for c in range(w - dc):
+                    rr, cc = r + dr, c + dc
+                    if (mask[r, c] and mask[rr, cc] and object_id[r, c] == object_id[rr, cc]
+                            and region[r, c] != region[rr, cc]):
+                        expected[0].append(r * w + c)
+                        expected[1].append(rr * w + cc)
+        edges = metrics.seam_edges(region, object_id, mask)
+        packed = metrics.pack_seam_edges(edges)
+        assert packed.dtype == np.uint8 and packed.shape == (metrics.seam_edge_bytes(h, w),) == (-(-2 * h * w // 8),)
+        np.testing.assert_array_equal(metrics.unpack_seam_edges(packed, h, w), edges)
+        for pairs in (metrics.seam_pairs(region, object_id, mask), metrics.seam_edge_pairs(edges)):
+            for got, want in zip(pairs, expected, strict=True):
+                assert got.dtype == np.int32
+                np.testing.assert_array_equal(got, np.array(want, np.int64))
+    with pytest.raises(ValueError, match="are 2 bytes"):
+        metrics.unpack_seam_edges(np.zeros(3, np.uint8), 2, 3)
+    with pytest.raises(ValueError, match=r"\(2, H, W\)"):
+        metrics.seam_edge_pairs(np.zeros((3, 2, 2), bool))
+
+
 def test_irradiance_seam_energy_is_exposure_free():
     rng = np.random.default_rng(1)
     gt = rng.uniform(0.5, 2.0, (8, 8, 3))

@@ -19,7 +19,7 @@ from jaxdistill.engine.config import DistillConfig
 from jaxdistill.engine.problem import build_problem, view_data_bytes
 from jaxdistill.errors import InputError
 from jaxdistill.io import view_rows
-from jaxdistill.io.view_rows import RaggedRows, ViewFolder, ViewRows, placement, view_array
+from jaxdistill.io.view_rows import ViewFolder, ViewRows, placement, view_array
 from jaxdistill.render.fragments import FRAGMENT_FIELDS, FragmentRows
 from jaxdistill.scene.model import read_scene
 from tiny_scene import write_tiny_scene
@@ -78,51 +78,45 @@ def test_rows_refuse_what_they_cannot_hold_and_a_full_disk_is_named(tmp_path, mo
     assert "--view_data=memory" in str(err.value)
 
 
-def test_ragged_rows_read_back_each_views_arrays_as_written(tmp_path, monkeypatch):
-    """Per-view tuples of arrays of varying length (the seam pairs): read back as written, in any
-    order and from two threads at once; the file nameless and its size what was written; a full
-    disk named."""
+def test_seam_pairs_are_held_as_two_bits_a_pixel_and_read_back_from_a_file(tmp_path):
+    """The evaluation's seam pairs as packed edges (`scoring.SeamPairs`): from a list or a
+    `ViewRows` file, in any order and from two threads at once, the pairs `metrics.seam_pairs`
+    gives, views of several sizes; the file takes two bits a pixel, whatever the pairs."""
+    from jaxdistill.evaluate import metrics, scoring
+
     rng = np.random.default_rng(0)
-    views = [tuple(rng.integers(0, 1000, n).astype(np.int32) for _ in range(2)) for n in (5, 0, 17, 1)]
+    shapes = [(7, 9), (7, 9), (7, 9), (7, 9)]
+    views = [(rng.integers(0, k, s), rng.integers(0, 2, s), rng.random(s) > 0.1) for k, s in zip((3, 1, 5, 2), shapes)]
+    pairs = [metrics.seam_pairs(*view) for view in views]
+    assert [len(a) for a, _ in pairs][1] == 0 and sum(len(a) for a, _ in pairs) > 0
     folder = ViewFolder(tmp_path)
-    rows = folder.ragged("seams", np.int32, 2)
-    for pair in views:
-        rows.append(pair)
-    assert list(folder.root.iterdir()) == [] and len(rows) == 4
-    assert rows.nbytes == os.fstat(rows._fd).st_size == sum(a.nbytes for pair in views for a in pair) == folder.nbytes
-    for v in (2, 0, 3, 1, -1):
-        got = rows[v]
-        assert len(got) == 2 and all(a.dtype == np.int32 for a in got)
-        for a, b in zip(got, views[v], strict=True):
-            np.testing.assert_array_equal(a, b)
-    assert [len(a) for a, _ in rows[1:3]] == [0, 17]
-    with ThreadPoolExecutor(2) as pool:
-        for got, pair in zip(pool.map(rows.__getitem__, [2, 0, 2, 3] * 8), [views[i] for i in [2, 0, 2, 3] * 8]):
-            np.testing.assert_array_equal(got[1], pair[1])
-    with pytest.raises(IndexError):
-        rows[4]
-    with pytest.raises(ValueError, match="2 1-D arrays"):
-        rows.append((np.zeros(3, np.int32),))
-
-    def full(fd, offset, length):
-        raise OSError(errno.ENOSPC, "No space left on device")
-
-    with pytest.raises(ValueError, match="values it cannot hold"):
-        rows.append((np.zeros(3, np.int32), np.array([2 ** 40, 0, 1])))
-    with pytest.raises(ValueError, match="values it cannot hold"):
-        rows.append((np.zeros(3, np.int32), np.zeros(3, np.float32)))
-    with pytest.raises(TypeError):
-        rows[0.9]
-    monkeypatch.setattr(os, "posix_fallocate", full)
-    with pytest.raises(InputError) as err:
-        rows.append((np.zeros(3, np.int32), np.zeros(3, np.int32)))
-    assert str(folder.root) in str(err.value) and "--view_data=memory" in str(err.value)
-    written = sum(a.nbytes for pair in views for a in pair)
-    assert len(rows) == 4 and rows.nbytes == written == folder.nbytes           # nothing half-written or counted
-    monkeypatch.undo()
+    rows = folder.rows("seams", (4, metrics.seam_edge_bytes(7, 9)), np.uint8)
+    listed = []
+    for v, view in enumerate(views):
+        rows[v] = metrics.pack_seam_edges(metrics.seam_edges(*view))
+        listed.append(metrics.pack_seam_edges(metrics.seam_edges(*view)))
+    assert folder.nbytes == os.fstat(rows._fd).st_size == 4 * -(-2 * 7 * 9 // 8)
+    for seams in (scoring.SeamPairs(rows, shapes), scoring.SeamPairs(listed, shapes)):
+        assert len(seams) == 4
+        for v in (2, 0, 3, 1, -1):
+            for got, want in zip(seams[v], pairs[v], strict=True):
+                assert got.dtype == np.int32
+                np.testing.assert_array_equal(got, want)
+        with ThreadPoolExecutor(2) as pool:
+            for got, v in zip(pool.map(seams.__getitem__, [2, 0, 2, 3] * 8), [2, 0, 2, 3] * 8):
+                np.testing.assert_array_equal(got[1], pairs[v][1])
+        with pytest.raises(IndexError):
+            seams[4]
+    odd = [(rng.integers(0, 3, s), np.zeros(s, int)) for s in ((3, 5), (6, 2))]     # 30 and 24 bits: whole bytes
+    seams = scoring.SeamPairs([metrics.pack_seam_edges(metrics.seam_edges(*o)) for o in odd], [(3, 5), (6, 2)])
+    for v, o in enumerate(odd):
+        for got, want in zip(seams[v], metrics.seam_pairs(*o), strict=True):
+            np.testing.assert_array_equal(got, want)
+    with pytest.raises(ValueError, match="2 views' shapes"):
+        scoring.SeamPairs(listed, shapes[:2])
     rows.close()
     with pytest.raises(ValueError, match="is closed"):
-        rows[0]
+        scoring.SeamPairs(rows, shapes)[0]
 
 
 def test_view_array_is_numpy_in_memory_and_rows_on_disk(tmp_path):
@@ -216,10 +210,10 @@ def test_a_problem_on_disk_reads_the_batches_and_scores_of_one_in_memory(tiny_sc
     if terms:
         assert all(isinstance(a, ViewRows) for a in (disk.photos.photos, disk.photos.guide, disk.photos.index,
                                                      disk.photos.hit, disk.photos.pixel_weight))
-    # what the set-up checked against the free space before any compute is what the files took, to the byte
-    # (the seam pairs apart: their size is known only once they are made)
+    # what the set-up checked against the free space before any compute is what the files took, to the byte,
+    # the evaluation's seam pairs included (two bits a pixel, whatever the seams)
     checked = view_data_bytes(config, disk.scene, disk.choice, disk.channels, (disk.height, disk.width))
-    assert checked == disk.view_folder.nbytes - disk_ctx.seams.nbytes > 0
+    assert checked == disk.view_folder.nbytes > 0
     for ids in ([0, 1], [3, 3], [2, 0]):
         a, b = memory.batch(np.array(ids)), disk.batch(np.array(ids))
         assert a.keys() == b.keys() and ("photo" in a) == bool(terms)
@@ -233,7 +227,7 @@ def test_a_problem_on_disk_reads_the_batches_and_scores_of_one_in_memory(tiny_sc
     for one, other in zip(*renders):
         for m in one:
             np.testing.assert_array_equal(one[m], other[m])
-    assert isinstance(disk_ctx.seams, RaggedRows) and isinstance(memory_ctx.seams, list)
+    assert isinstance(disk_ctx.seams.packed, ViewRows) and isinstance(memory_ctx.seams.packed, list)
     assert isinstance(memory_ctx.masks, list) and sum(m.sum() for m in memory_ctx.masks) > 0
     for one, other in zip(memory_ctx.masks, disk_ctx.masks, strict=True):
         np.testing.assert_array_equal(one, other)

@@ -477,8 +477,8 @@ def view_data_bytes(config: DistillConfig, scene: Scene, choice: PriorChoice, ch
     channels) there, and with the re-rendering term fragments, plans, photos (3 float32) and chroma
     guides (2, --albedo_smoothness) at the photo size; the evaluation's (`evaluation`: the primary's)
     1-byte masks at the photos' own size, with fragments and plans (no pixel weight) there when
-    neither size is theirs. Not counted: the evaluation's seam pairs, whose size is known only once
-    they are made (`scoring.evaluation_context`)."""
+    neither size is theirs, and its seam pairs, two bits a pixel there (`metrics.seam_edge_bytes`,
+    a view's bits in whole bytes)."""
     held = scene.views if views is None else views
     taps = TAPS[config.sampler]
     frag, plan = fr.BYTES_PER_PIXEL, 8 * taps + 4 + 1
@@ -493,7 +493,8 @@ def view_data_bytes(config: DistillConfig, scene: Scene, choice: PriorChoice, ch
     if evaluation and native is not None:
         # the masks; the fragments and plans too (the hit mask, no pixel weight) when no other size is theirs
         per_pixel[native] = per_pixel.get(native, frag + plan - 4) + 1
-    return sum(len(held) * h * w * nbytes for (h, w), nbytes in per_pixel.items())
+    seams = len(held) * ((2 * native[0] * native[1] + 7) // 8) if evaluation and native is not None else 0
+    return seams + sum(len(held) * h * w * nbytes for (h, w), nbytes in per_pixel.items())
 
 
 def _view_data_folder(config: DistillConfig, scene: Scene, choice: PriorChoice, channels: MapChannels,

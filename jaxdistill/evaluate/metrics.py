@@ -361,28 +361,64 @@ def aggregate(per_view: Sequence[Mapping[str, float]]) -> dict[str, float]:
 
 # ----------------------------------------------------------------------------- seams
 
-def seam_pairs(region, object_id, mask=None) -> tuple[np.ndarray, np.ndarray]:
-    """(a, b) flat pixel indices of the 4-neighbour pairs that straddle a seam.
+def seam_edges(region, object_id, mask=None) -> np.ndarray:
+    """(2, H, W) bool: [0, y, x] where pixel (y, x) and its right neighbour straddle a seam, [1, y, x]
+    where it and its lower neighbour do (the last column of [0] and last row of [1] are False).
 
     region: (H, W) int labels whose changes are seams (a triangle, a chart, the view that
     supplies a texel's evidence: see `evaluation.seam_regions`); object_id: (H, W) int, the
-    object a pixel sees. A pair is a pixel and its right or lower neighbour, both in `mask`,
-    on the same object (object outlines are edges in any map, not seams), with different
-    regions. Row-major flat indices into H * W, int32 (half of int64's memory: a run keeps every
-    view's pairs for its scores).
+    object a pixel sees. A pair straddles a seam when both pixels are in `mask`, on the same
+    object (object outlines are edges in any map, not seams), with different regions. Two bits a
+    pixel, a size known before the regions are (`pack_seam_edges`), where the pairs' flat indices
+    take up to 16 bytes a pixel.
     """
     region, object_id = np.asarray(region), np.asarray(object_id)
     if region.ndim != 2 or object_id.shape != region.shape:
         raise ValueError(f"region and object_id must be (H, W) arrays of one shape, got {region.shape} and "
                          f"{object_id.shape}")
     mask = _mask(mask, region.shape)
-    index = np.arange(region.size, dtype=np.int32 if region.size < 2 ** 31 else np.int64).reshape(region.shape)
-    firsts, seconds = [], []
-    for a, b in ((np.s_[:, :-1], np.s_[:, 1:]), (np.s_[:-1, :], np.s_[1:, :])):
-        keep = (mask[a] & mask[b] & (object_id[a] == object_id[b]) & (region[a] != region[b]))
-        firsts.append(index[a][keep])
-        seconds.append(index[b][keep])
-    return np.concatenate(firsts), np.concatenate(seconds)
+    edges = np.zeros((2,) + region.shape, bool)
+    for k, (a, b) in enumerate(((np.s_[:, :-1], np.s_[:, 1:]), (np.s_[:-1, :], np.s_[1:, :]))):
+        edges[k][a] = mask[a] & mask[b] & (object_id[a] == object_id[b]) & (region[a] != region[b])
+    return edges
+
+
+def seam_edge_pairs(edges) -> tuple[np.ndarray, np.ndarray]:
+    """(a, b) flat pixel indices of `seam_edges`' pairs: the right-neighbour pairs, then the
+    lower-neighbour ones, each in row-major order of a. Row-major flat indices into H * W, int32
+    below 2**31 pixels (half of int64's memory)."""
+    edges = np.asarray(edges, bool)
+    if edges.ndim != 3 or edges.shape[0] != 2:
+        raise ValueError(f"seam edges are a (2, H, W) bool array, got shape {edges.shape}")
+    width = edges.shape[2]
+    dtype = np.int32 if edges[0].size < 2 ** 31 else np.int64
+    right, down = np.flatnonzero(edges[0]).astype(dtype), np.flatnonzero(edges[1]).astype(dtype)
+    return np.concatenate([right, down]), np.concatenate([right + 1, down + width])
+
+
+def seam_pairs(region, object_id, mask=None) -> tuple[np.ndarray, np.ndarray]:
+    """(a, b) flat pixel indices of the 4-neighbour pairs that straddle a seam: a pixel and its
+    right or lower neighbour (`seam_edges` says which pairs, `seam_edge_pairs` in what order)."""
+    return seam_edge_pairs(seam_edges(region, object_id, mask))
+
+
+def seam_edge_bytes(height: int, width: int) -> int:
+    """Bytes of a view's `pack_seam_edges`: two bits a pixel."""
+    return (2 * height * width + 7) // 8
+
+
+def pack_seam_edges(edges) -> np.ndarray:
+    """`seam_edges` as (seam_edge_bytes(H, W),) uint8 bits (numpy's packbits, big-endian)."""
+    return np.packbits(np.asarray(edges, bool).ravel())
+
+
+def unpack_seam_edges(packed, height: int, width: int) -> np.ndarray:
+    """`pack_seam_edges`' bits back as the (2, H, W) bool edges."""
+    packed = np.asarray(packed, np.uint8)
+    if packed.shape != (seam_edge_bytes(height, width),):
+        raise ValueError(f"the seam edges of a {height}x{width} view are {seam_edge_bytes(height, width)} bytes, "
+                         f"got an array of shape {packed.shape}")
+    return np.unpackbits(packed, count=2 * height * width).astype(bool).reshape(2, height, width)
 
 
 def seam_energy(image, pairs: tuple[np.ndarray, np.ndarray]) -> float:

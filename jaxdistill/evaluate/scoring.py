@@ -32,7 +32,27 @@ class EvalContext:
     gt_maps: list | None
     masks: Sequence          # per view (H, W) bool: a list, or a `ViewRows` file with --view_data on disk
     plan: GatherPlan
-    seams: Sequence          # per view, its (a, b) seam pairs: a list, or a `RaggedRows` file with --view_data on disk
+    seams: Sequence          # per view, its (a, b) seam pairs (`SeamPairs`: two bits a pixel in memory or a file)
+
+
+class SeamPairs(Sequence):
+    """Per view, its (a, b) seam pairs (`metrics.seam_pairs`), made when asked for from the view's
+    packed seam edges (`packed[v]`: a list or a `ViewRows` file of `metrics.pack_seam_edges`) and
+    its (H, W) in `shapes`: 2 bits a pixel held, where the pairs take up to 16 bytes a pixel."""
+
+    def __init__(self, packed: Sequence, shapes: Sequence[tuple[int, int]]):
+        if len(packed) != len(shapes):
+            raise ValueError(f"{len(packed)} views' seam edges for {len(shapes)} views' shapes")
+        self.packed, self.shapes = packed, list(shapes)
+
+    def __len__(self) -> int:
+        return len(self.shapes)
+
+    def __getitem__(self, v):
+        if isinstance(v, slice):
+            return [self[i] for i in range(*v.indices(len(self)))]
+        v = range(len(self))[v]                       # a negative index counts from the end; IndexError past it
+        return metrics.seam_edge_pairs(metrics.unpack_seam_edges(self.packed[v], *self.shapes[v]))
 
 
 def training_plan(problem: Problem) -> GatherPlan:
@@ -64,13 +84,14 @@ def evaluation_context(config: DistillConfig, problem: Problem) -> EvalContext:
     masks = evaluation.evaluation_masks(gt, scene, frags, out=problem.empty_views(
         "eval_masks", (len(frags), *frags.shape), bool) if isinstance(frags, FragmentRows) else None)
     owner = evaluation.dominant_views(problem.plan_index, problem.plan_weight, problem.space.pyramid_size)
-    # every view's seam pairs, kept for the scores: with --view_data on disk in a file (about 4 MiB a view of
-    # 876x584 on the capture room, 2.4 GiB of a run's memory at 600 views; docs/benchmarks.md §10)
+    # every view's seam pairs, kept for the scores as two bits a pixel (`metrics.pack_seam_edges`): with
+    # --view_data on disk in a file, whose size the set-up's disk check counts (`problem.view_data_bytes`)
     shapes = [frags.shape] * len(frags) if isinstance(frags, FragmentRows) else [f.shape for f in frags]  # (no read)
-    index = np.int32 if max((h * w for h, w in shapes), default=0) < 2 ** 31 else np.int64   # as seam_pairs gives
-    seams = [] if problem.view_folder is None else problem.view_folder.ragged("seams", index, 2)
-    for region, f, m in zip(evaluation.seam_regions(plan, frags, owner), frags, masks):
-        seams.append(metrics.seam_pairs(region, f.object_id, m))
+    packed = (problem.empty_views("seams", (len(frags), metrics.seam_edge_bytes(*frags.shape)), np.uint8)
+              if isinstance(frags, FragmentRows) else [None] * len(frags))
+    for v, (region, f, m) in enumerate(zip(evaluation.seam_regions(plan, frags, owner), frags, masks)):
+        packed[v] = metrics.pack_seam_edges(metrics.seam_edges(region, f.object_id, m))
+    seams = SeamPairs(packed, shapes)
     return EvalContext(gt, shapes, cameras, gt_maps, masks, plan, seams)
 
 

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import errno
 import math
-import operator
 import os
 import shutil
 import socket
@@ -50,18 +49,18 @@ def placement(view_data: str, nbytes: int) -> bool:
     return view_data == "disk" or (view_data == "auto" and nbytes > AUTO_DISK_BYTES)
 
 
-def _reserve(fd: int, nbytes: int, path: Path, offset: int = 0) -> None:
-    """Takes the file's disk space from `offset` on now (not a sparse file that fails half-way
+def _reserve(fd: int, nbytes: int, path: Path) -> None:
+    """Takes the file's disk space now (not a sparse file that fails half-way
     through a run), with an InputError naming the folder when the disk is full."""
     try:
         if hasattr(os, "posix_fallocate"):
-            os.posix_fallocate(fd, offset, nbytes)
+            os.posix_fallocate(fd, 0, nbytes)
         else:                                       # (macOS) sparse: the space check before compute stands
-            os.ftruncate(fd, offset + nbytes)
+            os.ftruncate(fd, nbytes)
     except OSError as err:
         if err.errno not in DISK_FULL:
             raise
-        raise _disk_full(path, f"{(offset + nbytes) / 2 ** 30:.2f} GB for {path.name.split('-')[0]} do not fit") from err
+        raise _disk_full(path, f"{nbytes / 2 ** 30:.2f} GB for {path.name.split('-')[0]} do not fit") from err
 
 
 DISK_FULL = (errno.ENOSPC, errno.EDQUOT)
@@ -164,64 +163,6 @@ class ViewRows(_UnlinkedFile):
         return out
 
 
-class RaggedRows(_UnlinkedFile, Sequence):
-    """Per view, a tuple of `parts` 1-D arrays of `dtype` whose lengths vary from view to view
-    (a view's seam pairs), in a file created at `path` and unlinked at once, like `ViewRows`.
-    `rows.append(arrays)` writes the next view's (taking their disk space then: a full disk is an
-    InputError naming the folder; `on_write(nbytes)` is told of each write); `rows[v]` reads view v's
-    back into new arrays. The views' offsets and lengths stay in memory (a few integers a view)."""
-
-    def __init__(self, path: Path, dtype, parts: int, on_write: Callable[[int], None] | None = None):
-        self.dtype, self.parts, self._on_write = np.dtype(dtype), int(parts), on_write
-        self._views: list[tuple[int, tuple[int, ...]]] = []       # (offset, lengths) per view
-        self.nbytes = 0                                           # on disk, so far
-        self._open(path)
-
-    def __len__(self) -> int:
-        return len(self._views)
-
-    def append(self, arrays) -> None:
-        self._check_open()
-        arrays = [np.asarray(a) for a in arrays]
-        if len(arrays) != self.parts or any(a.ndim != 1 for a in arrays):
-            raise ValueError(f"a view of {self.path.name} is {self.parts} 1-D arrays, got "
-                             f"{[a.shape for a in arrays]}")
-        if any(not np.can_cast(a.dtype, self.dtype, "same_kind") or (a.dtype.kind in "iu" and a.size and (
-                a.min() < np.iinfo(self.dtype).min or a.max() > np.iinfo(self.dtype).max)) for a in arrays):
-            raise ValueError(f"{self.path.name} holds {self.dtype}; got {[str(a.dtype) for a in arrays]} "
-                             "with values it cannot hold")
-        arrays = [np.ascontiguousarray(a, self.dtype) for a in arrays]
-        size = sum(a.nbytes for a in arrays)
-        if size:
-            _reserve(self._fd, size, self.path, offset=self.nbytes)
-        offset = self.nbytes
-        for a in arrays:
-            if a.nbytes and os.pwrite(self._fd, a.data.cast("B"), offset) != a.nbytes:
-                raise OSError(f"wrote less than {a.nbytes} bytes of view {len(self._views)} to {self.path}")
-            offset += a.nbytes
-        self._views.append((self.nbytes, tuple(len(a) for a in arrays)))
-        self.nbytes = offset
-        if self._on_write is not None:
-            self._on_write(size)
-
-    def __getitem__(self, v):
-        if isinstance(v, slice):
-            return [self[i] for i in range(*v.indices(len(self)))]
-        self._check_open()
-        v = operator.index(v)
-        if not -len(self) <= v < len(self):
-            raise IndexError(f"view {v} of {len(self)}")
-        offset, lengths = self._views[v]
-        out = []
-        for n in lengths:
-            a = np.empty(n, self.dtype)
-            if a.nbytes and os.preadv(self._fd, [a.data.cast("B")], offset) != a.nbytes:
-                raise OSError(f"read less than {a.nbytes} bytes of view {v} from {self.path}")
-            out.append(a)
-            offset += a.nbytes
-        return tuple(out)
-
-
 class ViewFolder:
     """Where `ViewRows` files are opened: `cache`/view_rows (created on first use)."""
 
@@ -254,13 +195,6 @@ class ViewFolder:
         rows = ViewRows(self._path(name), shape, dtype)
         self.nbytes += rows.nbytes
         return rows
-
-    def ragged(self, name: str, dtype, parts: int) -> RaggedRows:
-        """A `RaggedRows` file here; `nbytes` counts what it writes as it writes it."""
-        return RaggedRows(self._path(name), dtype, parts, on_write=self._written)
-
-    def _written(self, nbytes: int) -> None:
-        self.nbytes += nbytes
 
 
 def view_array(name: str, shape: tuple[int, ...], dtype, folder: ViewFolder | None):
