@@ -104,6 +104,26 @@ def test_back_faces_and_misses():
     assert np.all(f_away.uv == 0) and np.all(f_away.uv_grad == 0) and np.all(np.isinf(f_away.depth))
 
 
+def test_depths_alone_are_the_fragments_triangle_and_depth_bit_for_bit(cache_dir):
+    """`compute_depths` (the photo-light trace's triangles and depths) against `compute_fragments`' fields,
+    cast fresh and read from the cache, with misses, against the analytic plane too."""
+    mesh = synthetic.plane(2.0, 4)
+    cameras = [look_at_camera((0.3, 1.5, 0.8), (0.0, 0.0, 0.0), width=48, height=32, fx=20.0),
+               look_at_camera((0.0, 1.0, 0.0), (0.0, 2.0, 0.5), fx=10.0),                    # sees nothing
+               look_at_camera((-0.5, 0.7, -0.2), (0.2, 0.0, 0.1), width=40, height=40, fx=35.0)]
+    frags = fr.compute_fragments(mesh, cameras, cache_dir=False, progress=False)
+    fresh = fr.compute_depths(mesh, cameras, cache_dir=cache_dir)                   # cast, and written to the cache
+    cached = fr.compute_depths(mesh, cameras, cache_dir=cache_dir)                  # read back
+    for frag, one, other in zip(frags, fresh, cached, strict=True):
+        for tri, depth in (one, other):
+            assert tri.dtype == np.int32 and depth.dtype == np.float32
+            np.testing.assert_array_equal(tri, frag.triangle)
+            np.testing.assert_array_equal(depth, frag.depth)
+    hit, _, tri, depth = analytic_plane(cameras[0], 2.0, 4)
+    assert hit.mean() > 0.3 and (fresh[1][0] == -1).all() and np.isinf(fresh[1][1]).all()
+    np.testing.assert_allclose(fresh[0][1][hit], depth[hit], rtol=1e-6)
+
+
 def test_degenerate_triangles_are_never_hit_and_stay_finite():
     base = synthetic.plane(2.0, 2)
     # Append zero-area triangles (repeated vertex, collinear vertices) lying inside the plane.

@@ -20,6 +20,8 @@ around a scale; this sets the scale itself.
 
 from __future__ import annotations
 
+from typing import Sequence
+
 import numpy as np
 from absl import logging
 
@@ -129,10 +131,8 @@ def anchor_to_baseline(config: DistillConfig, problem: Problem, texels: np.ndarr
         if anchored is not None:
             return anchored
     gains = {}
-    if baseline.views:
-        # measured on the texels clipped to [-1, 1], as `anchored_texels` clips them before scaling
-        renders = evaluation.render_views(np.clip(texels, -1.0, 1.0), ctx.plan, ctx.cameras, problem.channels,
-                                          lazy=problem.views_on_disk)
+    if baseline.views and any(m in ALIGNED_MAPS for m in problem.channels.maps):
+        renders = _renders(problem, texels, ctx, ALIGNED_MAPS)
         gains = anchor_gains(renders, baseline.views, ctx.plan.hit_images(), problem.channels.maps)
     if not gains:
         if config.anchor == "estimates":     # asked for by name: say why nothing happened (auto: no colour map)
@@ -144,6 +144,16 @@ def anchor_to_baseline(config: DistillConfig, problem: Problem, texels: np.ndarr
     warn_extreme(gains, baseline.folder or "the scene's targets")
     return (anchored_texels(texels, gains, problem.channels),
             {"to": baseline.source, "gains": {m: g.tolist() for m, g in gains.items()}})
+
+
+def _renders(problem: Problem, texels: np.ndarray, ctx: EvalContext, maps) -> Sequence[dict]:
+    """Per view, {map: render} of the run's `maps` alone (the render is per channel: the values of
+    rendering every map, in less time), measured on the texels clipped to [-1, 1], as
+    `anchored_texels` clips them before scaling."""
+    channels = MapChannels(tuple(m for m in problem.channels.maps if m in maps))
+    part = np.concatenate([texels[:, problem.channels.slice(m)] for m in channels.maps], axis=1)
+    return evaluation.render_views(np.clip(part, -1.0, 1.0), ctx.plan, ctx.cameras, channels,
+                                   lazy=problem.views_on_disk)
 
 
 def warn_extreme(gains: dict[str, np.ndarray], source) -> None:
@@ -203,8 +213,7 @@ def anchor_to_photos(config: DistillConfig, problem: Problem, texels: np.ndarray
             logging.warning("--anchor=traced: nothing to anchor: the run does not distil albedo")
             return texels, None
         return None
-    renders = evaluation.render_views(np.clip(texels, -1.0, 1.0), ctx.plan, ctx.cameras, problem.channels,
-                                      lazy=problem.views_on_disk)
+    renders = _renders(problem, texels, ctx, ("albedo",))
     gain, record = traced_light(problem.scene, renders, ctx.plan.hit_images(), texels, problem.channels,
                                 seed=config.seed)
     if trusted_only and (gain is None or not trace_trusted(record)):

@@ -26,7 +26,7 @@ import numpy as np
 
 from jaxdistill.io.view_images import read_mask, read_photo_linear
 from jaxdistill.render import light_trace
-from jaxdistill.render.fragments import RayCaster, compute_fragments
+from jaxdistill.render.fragments import RayCaster, compute_depths
 from jaxdistill.scene.model import Scene
 
 TRACE_VIEWS = 64            # --anchor=traced: views whose photos give the radiance (evenly spaced)
@@ -102,18 +102,17 @@ def read_photo_radiance(scene: Scene, chosen: np.ndarray) -> PhotoRadiance:
     mesh = scene.mesh
     cams = [scene.views[v].camera for v in chosen]
     depths, photos, triangles, background = [], [], [], []
-    frags = compute_fragments(mesh, cams, progress=False)      # the set-up's ray casts, from the cache
+    hits = compute_depths(mesh, cams)      # the set-up's ray casts, from the cache: the triangle and depth a pixel
     for k, (v, cam) in enumerate(zip(chosen, cams)):
         view = scene.views[v]
-        frag = frags[k]
-        tri = frag.triangle.copy()
+        tri, depth = hits[k]
         photo, usable = read_photo_linear(view.photo, view.exposure, cam.height, cam.width)
         # a mask drops emitters from the loss, but their light is what the trace needs: a masked
         # pixel counts unless it holds no light at all (an undistortion's unfilled border)
         empty = ~read_mask(view.mask, cam.height, cam.width) & ~(photo > 0).any(axis=-1) if view.mask \
             else np.zeros(usable.shape, bool)
         tri[(usable < 0.5) | empty] = -2                         # seen by no pixel of this view
-        depths.append(np.where(tri >= 0, frag.depth, np.inf).astype(np.float32))
+        depths.append(np.where(tri >= 0, depth, np.inf).astype(np.float32))
         photos.append(photo)
         triangles.append(tri)
         background.append(photo[tri == -1])
