@@ -25,7 +25,6 @@ from jaxdistill.engine.config import DistillConfig, check_views_per_step
 from jaxdistill.engine import loop as loop_lib
 from jaxdistill.engine.problem import build_problem, choose_prior
 from jaxdistill.evaluate import ground_truth as evaluation, scoring
-from jaxdistill.evaluate.rerender import rerender_scores
 from jaxdistill.evaluate.summary import summary_table
 from jaxdistill.export import anchor as anchor_lib, run_dir as run_files
 from jaxdistill.export.outputs import OutputPhases, texel_trust, write_outputs
@@ -111,8 +110,6 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
     with phases("anchor"):
         texels, anchor = anchor_lib.anchor_to_baseline(config, problem, texels, ctx, baseline)
     summary = write_outputs(config, problem, texels, loop.history, ctx, trust, baseline, phases)
-    with phases("photos re-rendered"):
-        summary["rerender"] = rerender_scores(texels, problem, ctx.plan, ctx.cameras)
     if problem.photos is not None and problem.photos.noise is not None:     # each photo's noise and term weight
         names = [v.name for v in problem.scene.views]
         summary["photo_noise"] = {"ref": config.photo_noise_ref,

@@ -10,23 +10,23 @@ without the term, so the two can be compared.
 
 from __future__ import annotations
 
+from typing import Sequence
+
 import numpy as np
 
 from jaxdistill.engine.problem import Problem
-from jaxdistill.evaluate import ground_truth as evaluation
 from jaxdistill.evaluate.metrics import psnr
 from jaxdistill.io.images import linear_to_srgb
 from jaxdistill.io.view_images import read_mask, read_photo_linear
 
 
-def rerender_scores(texels: np.ndarray, problem: Problem, plan, cameras) -> dict | None:
+def rerender_scores(renders: Sequence[dict], problem: Problem, plan) -> dict | None:
     """{"psnr_db": mean over views, "per_view": {view: PSNR}, "scale": {view: s}} of the photos
-    re-rendered from `texels` through `plan` (the views at native size), or None when albedo or
+    re-rendered from the run's `renders` (per view {map: (H, W, C) file-space image} through `plan`,
+    the views at native size: `ground_truth.render_views`, a list or lazy), or None when albedo or
     irradiance is not distilled."""
-    channels = problem.channels
-    if not {"albedo", "irradiance"} <= set(channels.maps):
+    if not {"albedo", "irradiance"} <= set(problem.channels.maps):
         return None
-    renders = evaluation.render_views(texels, plan, cameras, channels, lazy=problem.views_on_disk)
     hits = plan.hit_images()
     per_view, scales = {}, {}
     for view, render, hit in zip(problem.scene.views, renders, hits):

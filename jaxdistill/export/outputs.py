@@ -17,6 +17,7 @@ from jaxdistill.engine.config import DistillConfig
 from jaxdistill.engine.problem import Problem
 from jaxdistill.evaluate import ground_truth as evaluation
 from jaxdistill.evaluate import scoring
+from jaxdistill.evaluate.rerender import rerender_scores
 from jaxdistill.evaluate.scoring import Baseline, EvalContext, training_plan
 from jaxdistill.export import gltf, pages as page_files, plots, run_dir as run_files, usd
 from jaxdistill.io import images as imageio
@@ -218,8 +219,8 @@ def write_outputs(config: DistillConfig, problem: Problem, texels: np.ndarray, h
         later = pool.submit if beside else _done
         maps_job = later(map_files)
         try:
-            written, evidence, scored = _main_line(config, problem, texels, history, ctx, baseline, phases, out,
-                                                   lambda pred: later(scores, pred), maps_job)
+            written, evidence, scored, rerender = _main_line(config, problem, texels, history, ctx, baseline, phases,
+                                                             out, lambda pred: later(scores, pred), maps_job)
         except BaseException:                   # the queued scores are not started; the map files finish
             pool.shutdown(wait=False, cancel_futures=True)
             raise
@@ -228,14 +229,16 @@ def write_outputs(config: DistillConfig, problem: Problem, texels: np.ndarray, h
             phases.record[name]["beside"] = "renders, evidence, plots"
     result = {"estimates_folder": str(baseline.folder)} if baseline.folder is not None else {}
     result.update(scored)
+    result["rerender"] = rerender
     result["maps_written"] = [str(p.relative_to(out)) for p in written + evidence]
     result["history"] = history
     return result
 
 
 def _main_line(config, problem, texels, history, ctx, baseline, phases, out, score_later, maps_job):
-    """`write_outputs`' own line of work: renders, (the scores queued), evidence, plots; then waits
-    for the map files and the scores: (map files written, evidence files written, scores)."""
+    """`write_outputs`' own line of work: renders, (the scores queued), evidence, plots, the photos
+    re-rendered from the renders; then waits for the map files and the scores: (map files written,
+    evidence files written, scores, the photos' re-rendering scores)."""
     with phases("renders of every view"):
         pred = evaluation.render_views(texels, ctx.plan, ctx.cameras, problem.channels,
                                        lazy=problem.views_on_disk)   # on disk: rendered when asked for
@@ -247,7 +250,9 @@ def _main_line(config, problem, texels, history, ctx, baseline, phases, out, sco
     with phases("plots and contact sheets"):
         write_loss_plot(out, problem, history)
         write_contact_sheets(out, config, problem, pred, ctx, baseline.views)
-    return maps_job.result(), evidence, scores_job.result()
+    with phases("photos re-rendered"):
+        rerender = rerender_scores(pred, problem, ctx.plan)
+    return maps_job.result(), evidence, scores_job.result(), rerender
 
 
 def _done(fn, *args) -> Future:
