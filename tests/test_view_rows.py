@@ -19,7 +19,7 @@ from jaxdistill.engine.config import DistillConfig
 from jaxdistill.engine.problem import build_problem, view_data_bytes
 from jaxdistill.errors import InputError
 from jaxdistill.io import view_rows
-from jaxdistill.io.view_rows import ViewFolder, ViewRows, placement, view_array
+from jaxdistill.io.view_rows import MapRows, ViewFolder, ViewRows, placement, view_array
 from jaxdistill.render.fragments import FRAGMENT_FIELDS, FragmentRows
 from jaxdistill.scene.model import read_scene
 from tiny_scene import write_tiny_scene
@@ -76,6 +76,44 @@ def test_rows_refuse_what_they_cannot_hold_and_a_full_disk_is_named(tmp_path, mo
         folder.rows("plan_index", (4, 1024, 4), np.int32)
     assert str(folder.root) in str(err.value) and "plan_index do not fit" in str(err.value)
     assert "--view_data=memory" in str(err.value)
+
+
+def test_map_rows_hold_each_views_maps_in_a_file_per_map_and_read_a_map_when_asked(tmp_path, monkeypatch):
+    """Per-view dicts of maps (the ground truth with --view_data on disk): the maps each view has,
+    read back as written (a view without a map has none), a map's file taking every view's rows
+    when first written, names known without a read, one map read when one is asked for."""
+    rng = np.random.default_rng(2)
+    folder = ViewFolder(tmp_path)
+    rows = MapRows(folder, "gt", 3, (4, 5), {"albedo": 3, "roughness": 1, "irradiance": 3})
+    views = [{"albedo": rng.random((4, 5, 3), np.float32), "roughness": rng.random((4, 5, 1), np.float32)},
+             {},
+             {"roughness": rng.random((4, 5, 1), np.float32)}]
+    for v, maps in enumerate(views):
+        rows[v] = maps
+    assert len(rows) == 3 and folder.nbytes == 3 * 4 * 5 * (3 + 1) * 4          # no file for irradiance: no view has it
+    assert list(folder.root.iterdir()) == []
+    for v in (2, 0, 1, -1):
+        got = rows[v]
+        assert set(got) == set(views[v]) and len(got) == len(views[v])
+        for m in views[v]:
+            assert m in got and got[m].dtype == np.float32
+            np.testing.assert_array_equal(got[m], views[v][m])
+    assert "albedo" not in rows[2] and "irradiance" not in rows[0]
+    with pytest.raises(KeyError):
+        rows[2]["albedo"]
+    with pytest.raises(IndexError):
+        rows[3]
+    reads = []
+    real = ViewRows.__getitem__
+    monkeypatch.setattr(ViewRows, "__getitem__", lambda self, ids: reads.append(self.path.name) or real(self, ids))
+    assert sorted(rows[0]) == ["albedo", "roughness"] and not reads           # the names: no read
+    rows[0]["roughness"]
+    assert reads and all(name.startswith("gt_roughness") for name in reads)     # that map's file alone
+    monkeypatch.undo()
+    with pytest.raises(ValueError, match=r"maps \['normal'\] were not among"):
+        rows[1] = {"normal": np.zeros((4, 5, 3), np.float32)}
+    with pytest.raises(TypeError, match="float64"):
+        rows[1] = {"albedo": np.zeros((4, 5, 3))}
 
 
 def test_seam_pairs_are_held_as_two_bits_a_pixel_and_read_back_from_a_file(tmp_path):
@@ -228,6 +266,14 @@ def test_a_problem_on_disk_reads_the_batches_and_scores_of_one_in_memory(tiny_sc
         for m in one:
             np.testing.assert_array_equal(one[m], other[m])
     assert isinstance(disk_ctx.seams.packed, ViewRows) and isinstance(memory_ctx.seams.packed, list)
+    # the ground-truth maps (gt.json's albedo, roughness, metallic and geometry normals) in files, the same values
+    assert isinstance(disk_ctx.gt_maps, MapRows) and isinstance(memory_ctx.gt_maps, list)
+    assert set(disk_ctx.gt_maps.rows) == {"albedo", "roughness", "metallic", "normal"}
+    for one, other in zip(memory_ctx.gt_maps, disk_ctx.gt_maps, strict=True):
+        assert set(one) == set(other)
+        for m in one:
+            assert other[m].dtype == one[m].dtype
+            np.testing.assert_array_equal(one[m], other[m], err_msg=m)
     assert isinstance(memory_ctx.masks, list) and sum(m.sum() for m in memory_ctx.masks) > 0
     for one, other in zip(memory_ctx.masks, disk_ctx.masks, strict=True):
         np.testing.assert_array_equal(one, other)

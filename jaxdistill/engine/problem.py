@@ -35,6 +35,7 @@ from jaxdistill.render.gather_plan import TAPS, TexelSpace, build_gather_plans, 
 from jaxdistill.render.layout import make_layout, sized_layout
 from jaxdistill.render.visibility import (check_coverage, coverage_summary, hit_fractions, pixel_weights,
                                          texel_evidence, view_counts)
+from jaxdistill.scene.gt_file import ground_truth_maps
 from jaxdistill.scene.model import Scene
 from jaxdistill.scene.paths import resolve_scene_path  # noqa: F401  (--scene as a path; scripts use it from here)
 from jaxdistill.io.view_images import read_mask, read_photo_linear, read_target, resize
@@ -477,8 +478,9 @@ def view_data_bytes(config: DistillConfig, scene: Scene, choice: PriorChoice, ch
     channels) there, and with the re-rendering term fragments, plans, photos (3 float32) and chroma
     guides (2, --albedo_smoothness) at the photo size; the evaluation's (`evaluation`: the primary's)
     1-byte masks at the photos' own size, with fragments and plans (no pixel weight) there when
-    neither size is theirs, and its seam pairs, two bits a pixel there (`metrics.seam_edge_bytes`,
-    a view's bits in whole bytes)."""
+    neither size is theirs, its seam pairs, two bits a pixel there (`metrics.seam_edge_bytes`,
+    a view's bits in whole bytes), and its ground-truth maps, float32 channels there
+    (`gt_file.ground_truth_maps`: a file per map a view has, all views' rows)."""
     held = scene.views if views is None else views
     taps = TAPS[config.sampler]
     frag, plan = fr.BYTES_PER_PIXEL, 8 * taps + 4 + 1
@@ -492,7 +494,7 @@ def view_data_bytes(config: DistillConfig, scene: Scene, choice: PriorChoice, ch
     native = next(iter(sizes)) if len(sizes) == 1 else None
     if evaluation and native is not None:
         # the masks; the fragments and plans too (the hit mask, no pixel weight) when no other size is theirs
-        per_pixel[native] = per_pixel.get(native, frag + plan - 4) + 1
+        per_pixel[native] = per_pixel.get(native, frag + plan - 4) + 1 + 4 * sum(ground_truth_maps(scene).values())
     seams = len(held) * ((2 * native[0] * native[1] + 7) // 8) if evaluation and native is not None else 0
     return seams + sum(len(held) * h * w * nbytes for (h, w), nbytes in per_pixel.items())
 

@@ -26,17 +26,15 @@ import numpy as np
 
 from jaxdistill.io import images as imageio
 from jaxdistill.evaluate import metrics
-from jaxdistill.errors import InputError, read_json
+from jaxdistill.errors import InputError
 from jaxdistill.scene.cameras import camera_normals, rgbx_camera_rotation
 from jaxdistill.scene.maps import CHANNELS, MapChannels, model_to_file, png_pixels
 from jaxdistill.render.gather_plan import GatherPlan
 from jaxdistill.io.view_rows import LazyViews
-from jaxdistill.render.sampler import render, sample_pages
+from jaxdistill.render.sampler import iter_sample_pages, render
 from jaxdistill.scene.mesh import face_normals
+from jaxdistill.scene.gt_file import GT_FORMAT, ground_truth_maps, read_gt_document  # noqa: F401  (their home)
 from jaxdistill.scene.model import Scene
-
-GT_FORMAT = "jaxdistill-gt"
-
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class GroundTruth:
@@ -46,30 +44,6 @@ class GroundTruth:
     pages: dict            # map -> list of (S, S, C) float32, one per object
     geometry_normals: bool
     exclude_objects: tuple[str, ...]
-
-
-def read_gt_document(root: Path | None) -> dict | None:
-    """The parsed `root/gt.json` when it is in our format (else None); InputError naming the
-    file and field when it cannot be ground truth (no map in it, unknown maps, not an object).
-    Needs no scene: `train.run` calls it before any compute."""
-    if root is None or not (Path(root) / "gt.json").is_file():
-        return None
-    path = Path(root) / "gt.json"
-    doc = read_json(path, "missing")
-    if not isinstance(doc, dict) or doc.get("format") != GT_FORMAT:
-        return None
-    textures = doc.get("textures", {})
-    if not isinstance(textures, dict) or not all(isinstance(v, dict) for v in textures.values()):
-        raise InputError.single(path, "textures", "expected {map: {object: image path}}")
-    if not textures and doc.get("normal") != "geometry":
-        raise InputError.single(path, "textures", "no ground-truth texture for any map (and \"normal\" is not "
-                                "\"geometry\"): add textures, or delete gt.json so that the views' ground_truth "
-                                "images are used")
-    for name in textures:
-        if name not in CHANNELS or name == "normal":
-            raise InputError.single(path, f"textures.{name}", "GT textures can be albedo, roughness, metallic or "
-                                    "irradiance (normals come from the geometry with \"normal\": \"geometry\")")
-    return doc
 
 
 def read_ground_truth(scene: Scene) -> GroundTruth | None:
@@ -98,13 +72,17 @@ def read_ground_truth(scene: Scene) -> GroundTruth | None:
 
 def gt_view_maps(gt: GroundTruth, scene: Scene, fragments: Sequence) -> list[dict[str, np.ndarray]]:
     """Per view, {map: (H, W, C) file-space GT} for the maps the GT provides."""
+    return list(iter_gt_view_maps(gt, scene, fragments))
+
+
+def iter_gt_view_maps(gt: GroundTruth, scene: Scene, fragments: Sequence) -> Iterator[dict[str, np.ndarray]]:
+    """`gt_view_maps`' per-view maps a view at a time."""
     names = list(gt.pages)
-    sampled = [None] * len(fragments)
+    sampled = iter([None] * len(fragments))
     if names:
         stacked = [np.concatenate([gt.pages[m][o] for m in names], -1) for o in range(scene.num_objects)]
-        sampled = sample_pages(stacked, fragments, range(scene.num_objects))
-    normals = face_normals(scene.mesh)
-    out = []
+        sampled = iter_sample_pages(stacked, fragments, range(scene.num_objects))
+    normals = face_normals(scene.mesh) if gt.geometry_normals else None
     for view, frag, image in zip(scene.views, fragments, sampled):
         maps, start = {}, 0
         for m in names:
@@ -113,8 +91,7 @@ def gt_view_maps(gt: GroundTruth, scene: Scene, fragments: Sequence) -> list[dic
             start += c
         if gt.geometry_normals:
             maps["normal"] = camera_normals(normals, frag.triangle, view.camera)
-        out.append(maps)
-    return out
+        yield maps
 
 
 def evaluation_masks(gt: GroundTruth | None, scene: Scene, fragments: Sequence, out=None) -> Sequence[np.ndarray]:
@@ -136,30 +113,43 @@ def evaluation_masks(gt: GroundTruth | None, scene: Scene, fragments: Sequence, 
 def image_ground_truth(scene: Scene, fragments: Sequence) -> list[dict[str, np.ndarray]] | None:
     """Per view, {map: (H, W, C) file-space GT} from the views' `ground_truth` images (at the
     fragments' size), or None when no view has any. Views without one get {} (no metric)."""
-    from jaxdistill.io.view_images import read_target, resize
-
     if not any(v.ground_truth for v in scene.views):
         return None
-    out = []
+    return list(iter_image_ground_truth(scene, fragments))
+
+
+def iter_image_ground_truth(scene: Scene, fragments: Sequence) -> Iterator[dict[str, np.ndarray]]:
+    """`image_ground_truth`'s per-view maps a view at a time (for a scene whose views have some)."""
+    from jaxdistill.io.view_images import read_target, resize
+
     for view, f in zip(scene.views, fragments):
         maps = {}
         for m, path in view.ground_truth.items():
             image = resize(read_target(m, path), *f.shape)
             maps[m] = image[..., :CHANNELS[m]]
-        out.append(maps)
-    return out
+        yield maps
 
 
-def view_ground_truth(scene: Scene, fragments: Sequence) -> tuple[GroundTruth | None, list[dict] | None]:
+def view_ground_truth(scene: Scene, fragments: Sequence, out=None) -> tuple[GroundTruth | None, Sequence | None]:
     """(gt.json ground truth or None, per view {map: (H, W, C) file-space GT} or None when the
     scene has no ground truth at all): gt.json's maps, and the views' `ground_truth` images for
-    the maps gt.json does not provide."""
+    the maps gt.json does not provide. Made a view at a time: a list, or with `out` (a
+    `view_rows.MapRows`, files of --view_data on disk) written into it view by view and that
+    returned, so memory holds one view's maps, not every view's."""
     gt = read_ground_truth(scene)
-    textured = gt_view_maps(gt, scene, fragments) if gt else None
-    images = image_ground_truth(scene, fragments)
+    textured = iter_gt_view_maps(gt, scene, fragments) if gt else None
+    images = iter_image_ground_truth(scene, fragments) if any(v.ground_truth for v in scene.views) else None
+    if textured is None and images is None:
+        return gt, None
     if textured is None or images is None:
-        return gt, textured if textured is not None else images
-    return gt, [{**i, **t} for t, i in zip(textured, images)]
+        per_view = textured if textured is not None else images
+    else:
+        per_view = ({**i, **t} for t, i in zip(textured, images))
+    if out is None:
+        return gt, list(per_view)
+    for v, maps in enumerate(per_view):
+        out[v] = maps
+    return gt, out
 
 
 @jax.jit

@@ -16,7 +16,9 @@ from jaxdistill.engine.config import DistillConfig
 from jaxdistill.engine.problem import Problem
 from jaxdistill.evaluate import ground_truth as evaluation, metrics
 from jaxdistill.models import estimates as model_estimates
+from jaxdistill.io.view_rows import MapRows
 from jaxdistill.render.fragments import FragmentRows
+from jaxdistill.scene.gt_file import ground_truth_maps
 from jaxdistill.render.gather_plan import GatherPlan, build_gather_plans
 from jaxdistill.scene.maps import MapChannels
 
@@ -29,7 +31,7 @@ class EvalContext:
     gt: object
     shapes: list
     cameras: list
-    gt_maps: list | None
+    gt_maps: Sequence | None    # per view {map: GT}: a list, or a `MapRows` of files with --view_data on disk
     masks: Sequence          # per view (H, W) bool: a list, or a `ViewRows` file with --view_data on disk
     plan: GatherPlan
     seams: Sequence          # per view, its (a, b) seam pairs (`SeamPairs`: two bits a pixel in memory or a file)
@@ -79,16 +81,19 @@ def evaluation_context(config: DistillConfig, problem: Problem) -> EvalContext:
                           height=photos.height, width=photos.width)
     else:
         plan = build_gather_plans(frags, problem.space, config.sampler, empty=problem.empty_views)
-    gt, gt_maps = evaluation.view_ground_truth(scene, frags)
+    # with --view_data on disk (the fragments in files, one size) the GT maps go in files too, a view at a time
+    on_disk = isinstance(frags, FragmentRows)
+    gt, gt_maps = evaluation.view_ground_truth(scene, frags, out=MapRows(
+        problem.view_folder, "gt", len(frags), frags.shape, ground_truth_maps(scene)) if on_disk else None)
     # with --view_data on disk (the fragments in files, one size) the masks go in a file too: 1 byte a pixel
     masks = evaluation.evaluation_masks(gt, scene, frags, out=problem.empty_views(
-        "eval_masks", (len(frags), *frags.shape), bool) if isinstance(frags, FragmentRows) else None)
+        "eval_masks", (len(frags), *frags.shape), bool) if on_disk else None)
     owner = evaluation.dominant_views(problem.plan_index, problem.plan_weight, problem.space.pyramid_size)
     # every view's seam pairs, kept for the scores as two bits a pixel (`metrics.pack_seam_edges`): with
     # --view_data on disk in a file, whose size the set-up's disk check counts (`problem.view_data_bytes`)
     shapes = [frags.shape] * len(frags) if isinstance(frags, FragmentRows) else [f.shape for f in frags]  # (no read)
     packed = (problem.empty_views("seams", (len(frags), metrics.seam_edge_bytes(*frags.shape)), np.uint8)
-              if isinstance(frags, FragmentRows) else [None] * len(frags))
+              if on_disk else [None] * len(frags))
     for v, (region, f, m) in enumerate(zip(evaluation.seam_regions(plan, frags, owner), frags, masks)):
         packed[v] = metrics.pack_seam_edges(metrics.seam_edges(region, f.object_id, m))
     seams = SeamPairs(packed, shapes)

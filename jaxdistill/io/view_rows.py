@@ -27,7 +27,7 @@ import shutil
 import socket
 import threading
 import weakref
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Callable
 
@@ -202,6 +202,63 @@ def view_array(name: str, shape: tuple[int, ...], dtype, folder: ViewFolder | No
     if folder is None:
         return np.zeros(shape, dtype)
     return folder.rows(name, shape, dtype)
+
+
+class MapRows(Sequence):
+    """Per view a dict {map: (H, W, C) float32 image} (a view's ground-truth maps), each map's
+    images in a `ViewRows` file (V, H, W, C) of `folder`: `rows[v] = {map: image}` writes view v's
+    (a map its first time takes its whole file: `maps` {map: C} names every map a view may have),
+    `rows[v]` reads back the maps view v has. Which views have which map stays in memory (a bool a
+    view a map)."""
+
+    def __init__(self, folder: ViewFolder, name: str, count: int, shape: tuple[int, int], maps: dict[str, int]):
+        self.folder, self.name, self.count, self.shape, self.maps = folder, name, int(count), tuple(shape), dict(maps)
+        self.rows: dict[str, ViewRows] = {}
+        self.present = {m: np.zeros(self.count, bool) for m in self.maps}
+
+    def __len__(self) -> int:
+        return self.count
+
+    def __setitem__(self, v: int, maps: dict) -> None:
+        unknown = sorted(set(maps) - set(self.maps))
+        if unknown:
+            raise ValueError(f"{self.name}: maps {unknown} were not among those its files were sized for "
+                             f"({sorted(self.maps)})")
+        for m, image in maps.items():
+            image = np.asarray(image)
+            if image.dtype != np.float32:
+                raise TypeError(f"{self.name}: {m} of view {v} is {image.dtype}, not float32 (kept as it is in memory)")
+            if m not in self.rows:
+                self.rows[m] = self.folder.rows(f"{self.name}_{m}", (self.count, *self.shape, self.maps[m]), np.float32)
+            self.rows[m][v] = image
+            self.present[m][v] = True
+
+    def __getitem__(self, v):
+        if isinstance(v, slice):
+            return [self[i] for i in range(*v.indices(self.count))]
+        return _ViewMaps(self, range(self.count)[v])
+
+
+class _ViewMaps(Mapping):
+    """View v's maps of a `MapRows`: its map names without a read, a map's image read from its file
+    when asked for (each time: nothing is kept)."""
+
+    def __init__(self, rows: MapRows, v: int):
+        self._rows, self._v = rows, v
+
+    def __getitem__(self, m: str) -> np.ndarray:
+        if m not in self:
+            raise KeyError(m)
+        return self._rows.rows[m][self._v]
+
+    def __contains__(self, m) -> bool:
+        return m in self._rows.rows and bool(self._rows.present[m][self._v])
+
+    def __iter__(self):
+        return (m for m in self._rows.rows if self._rows.present[m][self._v])
+
+    def __len__(self) -> int:
+        return sum(1 for _ in self)
 
 
 class LazyViews(Sequence):

@@ -8,7 +8,7 @@ transpose of the gather (a scatter-add), through the mip chain when the plan is 
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Iterator, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -299,12 +299,15 @@ def sample_pages(pages, fragments, object_page, *, sampler: str = "bilinear") ->
     This is how ground-truth per-view maps are made from ground-truth textures: with exactly
     the gather the distillation renders with.
     """
+    return list(iter_sample_pages(pages, fragments, object_page, sampler=sampler))
+
+
+def iter_sample_pages(pages, fragments, object_page, *, sampler: str = "bilinear") -> Iterator[np.ndarray]:
+    """`sample_pages`' images a view at a time (one view's image in memory, the rest the caller's)."""
     layout = TextureLayout(tuple(int(np.asarray(p).shape[0]) for p in pages), tuple(object_page),
                            mipmaps=sampler == "trilinear", tile_size=16 if sampler == "trilinear" else 1)
     space = build_texel_space(fragments, layout, sampler)
     texels = jnp.asarray(compact(pages, space))
-    images = []
     for frag in fragments:
         plan = build_gather_plans([frag], space, sampler)
-        images.append(np.asarray(render(texels, plan))[0])
-    return images
+        yield np.asarray(render(texels, plan))[0]
