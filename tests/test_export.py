@@ -523,3 +523,67 @@ def test_evidence_passes_take_as_many_maps_a_pass_as_fit_the_budget():
     assert evidence_passes(maps, n, budget=n * (12 + 20 * 7) - 1) == [("albedo", "normal"),
                                                                      ("roughness", "metallic", "irradiance")]
     assert evidence_passes(("albedo",), n, budget=1) == [("albedo",)]
+
+
+def test_every_maps_disagreement_pages_are_its_views_spread_by_a_numpy_reference(tmp_path, monkeypatch):
+    """evidence/disagreement_<map> of all five maps, their statistics taken two maps, one map and two maps a pass,
+    against a reference in float64 NumPy: each view's estimate (resized to the render size, normals
+    into world space) spread onto the texels its taps read (Σ w·value / Σ w), then per texel the RMS
+    deviation of the views' values from their mean over the channels, NaN where fewer than two views read it."""
+    from tiny_scene import write_tiny_scene
+    from jaxdistill.engine import config as config_lib
+    from jaxdistill.engine.config import DistillConfig
+    from jaxdistill.engine.problem import build_problem
+    from jaxdistill.evaluate import scoring
+    from jaxdistill.export import outputs
+    from jaxdistill.io.view_images import resize
+    from jaxdistill.render.sampler import expand
+    from jaxdistill.scene.cameras import rgbx_camera_rotation
+
+    maps = ("albedo", "normal", "roughness", "metallic", "irradiance")
+    scene = write_tiny_scene(tmp_path / "scene", views=12)               # neighbouring views overlap
+    config = config_lib.validate(DistillConfig(scene=str(scene), out_dir=str(tmp_path / "out"), maps=maps, prior="views",
+                                               sampler="bilinear", render_size=16))
+    problem = build_problem(config, cache_dir=tmp_path / "cache")
+    ctx = scoring.evaluation_context(config, problem)
+    baseline = scoring.per_view_baseline(config, problem, ctx.shapes).views
+    space = problem.space
+    assert space.pyramid_size == space.num_texels                     # bilinear: the taps index the texels
+    passes = [("albedo", "normal"), ("roughness",), ("metallic", "irradiance")]
+    monkeypatch.setattr(outputs, "evidence_passes", lambda names, num_texels: passes)
+    written = outputs.write_evidence(tmp_path / "out", problem, ctx, baseline)
+    stems = page_files.page_names(problem.scene.mesh.object_names, space.layout.object_page)
+    n = space.num_texels
+    index = np.asarray(problem.plan_index).reshape(problem.num_views, -1)
+    weight = np.asarray(problem.plan_weight, np.float64).reshape(problem.num_views, -1)
+    hit = np.asarray(problem.plan_hit).reshape(problem.num_views, -1)
+    taps = np.asarray(problem.plan_index).shape[-1]
+    checked = 0
+    for m in maps:
+        values, seen = [], []
+        for v, camera in enumerate(ctx.cameras):
+            image = resize(baseline[v][m], problem.height, problem.width).astype(np.float64)
+            if m == "normal":
+                image = image @ rgbx_camera_rotation(camera.c2w).T
+            pixels = np.repeat(np.where(hit[v][:, None], image.reshape(-1, image.shape[-1]), 0.0), taps, axis=0)
+            w = np.where(np.repeat(hit[v], taps), weight[v], 0.0)
+            num, den = np.zeros((n, pixels.shape[1])), np.zeros(n)
+            np.add.at(num, index[v], w[:, None] * pixels)
+            np.add.at(den, index[v], w)
+            values.append(num / np.maximum(den, 1e-300)[:, None])
+            seen.append(den > 0)
+        values, seen = np.stack(values), np.stack(seen)
+        count = seen.sum(axis=0)
+        mean = (values * seen[..., None]).sum(axis=0) / np.maximum(count, 1)[:, None]
+        variance = (((values - mean) ** 2) * seen[..., None]).sum(axis=0) / np.maximum(count, 1)[:, None]
+        spread = np.where(count >= 2, np.sqrt(variance.sum(axis=1)), np.nan)
+        assert (count >= 2).sum() > 0.05 * n and np.nanmax(spread) > 1e-3
+        for p, page in enumerate(expand(spread[:, None].astype(np.float32), space, np.nan, dilation=0)):
+            got = imageio.read_image(tmp_path / "out" / "evidence" / f"disagreement_{m}" / f"{stems[p]}.exr")[..., 0]
+            assert (tmp_path / "out" / "evidence" / f"disagreement_{m}" / f"{stems[p]}.exr") in written
+            np.testing.assert_array_equal(np.isnan(got), np.isnan(page[..., 0]), err_msg=f"{m} page {p}")
+            scale = max(float(np.nanmax(spread)), 1e-6)
+            np.testing.assert_allclose(np.nan_to_num(got), np.nan_to_num(page[..., 0]), rtol=0, atol=2e-5 * scale,
+                                       err_msg=f"{m} page {p}")
+            checked += 1
+    assert checked == 5 * len(stems)
