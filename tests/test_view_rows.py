@@ -8,6 +8,7 @@ import errno
 import json
 import os
 import shutil
+import time
 from collections import namedtuple
 from concurrent.futures import ThreadPoolExecutor
 
@@ -119,7 +120,8 @@ def test_map_rows_hold_each_views_maps_in_a_file_per_map_and_read_a_map_when_ask
 def test_seam_pairs_are_held_as_two_bits_a_pixel_and_read_back_from_a_file(tmp_path):
     """The evaluation's seam pairs as packed edges (`scoring.SeamPairs`): from a list or a
     `ViewRows` file, in any order and from two threads at once, the pairs `metrics.seam_pairs`
-    gives, views of several sizes; the file takes two bits a pixel, whatever the pairs."""
+    gives; a list of views of two other sizes (bits padded to whole bytes); the file takes two bits a
+    pixel, whatever the pairs."""
     from jaxdistill.evaluate import metrics, scoring
 
     rng = np.random.default_rng(0)
@@ -142,10 +144,11 @@ def test_seam_pairs_are_held_as_two_bits_a_pixel_and_read_back_from_a_file(tmp_p
                 np.testing.assert_array_equal(got, want)
         with ThreadPoolExecutor(2) as pool:
             for got, v in zip(pool.map(seams.__getitem__, [2, 0, 2, 3] * 8), [2, 0, 2, 3] * 8):
-                np.testing.assert_array_equal(got[1], pairs[v][1])
+                for x, y in zip(got, pairs[v], strict=True):
+                    np.testing.assert_array_equal(x, y)
         with pytest.raises(IndexError):
             seams[4]
-    odd = [(rng.integers(0, 3, s), np.zeros(s, int)) for s in ((3, 5), (6, 2))]     # 30 and 24 bits: whole bytes
+    odd = [(rng.integers(0, 3, s), np.zeros(s, int)) for s in ((3, 5), (6, 2))]     # 30 bits (2 padding) and 24
     seams = scoring.SeamPairs([metrics.pack_seam_edges(metrics.seam_edges(*o)) for o in odd], [(3, 5), (6, 2)])
     for v, o in enumerate(odd):
         for got, want in zip(seams[v], metrics.seam_pairs(*o), strict=True):
@@ -286,20 +289,37 @@ def test_a_problem_on_disk_reads_the_batches_and_scores_of_one_in_memory(tiny_sc
             np.testing.assert_array_equal(x, y)
 
 
-def test_a_run_with_its_per_view_arrays_on_disk_writes_what_one_in_memory_writes(tiny_scene, tmp_path):
+def test_a_run_with_its_per_view_arrays_on_disk_writes_what_one_in_memory_writes(tiny_scene, tmp_path, monkeypatch):
     """The main job end to end, --view_data=memory and =disk (baselines and renders then lazy):
     the same scores and re-rendering figures, and the same map and evidence pages and renders bit
-    for bit."""
+    for bit. On disk the photos' re-rendering walks the lazy renders after the scores have (they
+    keep one chunk for all threads: walked at once, each would render the other's chunks again);
+    in memory beside them."""
     from jaxdistill import pipeline
+    from jaxdistill.export import outputs
     from jaxdistill.io import images as imageio
 
+    events = []
+    score, rerender = outputs.scoring.score, outputs.rerender_scores
+
+    def scored(*args):
+        out = score(*args)
+        time.sleep(0.5)                       # slow scores: without the wait, the re-rendering would start first
+        events.append("scored")
+        return out
+
+    monkeypatch.setattr(outputs.scoring, "score", scored)
+    monkeypatch.setattr(outputs, "rerender_scores", lambda *args: events.append("rerender") or rerender(*args))
+
     def run(view_data):
+        events.clear()
         config = config_lib.validate(DistillConfig(scene=str(tiny_scene), out_dir=str(tmp_path / view_data), steps=3,
                                                    views_per_step=2, prior="views", view_data=view_data,
                                                    photo_weight=1.0, render_size=16, contact_views=2))
-        return pipeline.run(config, progress=False)
+        return pipeline.run(config, progress=False), list(events)
 
-    memory, disk = run("memory"), run("disk")
+    (memory, _), (disk, order) = run("memory"), run("disk")
+    assert order == ["scored", "rerender"]
     assert memory["view_data"]["where"] == "memory" and disk["view_data"]["where"] == "disk"
     assert disk["view_data"]["disk_bytes"] > 0 and memory["view_data"]["disk_bytes"] == 0
     for key in ("ours", "baseline_per_view_estimates", "improvement", "rerender"):     # NaN where nothing to score
@@ -315,3 +335,45 @@ def test_a_run_with_its_per_view_arrays_on_disk_writes_what_one_in_memory_writes
     for render in renders:                          # rendered a chunk at a time when asked for: the same pixels
         np.testing.assert_array_equal(imageio.read_image(tmp_path / "memory" / render),
                                       imageio.read_image(tmp_path / "disk" / render))
+
+
+@pytest.mark.parametrize("gt_json", [True, False], ids=["gt_json_and_images", "images_only"])
+def test_ground_truth_from_gt_json_and_some_views_images_reads_back_from_files_as_held_in_memory(tmp_path, gt_json):
+    """Views' ground_truth images on views 0 and 2 only, with and without gt.json: on disk the same
+    maps per view as in memory (views 1 and 3 without any when gt.json is absent), the same scores,
+    and the disk check's size that of the files written."""
+    from jaxdistill.evaluate import ground_truth as evaluation, scoring
+
+    path = write_tiny_scene(tmp_path / "scene", views=4, gt=gt_json)
+    doc = json.loads(path.read_text())
+    for i in (0, 2):
+        doc["views"][i]["ground_truth"] = {"irradiance": f"targets/irradiance/v{i}.png",
+                                           "albedo": f"targets/albedo/v{i}.png"}
+    path.write_text(json.dumps(doc))
+    built = {}
+    for view_data in ("memory", "disk"):
+        config = config_lib.validate(DistillConfig(scene=str(path), out_dir=str(tmp_path / view_data), steps=2,
+                                                   views_per_step=2, prior="views", view_data=view_data,
+                                                   render_size=16))
+        problem = build_problem(config, cache_dir=tmp_path / "cache")
+        built[view_data] = (problem, scoring.evaluation_context(config, problem), config)
+    (_, memory, _), (disk_problem, disk, config) = built["memory"], built["disk"]
+    assert isinstance(disk.gt_maps, MapRows) and isinstance(memory.gt_maps, list)
+    names = [sorted(g) for g in disk.gt_maps]
+    if gt_json:
+        assert names[0] == ["albedo", "irradiance", "metallic", "normal", "roughness"] == names[2]
+        assert names[1] == ["albedo", "metallic", "normal", "roughness"] == names[3]
+    else:
+        assert names == [["albedo", "irradiance"], [], ["albedo", "irradiance"], []]
+    for one, other in zip(memory.gt_maps, disk.gt_maps, strict=True):
+        assert sorted(one) == sorted(other)
+        for m in one:
+            np.testing.assert_array_equal(one[m], other[m], err_msg=m)
+    checked = view_data_bytes(config, disk_problem.scene, disk_problem.choice, disk_problem.channels,
+                              (disk_problem.height, disk_problem.width))
+    assert checked == disk_problem.view_folder.nbytes
+    pred = [{"albedo": np.full(s + (3,), 0.4, np.float32), "irradiance": np.full(s + (3,), 0.7, np.float32)}
+            for s in memory.shapes]
+    a = evaluation.evaluate(pred, memory.gt_maps, memory.masks, memory.seams)
+    b = evaluation.evaluate(pred, disk.gt_maps, disk.masks, disk.seams)
+    assert json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True) and "albedo_psnr" in a

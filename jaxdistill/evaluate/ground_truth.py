@@ -33,8 +33,9 @@ from jaxdistill.render.gather_plan import GatherPlan
 from jaxdistill.io.view_rows import LazyViews
 from jaxdistill.render.sampler import iter_sample_pages, render
 from jaxdistill.scene.mesh import face_normals
-from jaxdistill.scene.gt_file import GT_FORMAT, ground_truth_maps, read_gt_document  # noqa: F401  (their home)
+from jaxdistill.scene.gt_file import GT_FORMAT, read_gt_document  # noqa: F401  (moved there; callers read them here)
 from jaxdistill.scene.model import Scene
+
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class GroundTruth:

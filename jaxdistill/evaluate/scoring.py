@@ -15,11 +15,11 @@ import numpy as np
 from jaxdistill.engine.config import DistillConfig
 from jaxdistill.engine.problem import Problem
 from jaxdistill.evaluate import ground_truth as evaluation, metrics
-from jaxdistill.models import estimates as model_estimates
 from jaxdistill.io.view_rows import MapRows
+from jaxdistill.models import estimates as model_estimates
 from jaxdistill.render.fragments import FragmentRows
-from jaxdistill.scene.gt_file import ground_truth_maps
 from jaxdistill.render.gather_plan import GatherPlan, build_gather_plans
+from jaxdistill.scene.gt_file import ground_truth_maps
 from jaxdistill.scene.maps import MapChannels
 
 

@@ -97,7 +97,7 @@ class PhotoRadiance:
 
 def read_photo_radiance(scene: Scene, chosen: np.ndarray) -> PhotoRadiance:
     """The photos of the views `chosen`, linear and exposed as the scene says (a shared exposure
-    cancels in radiance / irradiance), with their fragments (the set-up's cached ray casts);
+    cancels in radiance / irradiance), with each pixel's triangle and depth (the set-up's cached ray casts);
     unusable pixels (an LDR photo's clipped ones, a mask's empty ones) are seen by no one."""
     mesh = scene.mesh
     cams = [scene.views[v].camera for v in chosen]
