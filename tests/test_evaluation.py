@@ -81,14 +81,8 @@ def test_gt_json_with_only_geometry_normals_gives_normals(tiny, tmp_path):
     np.testing.assert_allclose(np.linalg.norm(maps[0]["normal"][hit], axis=-1), 1.0, rtol=1e-5)
 
 
-def test_gt_json_without_any_map_is_refused_before_compute(tiny, tmp_path, monkeypatch):
-    """What an earlier prepare_scene.py wrote: our format, no textures. The run stops before any
-    setup, naming the file and the field, instead of crashing in evaluation after the run."""
-    import shutil
-    folder = tmp_path / "scene"
-    shutil.copytree(tiny, folder)
-    (folder / "gt.json").write_text(json.dumps({"format": "jaxdistill-gt", "version": 1, "source": {}}))
-
+def refusal_before_compute(folder, tmp_path, monkeypatch) -> str:
+    """The InputError message of the main job on the scene `folder`, which must come before any ray is cast."""
     def poisoned(*args, **kwargs):
         raise AssertionError("rays were cast: the bad gt.json was not caught before compute")
 
@@ -97,13 +91,52 @@ def test_gt_json_without_any_map_is_refused_before_compute(tiny, tmp_path, monke
                                                views_per_step=2, prior="views"))
     with pytest.raises(InputError) as err:
         pipeline.run(config, progress=False)
-    message = str(err.value)
-    print(message)
+    print(err.value)
+    return str(err.value)
+
+
+def test_gt_json_without_any_map_is_refused_before_compute(tiny, tmp_path, monkeypatch):
+    """What an earlier prepare_scene.py wrote: our format, no textures. The run stops before any
+    setup, naming the file and the field, instead of crashing in evaluation after the run."""
+    import shutil
+    folder = tmp_path / "scene"
+    shutil.copytree(tiny, folder)
+    (folder / "gt.json").write_text(json.dumps({"format": "jaxdistill-gt", "version": 1, "source": {}}))
+    message = refusal_before_compute(folder, tmp_path, monkeypatch)
     assert f"{folder / 'gt.json'}: textures: no ground-truth texture for any map" in message
     assert "delete gt.json" in message
     (folder / "gt.json").write_text(json.dumps({"format": "jaxdistill-gt", "textures": {"normal": {}}}))
     with pytest.raises(InputError, match=r"textures\.normal: GT textures can be"):
         evaluation.read_gt_document(folder)
+
+
+def test_gt_textures_missing_or_of_unusable_channels_are_refused_before_compute_and_grey_is_rgb(tiny, tmp_path,
+                                                                                                  monkeypatch):
+    """gt.json's textures are checked with the scene, before any ray is cast: a missing file and a
+    grey + alpha roughness are named by file and field; a grey albedo texture is used as R = G = B
+    (it had crashed the scores after the whole run)."""
+    import shutil
+    folder = tmp_path / "scene"
+    shutil.copytree(tiny, folder)
+    doc = json.loads((folder / "gt.json").read_text())
+    first, second = list(doc["textures"]["albedo"])[:2]
+    grey = imageio.read_image(folder / doc["textures"]["albedo"][first], linear=False)[..., :1]
+    imageio.write_image(folder / "gt" / "grey.png", grey, encode_srgb=False)
+    doc["textures"]["albedo"][first] = "gt/grey.png"
+    (folder / "gt.json").write_text(json.dumps(doc))
+    gt = evaluation.read_ground_truth(read_scene(folder))
+    page = gt.pages["albedo"][0]
+    assert page.shape[-1] == 3 and np.array_equal(page[..., 0], page[..., 2]) and np.array_equal(page[..., 0], page[..., 1])
+    np.testing.assert_allclose(page[..., 0], imageio.read_image(folder / "gt" / "grey.png")[..., 0], rtol=1e-6)
+    two = np.concatenate([grey, np.ones_like(grey)], -1)
+    imageio.write_image(folder / "gt" / "grey_alpha.png", two, encode_srgb=False)
+    doc["textures"]["roughness"][second] = "gt/grey_alpha.png"
+    doc["textures"]["metallic"][first] = "gt/nowhere.png"
+    (folder / "gt.json").write_text(json.dumps(doc))
+    message = refusal_before_compute(folder, tmp_path, monkeypatch)
+    assert f"{folder / 'gt.json'}: textures.roughness.{second}:" in message and "2 channels" in message
+    assert f"{folder / 'gt.json'}: textures.metallic.{first}: file not found" in message
+    assert "textures.albedo" not in message                                 # grey albedo: accepted
 
 
 def test_scene_without_ground_truth_has_none(tiny, tmp_path):

@@ -35,7 +35,7 @@ from jaxdistill.render.gather_plan import TAPS, TexelSpace, build_gather_plans, 
 from jaxdistill.render.layout import make_layout, sized_layout
 from jaxdistill.render.visibility import (check_coverage, coverage_summary, hit_fractions, pixel_weights,
                                          texel_evidence, view_counts)
-from jaxdistill.scene.gt_file import ground_truth_maps
+from jaxdistill.scene.gt_file import check_gt_textures, ground_truth_maps
 from jaxdistill.scene.model import Scene
 from jaxdistill.scene.paths import resolve_scene_path  # noqa: F401  (--scene as a path; scripts use it from here)
 from jaxdistill.io.view_images import read_mask, read_photo_linear, read_target, resize
@@ -358,6 +358,7 @@ def _build_problem(config: DistillConfig, *, cache_dir=None, check_scene=None) -
     from jaxdistill.datasets import open_scene
 
     scene = open_scene(config.scene, import_options(config.as_dict()))
+    check_gt_textures(scene)                       # gt.json's textures: before any ray is cast
     if check_scene is not None:
         check_scene(scene)
     channels = MapChannels(tuple(config.maps))

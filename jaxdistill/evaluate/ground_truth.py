@@ -62,13 +62,21 @@ def read_ground_truth(scene: Scene) -> GroundTruth | None:
         if missing:
             raise InputError.single(path, f"textures.{name}", f"no texture for objects {missing}")
         encoding = doc.get("texture_encoding", {}).get(name, "linear")
-        pages[name] = [imageio.read_image(scene.root / per_object[o], linear=encoding == "srgb")[..., :CHANNELS[name]]
+        pages[name] = [_channels(imageio.read_image(scene.root / per_object[o], linear=encoding == "srgb"), name)
                        for o in names]
     unknown = [o for o in doc.get("exclude_objects", []) if o not in names]
     if unknown:
         raise InputError.single(path, "exclude_objects", f"{unknown} are not objects of the scene")
     return GroundTruth(pages=pages, geometry_normals=doc.get("normal") == "geometry",
                        exclude_objects=tuple(doc.get("exclude_objects", [])))
+
+
+def _channels(image: np.ndarray, name: str) -> np.ndarray:
+    """A GT texture with its map's channels (`maps.CHANNELS`): a grey one as R = G = B for the RGB
+    maps, as targets are read (`check_gt_textures` has refused the counts a map cannot use)."""
+    if image.shape[-1] == 1 and CHANNELS[name] == 3:
+        return np.repeat(image, 3, axis=-1)
+    return image[..., :CHANNELS[name]]
 
 
 def gt_view_maps(gt: GroundTruth, scene: Scene, fragments: Sequence) -> list[dict[str, np.ndarray]]:

@@ -7,9 +7,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from jaxdistill.errors import InputError, read_json
+from jaxdistill.errors import InputError, ProblemList, read_json
 from jaxdistill.scene.maps import CHANNELS
-from jaxdistill.scene.model import Scene
+from jaxdistill.scene.model import Scene, image_problems
 
 GT_FORMAT = "jaxdistill-gt"
 
@@ -47,3 +47,22 @@ def ground_truth_maps(scene: Scene) -> dict[str, int]:
     names = set(doc.get("textures", {})) | ({"normal"} if doc.get("normal") == "geometry" else set()) if doc else set()
     names |= {m for v in scene.views for m in v.ground_truth}
     return {m: CHANNELS[m] for m in sorted(names)}
+
+
+def check_gt_textures(scene: Scene) -> None:
+    """InputError naming gt.json and each texture's field, before any compute, when a texture it
+    names is missing, unreadable or has channels its map cannot use (a grey albedo or irradiance is
+    used as R = G = B, as targets are; 2 channels are refused); headers only, no pixel read. Nothing
+    without a gt.json in our format."""
+    doc = read_gt_document(scene.root)
+    if doc is None:
+        return
+    problems = ProblemList()
+    for name, per_object in doc.get("textures", {}).items():
+        for obj, rel in per_object.items():
+            if not isinstance(rel, str):
+                problems.add(str(scene.root / "gt.json"), f"textures.{name}.{obj}", "expected an image path")
+                continue
+            image_problems(scene.root / rel, f"textures.{name}.{obj}", None, str(scene.root / "gt.json"), problems,
+                           check_pixels=False, role=name)
+    problems.raise_if_any()
