@@ -21,7 +21,7 @@ from jaxdistill.engine.problem import build_problem, view_data_bytes
 from jaxdistill.errors import InputError
 from jaxdistill.io import view_rows
 from jaxdistill.io.view_rows import MapRows, ViewFolder, ViewRows, placement, view_array
-from jaxdistill.render.fragments import FRAGMENT_FIELDS, FragmentRows
+from jaxdistill.render.fragments import ROW_BYTES_PER_PIXEL, ROW_FIELDS, FragmentRows
 from jaxdistill.scene.model import read_scene
 from tiny_scene import write_tiny_scene
 
@@ -244,9 +244,11 @@ def test_a_problem_on_disk_reads_the_batches_and_scores_of_one_in_memory(tiny_sc
     assert isinstance(memory.plan_index, np.ndarray) and isinstance(memory.prior.target_images, np.ndarray)
     assert isinstance(memory.fragments, list) and isinstance(disk.fragments, FragmentRows)
     assert all(isinstance(a, ViewRows) for a in disk.fragments.arrays.values())
+    assert sorted(disk.fragments.arrays) == sorted(ROW_FIELDS) and ROW_BYTES_PER_PIXEL == 32   # no barycentric, depth
     for frags in ("fragments", "native_fragments"):
         for one, other in zip(getattr(memory, frags), getattr(disk, frags), strict=True):
-            for name in FRAGMENT_FIELDS:
+            assert other.barycentric is None and other.depth is None and one.depth is not None
+            for name in ROW_FIELDS:
                 np.testing.assert_array_equal(getattr(one, name), getattr(other, name), err_msg=name)
     if terms:
         assert all(isinstance(a, ViewRows) for a in (disk.photos.photos, disk.photos.guide, disk.photos.index,

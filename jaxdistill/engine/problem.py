@@ -207,8 +207,8 @@ class Problem:
     def without_fragments(self) -> "Problem":
         """This problem without its fragments (and native fragments): nothing after the evaluation
         context (`scoring.evaluation_context`) reads them, and they grow with views x pixels
-        (44 bytes a pixel: 1.05 GiB at 50 views of 876x584). Their files (--view_data on disk) are
-        closed here, which frees their disk space now; this problem's fragments cannot be read after."""
+        (44 bytes a pixel in memory, 32 in files: 1.05 GiB at 50 views of 876x584 in memory). Their
+        files (--view_data on disk) are closed here, which frees their disk space now; this problem's fragments cannot be read after."""
         for frags in (self.fragments, self.native_fragments):
             for array in getattr(frags, "arrays", {}).values():
                 if isinstance(array, ViewRows):
@@ -474,7 +474,7 @@ def view_data_bytes(config: DistillConfig, scene: Scene, choice: PriorChoice, ch
                     render: tuple[int, int], *, views: Sequence | None = None, evaluation: bool = True) -> int:
     """Bytes of the per-view arrays the set-up and the evaluation context make for `views` (the
     views this process holds, default all) when they are files (--view_data on disk): the fragments
-    (44 bytes a pixel) and gather plans (T taps of an int32 index and a float32 weight, a float32
+    (32 bytes a pixel: `fragments.ROW_FIELDS`) and gather plans (T taps of an int32 index and a float32 weight, a float32
     pixel weight and a 1-byte hit mask) at the render size, the views prior's targets (C float32
     channels) there, and with the re-rendering term fragments, plans, photos (3 float32) and chroma
     guides (2, --albedo_smoothness) at the photo size; the evaluation's (`evaluation`: the primary's)
@@ -484,7 +484,7 @@ def view_data_bytes(config: DistillConfig, scene: Scene, choice: PriorChoice, ch
     (`gt_file.ground_truth_maps`: a file per map a view has, all views' rows)."""
     held = scene.views if views is None else views
     taps = TAPS[config.sampler]
-    frag, plan = fr.BYTES_PER_PIXEL, 8 * taps + 4 + 1
+    frag, plan = fr.ROW_BYTES_PER_PIXEL, 8 * taps + 4 + 1
     per_pixel = {render: frag + plan + (4 * channels.num_channels if choice.kind == "views" else 0)}
     if config.photo_weight > 0:
         photo = render_shape(scene, config.photo_size, flag="--photo_size")
@@ -550,7 +550,7 @@ def _loss_weights(config: DistillConfig, views: Sequence, plan, counts: np.ndarr
 
 def _fragments(mesh, cameras: Sequence[Camera], *, cache_dir, folder: ViewFolder | None):
     """The cameras' fragments: a list, or with --view_data on disk (`folder`) and one resolution,
-    `FragmentRows` in files of `folder` (a view at a time in memory, 44 bytes a pixel on disk)."""
+    `FragmentRows` in files of `folder` (a view at a time in memory, 32 bytes a pixel on disk)."""
     one_size = len({(c.height, c.width) for c in cameras}) == 1
     empty = functools.partial(view_array, folder=folder) if folder is not None and one_size else None
     return fr.compute_fragments(mesh, cameras, cache_dir=cache_dir, empty=empty)

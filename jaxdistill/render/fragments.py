@@ -40,12 +40,14 @@ class Fragments:
     weights of corners 1 and 2 (corner 0 gets 1 - b1 - b2); depth (H, W) float32 camera z
     in world units (inf on miss); uv (H, W, 2) float32 in [0, 1], v up; uv_grad (H, W, 2, 2)
     float32 with uv_grad[..., 0, :] = d(u, v)/dx and uv_grad[..., 1, :] = d(u, v)/dy per
-    pixel (0 on miss); object_id (H, W) int32, -1 on miss.
+    pixel (0 on miss); object_id (H, W) int32, -1 on miss. Fragments read back from per-view
+    files (`FragmentRows`) have no barycentric or depth (None): nothing after the ray casts reads
+    them in a run.
     """
 
     triangle: np.ndarray
-    barycentric: np.ndarray
-    depth: np.ndarray
+    barycentric: np.ndarray | None
+    depth: np.ndarray | None
     uv: np.ndarray
     uv_grad: np.ndarray
     object_id: np.ndarray
@@ -63,13 +65,18 @@ class Fragments:
 FRAGMENT_FIELDS = {"triangle": ((), np.int32), "barycentric": ((2,), np.float32), "depth": ((), np.float32),
                    "uv": ((2,), np.float32), "uv_grad": ((2, 2), np.float32), "object_id": ((), np.int32)}
 BYTES_PER_PIXEL = sum(4 * int(np.prod(shape)) for shape, _ in FRAGMENT_FIELDS.values())     # 44
+# what `FragmentRows` keeps of them: what a run reads after the ray casts (texel needs and gather plans: uv,
+# uv_grad and the hit; the evaluation: triangle and object_id), not barycentric and depth
+ROW_FIELDS = ("triangle", "uv", "uv_grad", "object_id")
+ROW_BYTES_PER_PIXEL = sum(4 * int(np.prod(FRAGMENT_FIELDS[name][0])) for name in ROW_FIELDS)      # 32
 
 
 class FragmentRows(Sequence):
-    """Every view's fragments (one resolution) in per-view arrays, one per field (NumPy, or files
-    read a view at a time: `io.view_rows`): `rows[v]` is view v's `Fragments`, read when asked
-    for, so a caller that goes through the views holds a few views' fragments at a time (the set-up's
-    two threads, `threads.ordered_map`: at most three)."""
+    """Every view's fragments (one resolution) in per-view arrays, one per field of `ROW_FIELDS`
+    (NumPy, or files read a view at a time: `io.view_rows`): `rows[v]` is view v's `Fragments`
+    (barycentric and depth None), read when asked for, so a caller that goes through the views
+    holds a few views' fragments at a time (the set-up's two threads, `threads.ordered_map`: at
+    most three)."""
 
     def __init__(self, arrays: dict, shape: tuple[int, int]):
         self.arrays, self.shape = arrays, shape
@@ -82,7 +89,7 @@ class FragmentRows(Sequence):
             return [self[i] for i in range(*v.indices(len(self)))]
         if not -len(self) <= v < len(self):
             raise IndexError(f"view {v} of {len(self)}")
-        return Fragments(**{name: a[v] for name, a in self.arrays.items()})
+        return Fragments(**{name: a[v] for name, a in self.arrays.items()}, barycentric=None, depth=None)
 
 
 class RayCaster:
@@ -342,7 +349,7 @@ def compute_fragments(mesh: Mesh, cameras: Sequence[Camera], *, cache_dir: Path 
 
     cache_dir: a folder, None for `default_cache_dir()`, or False to disable caching.
     empty: None returns a list; else `empty(name, shape, dtype)` allocates a (V, H, W, ...) array
-    per field (all cameras of one resolution), filled a view at a time, and a `FragmentRows` over
+    per field of `ROW_FIELDS` (all cameras of one resolution), filled a view at a time, and a `FragmentRows` over
     them is returned (with file-backed arrays, a few views are in memory at once: the one being
     cast and at most three being derived).
     """
@@ -354,7 +361,7 @@ def compute_fragments(mesh: Mesh, cameras: Sequence[Camera], *, cache_dir: Path 
             raise ValueError(f"fragments in per-view arrays need one resolution, got {sorted(sizes)}")
         shape = sizes.pop()
         out = FragmentRows({name: empty(f"fragments_{name}", (len(cameras),) + shape + extra, dtype)
-                            for name, (extra, dtype) in FRAGMENT_FIELDS.items()}, shape)
+                            for name, (extra, dtype) in FRAGMENT_FIELDS.items() if name in ROW_FIELDS}, shape)
     casting = _Casts(mesh)
 
     def cast(camera, path):
