@@ -117,7 +117,7 @@ def srgb_mean(x):
     return np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055).mean(axis=0)
 
 
-def test_anchor_gains_give_the_renders_the_estimates_mean_in_srgb():
+def test_anchor_gains_give_the_renders_the_estimates_mean_in_srgb(monkeypatch):
     rng = np.random.default_rng(2)
     hits = [rng.uniform(size=(5, 7)) > 0.3 for _ in range(3)]
     renders = [{m: rng.uniform(0, 0.8, (5, 7, c)).astype(np.float32) for m, c in
@@ -136,6 +136,12 @@ def test_anchor_gains_give_the_renders_the_estimates_mean_in_srgb():
         assert_close(srgb_mean(gains[m] * ren)[live], srgb_mean(est)[live], rtol=1e-6)
         assert (np.abs(gains[m][live] - 1) > 0.05).all()        # the renders were darker: not trivially 1
     assert gains["irradiance"][2] == 1.0
+    # the sRGB means taken a few pixels at a time (a capture's billions of pixels): the same gains
+    monkeypatch.setattr(anchor, "GAIN_CHUNK", 7)
+    chunked = anchor.anchor_gains(renders, estimates, hits, ("albedo", "irradiance"))
+    for m in gains:
+        assert_close(chunked[m], gains[m], rtol=1e-12)
+    monkeypatch.undo()
     # a gain that clips: the mean is reached through the clipped values (the bright half saturates)
     ren = np.concatenate([np.full(50, 0.5), np.full(50, 0.05)])[:, None]
     est = np.full((100, 1), 0.9)

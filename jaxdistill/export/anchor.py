@@ -33,11 +33,12 @@ from jaxdistill.evaluate import ground_truth as evaluation
 from jaxdistill.evaluate.scoring import Baseline, EvalContext
 from jaxdistill.export.photo_light import TRACE_MIN_POINTS, traced_albedo_gain
 from jaxdistill.io.images import is_linear_format, linear_to_srgb, linear_to_srgb_and_slope, srgb_to_linear
-from jaxdistill.scene.maps import MapChannels
+from jaxdistill.scene.maps import CHANNELS, MapChannels
 from jaxdistill.scene.model import Scene
 
 ANCHOR_GAIN_RANGE = (1.0 / 64.0, 64.0)
 ESCAPED_WARNING = 0.001     # --anchor=traced warns when more of its rays leave the mesh into what no photo shows
+GAIN_CHUNK = 1 << 20         # pixels a chunk of the anchor's sRGB means (`_display_mean_gain`)
 ABOVE_ONE_LIMIT = 0.1       # ... and when its gain puts more than this fraction of the albedo texels above 1
 
 
@@ -50,9 +51,13 @@ def _display_mean_gain(render: np.ndarray, target_mean: float, tol: float = 1e-7
     lo, hi = np.log(ANCHOR_GAIN_RANGE[0]), np.log(ANCHOR_GAIN_RANGE[1])
 
     def side(u: float) -> tuple[float, float]:
-        """mean(srgb(clip(e^u r))) − target and its derivative in u."""
-        value, slope = linear_to_srgb_and_slope(np.float32(np.exp(u)) * r)
-        return value.mean(dtype=np.float64) - target_mean, slope.mean(dtype=np.float64)
+        """mean(srgb(clip(e^u r))) − target and its derivative in u, `GAIN_CHUNK` pixels at a time
+        (float64 sums: the encoding's temporaries stay a chunk's, whatever the views and pixels)."""
+        gain, value, slope = np.float32(np.exp(u)), 0.0, 0.0
+        for first in range(0, len(r), GAIN_CHUNK):
+            v, d = linear_to_srgb_and_slope(gain * r[first:first + GAIN_CHUNK])
+            value, slope = value + v.sum(dtype=np.float64), slope + d.sum(dtype=np.float64)
+        return value / max(len(r), 1) - target_mean, slope / max(len(r), 1)
 
     start = float(srgb_to_linear(np.float32(np.clip(target_mean, 0.0, 1.0)))) / max(float(r.mean()), 1e-12)     # as if linear
     u = float(np.clip(np.log(max(start, 1e-12)), lo, hi))
@@ -83,11 +88,23 @@ def anchor_gains(renders, estimates, hits, maps) -> dict[str, np.ndarray]:
     for m in maps:
         if m not in ALIGNED_MAPS or not all(m in e for e in estimates):
             continue
-        render = np.concatenate([np.asarray(r[m], np.float32)[h] for r, h in zip(renders, hits)])
-        target = np.concatenate([np.asarray(e[m], np.float32)[h] for e, h in zip(estimates, hits)])
-        gains[m] = np.array([_display_mean_gain(np.ascontiguousarray(render[:, c]),
-                                                float(linear_to_srgb(target[:, c]).mean(dtype=np.float64)))
-                             if render[:, c].max(initial=0.0) > 0 else 1.0 for c in range(render.shape[1])])
+        # the estimates' sRGB means summed a view at a time (float64), and the renders' covered values
+        # written into one array per channel: the only per-pixel arrays held (the renders' values of one
+        # map, where both maps' renders and estimates of every view were held before, each twice)
+        count = sum(int(np.count_nonzero(h)) for h in hits)          # (hits: a sequence, read again below)
+        channels = CHANNELS[m]
+        render = np.empty((channels, count), np.float32)
+        total, start = np.zeros(channels), 0
+        for r, e, h in zip(renders, estimates, hits):
+            h = np.asarray(h, bool)
+            total += linear_to_srgb(np.asarray(e[m], np.float32)[h][:, :channels]).sum(axis=0, dtype=np.float64)
+            seen = np.asarray(r[m], np.float32)[h]
+            render[:, start:start + len(seen)] = seen.T
+            start += len(seen)
+        gain = [_display_mean_gain(render[c], float(total[c] / max(count, 1))) if render[c].max(initial=0.0) > 0
+                else 1.0 for c in range(channels)]
+        del render
+        gains[m] = np.array(gain)
     return gains
 
 
