@@ -126,7 +126,8 @@ def test_gt_textures_missing_or_of_unusable_channels_are_refused_before_compute_
     (folder / "gt.json").write_text(json.dumps(doc))
     gt = evaluation.read_ground_truth(read_scene(folder))
     page = gt.pages["albedo"][0]
-    assert page.shape[-1] == 3 and np.array_equal(page[..., 0], page[..., 2]) and np.array_equal(page[..., 0], page[..., 1])
+    assert page.shape[-1] == 3
+    assert np.array_equal(page[..., 0], page[..., 2]) and np.array_equal(page[..., 0], page[..., 1])
     np.testing.assert_allclose(page[..., 0], imageio.read_image(folder / "gt" / "grey.png")[..., 0], rtol=1e-6)
     two = np.concatenate([grey, np.ones_like(grey)], -1)
     imageio.write_image(folder / "gt" / "grey_alpha.png", two, encode_srgb=False)

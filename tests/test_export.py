@@ -542,8 +542,8 @@ def test_every_maps_disagreement_pages_are_its_views_spread_by_a_numpy_reference
 
     maps = ("albedo", "normal", "roughness", "metallic", "irradiance")
     scene = write_tiny_scene(tmp_path / "scene", views=12)               # neighbouring views overlap
-    config = config_lib.validate(DistillConfig(scene=str(scene), out_dir=str(tmp_path / "out"), maps=maps, prior="views",
-                                               sampler="bilinear", render_size=16))
+    config = config_lib.validate(DistillConfig(scene=str(scene), out_dir=str(tmp_path / "out"), maps=maps,
+                                               prior="views", sampler="bilinear", render_size=16))
     problem = build_problem(config, cache_dir=tmp_path / "cache")
     ctx = scoring.evaluation_context(config, problem)
     baseline = scoring.per_view_baseline(config, problem, ctx.shapes).views

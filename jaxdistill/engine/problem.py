@@ -208,7 +208,8 @@ class Problem:
         """This problem without its fragments (and native fragments): nothing after the evaluation
         context (`scoring.evaluation_context`) reads them, and they grow with views x pixels
         (44 bytes a pixel in memory, 32 in files: 1.05 GiB at 50 views of 876x584 in memory). Their
-        files (--view_data on disk) are closed here, which frees their disk space now; this problem's fragments cannot be read after."""
+        files (--view_data on disk) are closed here, which frees their disk space now; this problem's
+        fragments cannot be read after."""
         for frags in (self.fragments, self.native_fragments):
             for array in getattr(frags, "arrays", {}).values():
                 if isinstance(array, ViewRows):
@@ -474,14 +475,15 @@ def view_data_bytes(config: DistillConfig, scene: Scene, choice: PriorChoice, ch
                     render: tuple[int, int], *, views: Sequence | None = None, evaluation: bool = True) -> int:
     """Bytes of the per-view arrays the set-up and the evaluation context make for `views` (the
     views this process holds, default all) when they are files (--view_data on disk): the fragments
-    (32 bytes a pixel: `fragments.ROW_FIELDS`) and gather plans (T taps of an int32 index and a float32 weight, a float32
-    pixel weight and a 1-byte hit mask) at the render size, the views prior's targets (C float32
-    channels) there, and with the re-rendering term fragments, plans, photos (3 float32) and chroma
-    guides (2, --albedo_smoothness) at the photo size; the evaluation's (`evaluation`: the primary's)
-    1-byte masks at the photos' own size, with fragments and plans (no pixel weight) there when
-    neither size is theirs, its seam pairs, two bits a pixel there (`metrics.seam_edge_bytes`,
-    a view's bits in whole bytes), and its ground-truth maps, float32 channels there
-    (`gt_file.ground_truth_maps`: a file per map a view has, all views' rows)."""
+    (32 bytes a pixel: `fragments.ROW_FIELDS`) and gather plans (T taps of an int32 index and a
+    float32 weight, a float32 pixel weight and a 1-byte hit mask) at the render size, the views
+    prior's targets (C float32 channels) there, and with the re-rendering term fragments, plans,
+    photos (3 float32) and chroma guides (2, --albedo_smoothness) at the photo size; the
+    evaluation's (`evaluation`: the primary's) 1-byte masks at the photos' own size, with fragments
+    and plans (no pixel weight) there when neither size is theirs, its seam pairs, two bits a pixel
+    there (`metrics.seam_edge_bytes`, a view's bits in whole bytes), and its ground-truth maps,
+    float32 channels there (`gt_file.ground_truth_maps`: a file per map a view has, all views'
+    rows)."""
     held = scene.views if views is None else views
     taps = TAPS[config.sampler]
     frag, plan = fr.ROW_BYTES_PER_PIXEL, 8 * taps + 4 + 1

@@ -250,12 +250,13 @@ def _main_line(config, problem, texels, history, ctx, baseline, phases, out, sco
     with phases("plots and contact sheets"):
         write_loss_plot(out, problem, history)
         write_contact_sheets(out, config, problem, pred, ctx, baseline.views)
-    # lazy renders (--view_data on disk) keep one chunk for every thread: walked here while the scores walk
-    # them on the other thread, each would render the other's chunks again; so after the scores there
-    scored = scores_job.result() if problem.views_on_disk else None
+    if problem.views_on_disk:
+        # lazy renders keep one chunk for every thread: walked here while the scores walk them on the
+        # other thread, each would render the other's chunks again; so after the scores there
+        scores_job.result()
     with phases("photos re-rendered"):
         rerender = rerender_scores(pred, problem, ctx.plan)
-    return maps_job.result(), evidence, scored if problem.views_on_disk else scores_job.result(), rerender
+    return maps_job.result(), evidence, scores_job.result(), rerender
 
 
 def _done(fn, *args) -> Future:

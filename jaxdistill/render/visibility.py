@@ -128,7 +128,8 @@ def texel_view_statistics_of(plan: GatherPlan, images: Iterable[Sequence[np.ndar
     for k in range(len(means)):         # a quantity at a time, its device arrays let go as it is handed back
         mean, square = (np.ascontiguousarray(np.asarray(jax.device_get(a)).T) for a in (means[k], squares[k]))
         means[k] = squares[k] = None
-        variance = np.maximum(square, 0.0) / np.maximum(count, 1)[:, None]     # rounding can leave -ulp where views agree
+        # rounding can leave -ulp where views agree
+        variance = np.maximum(square, 0.0) / np.maximum(count, 1)[:, None]
         del square
         out.append((count, mean, variance))
     return out
