@@ -24,6 +24,12 @@ if _OWN_XLA_CACHE:
 # Results agree within the tests' tolerances at either level (no fast-math at either).
 if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0").strip()
+# XLA's older loop emitters compile the suite's small programs faster than its MLIR fusion emitters (jaxlib
+# 0.10's default): test_main.py's auto-prior run 36.8-37.7 -> 29.1-33.3 s alone, the summed test times 0.87x
+# (docs/benchmarks.md §8). Not for real runs: at the main job's level they compile and run its step slower.
+# Results differ from the default emitters' in float32 rounding only (the tests' tolerances, tests/tolerance.py).
+if "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = (os.environ["XLA_FLAGS"] + " --xla_cpu_use_fusion_emitters=false").strip()
 # At level 0 XLA's own code is unoptimised and jaxlib's YNNPACK library fusions, which
 # `import jaxdistill` turns off for real runs (jaxdistill/xla_flags.py), are the faster ones: the
 # suite keeps jaxlib's defaults (test_unet_matches_diffusers 16.5 -> 11.4 s). tests/test_xla_flags.py
