@@ -94,6 +94,44 @@ def _shapes_are_read_from_their_file(folder, tmp_path, monkeypatch):
     convert._abstract_params.cache_clear()
 
 
+def test_shapes_traced_ahead_are_traced_once_and_a_bad_folder_is_left_to_the_loader(folder, tmp_path, monkeypatch):
+    """`convert.trace_ahead` traces in a thread of its own; `abstract_params` of the same networks
+    waits for that trace instead of tracing again, and gets the same shapes; a folder that cannot be
+    read raises nothing in the thread (`load_rgbx` checks it and says what is wrong)."""
+    import threading
+
+    monkeypatch.setenv("JAXDISTILL_CACHE", str(tmp_path))
+    previous = jax.config.jax_compilation_cache_dir
+    jax.config.update("jax_compilation_cache_dir", None)        # the shapes' file in tmp_path, not there yet
+    traces, started, release = [], threading.Event(), threading.Event()
+    trace = convert._trace_params
+
+    def slow_trace(networks):
+        traces.append(threading.current_thread().name)
+        started.set()
+        release.wait(30)                       # the loader asks while the thread still traces
+        return trace(networks)
+
+    monkeypatch.setattr(convert, "_trace_params", slow_trace)
+    convert._abstract_params.cache_clear()
+    try:
+        thread = convert.trace_ahead(folder)
+        assert started.wait(30)
+        asked = threading.Timer(0.2, release.set)
+        asked.start()
+        shapes = convert.abstract_params(convert.build_networks(folder))
+        thread.join(30)
+        assert traces == ["trace-param-shapes"]                       # once, in the thread
+        assert jax.tree.structure(shapes) == jax.tree.structure(trace(convert.build_networks(folder)))
+        bad = convert.trace_ahead(tmp_path / "no_such_folder")
+        bad.join(30)
+        assert not bad.is_alive() and traces == ["trace-param-shapes"]
+    finally:
+        release.set()
+        jax.config.update("jax_compilation_cache_dir", previous)
+        convert._abstract_params.cache_clear()
+
+
 def test_diffusers_and_transformers_agree_with_ours_on_the_shipped_folder(folder, loaded):
     torch = pytest.importorskip("torch")
     diffusers = pytest.importorskip("diffusers")

@@ -288,17 +288,23 @@ def _views_prior(scene, views, channels, height, width, folder: ViewFolder | Non
                                                                          folder, views)), {}
 
 
-def _rgbx_prior(config: DistillConfig, choice: PriorChoice, views, channels, height, width):
+def _network_options(config: DistillConfig) -> dict:
+    """How the prior's networks are built (`convert.build_networks`' dtype and attention chunk)."""
     import jax.numpy as jnp
 
-    from jaxdistill.models import convert, layers
+    from jaxdistill.models import layers
+
+    # cudnn: checked in loop.check_before_compute (dtype, prior, device, the UNet's head sizes)
+    return {"dtype": {"float32": jnp.float32, "bfloat16": jnp.bfloat16}[config.prior_dtype],
+            "chunk_size": layers.FUSED_CUDNN if config.prior_attention == "cudnn" else None}
+
+
+def _rgbx_prior(config: DistillConfig, choice: PriorChoice, views, channels, height, width):
+    from jaxdistill.models import convert
     from jaxdistill.models import prior as rgbx
     from jaxdistill.engine.priors import make_rgbx_prior
 
-    dtype = {"float32": jnp.float32, "bfloat16": jnp.bfloat16}[config.prior_dtype]
-    # cudnn: checked in loop.check_before_compute (dtype, prior, device, the UNet's head sizes)
-    chunk = layers.FUSED_CUDNN if config.prior_attention == "cudnn" else None
-    loaded = convert.load_rgbx(choice.folder, dtype=dtype, cache_dir=config.convert_cache, chunk_size=chunk)
+    loaded = convert.load_rgbx(choice.folder, cache_dir=config.convert_cache, **_network_options(config))
     model = rgbx.load_prior(loaded)
     logging.info("RGB<->X loaded from %s in %.1f s", choice.folder, sum(loaded.seconds.values()))
     photos = (resize(imageio.read_photo_srgb(v.photo, v.exposure), height, width) for v in views)
@@ -356,6 +362,9 @@ def _build_problem(config: DistillConfig, *, cache_dir=None, check_scene=None) -
     timings = {}
     t0 = time.perf_counter()
     choice = choose_prior(config)
+    if choice.kind == "rgbx":         # the networks' parameter shapes, traced beside reading the scene and rays
+        from jaxdistill.models import convert
+        convert.trace_ahead(choice.folder, **_network_options(config))
     from jaxdistill.datasets import open_scene
 
     scene = open_scene(config.scene, import_options(config.as_dict()))

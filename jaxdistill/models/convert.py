@@ -21,6 +21,7 @@ import hashlib
 import json
 import logging
 import os
+import threading
 import time
 import uuid
 from pathlib import Path
@@ -356,8 +357,30 @@ def abstract_params(networks: RgbxNetworks) -> dict[str, dict]:
     rows, a test's runs) gets them from a cache keyed by the modules' configuration, and a new
     process from a file keyed by that configuration, the networks' source files and the JAX and
     Flax versions (`shapes_folder`)."""
-    cached = _abstract_params(networks, bool(jax.config.jax_enable_x64))
+    with _TRACING:              # one trace per networks: a caller waits for a trace under way (`trace_ahead`)
+        cached = _abstract_params(networks, bool(jax.config.jax_enable_x64))
     return jax.tree.map(lambda x: x, cached)         # a fresh tree: callers own what they get
+
+
+_TRACING = threading.Lock()
+
+
+def trace_ahead(folder: str | Path, dtype: Any = jnp.float32, precision: str = "default",
+                chunk_size: int | None = None) -> threading.Thread:
+    """Starts `abstract_params` of the folder's networks (as `load_rgbx` builds them with the same
+    arguments) in a thread of its own, for a caller with other set-up to do before it loads the
+    weights: a cold trace takes seconds of Python, and `load_rgbx` then waits for it (or finds its
+    shapes cached) instead of tracing. Nothing is raised there: a folder that cannot be read is left
+    to `load_rgbx`, which checks it and says what is wrong."""
+    def trace():
+        try:
+            abstract_params(build_networks(folder, dtype, precision, chunk_size))
+        except Exception as err:        # noqa: BLE001 -- load_rgbx checks the folder and reports it
+            log.debug("parameter shapes not traced ahead (%s: %s)", type(err).__name__, err)
+
+    thread = threading.Thread(target=trace, name="trace-param-shapes", daemon=True)
+    thread.start()
+    return thread
 
 
 # what the inits' shapes follow from: the networks, their layers, and this module's `_trace_params`
