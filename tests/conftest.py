@@ -24,17 +24,21 @@ if _OWN_XLA_CACHE:
 # Results agree within the tests' tolerances at either level (no fast-math at either).
 if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0").strip()
-# XLA's older loop emitters compile the suite's small programs faster than its MLIR fusion emitters (jaxlib
-# 0.10's default): test_main.py's auto-prior run 36.8-37.7 -> 29.1-33.3 s alone, the summed test times 0.87x
-# (docs/benchmarks.md §8). Not for real runs: at the main job's level they compile and run its step slower.
-# Results differ from the default emitters' in float32 rounding only (the tests' tolerances, tests/tolerance.py).
-if "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = (os.environ["XLA_FLAGS"] + " --xla_cpu_use_fusion_emitters=false").strip()
 # At level 0 XLA's own code is unoptimised and jaxlib's YNNPACK library fusions, which
 # `import jaxdistill` turns off for real runs (jaxdistill/xla_flags.py), are the faster ones: the
 # suite keeps jaxlib's defaults (test_unet_matches_diffusers 16.5 -> 11.4 s). tests/test_xla_flags.py
 # checks the package's flags in processes of its own. A value given in the environment wins.
 os.environ.setdefault("JAXDISTILL_XLA_FLAGS", "0")
+# XLA's older loop emitters compile the suite's small programs faster than its MLIR fusion emitters (jaxlib
+# 0.10's default): test_main.py's auto-prior run 36.8-37.7 -> 29.1-33.3 s alone, the summed test times 0.87x
+# (docs/benchmarks.md §8). Not for real runs: at the main job's level they compile and run its step slower.
+# Results differ from the default emitters' in float32 rounding only (the tests' tolerances, tests/tolerance.py).
+# Only from the jaxlib it was measured with (XLA aborts on a flag it does not know): xla_flags.py's check, read
+# once JAXDISTILL_XLA_FLAGS is set, so importing the package applies none of its own flags here.
+from jaxdistill.xla_flags import MIN_JAXLIB, jaxlib_version  # noqa: E402
+
+if "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", "") and (jaxlib_version() or (0, 0)) >= MIN_JAXLIB:
+    os.environ["XLA_FLAGS"] = (os.environ["XLA_FLAGS"] + " --xla_cpu_use_fusion_emitters=false").strip()
 
 import numpy as np
 import pytest

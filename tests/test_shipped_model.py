@@ -104,6 +104,8 @@ def test_shapes_traced_ahead_are_traced_once_and_a_bad_folder_is_left_to_the_loa
     previous = jax.config.jax_compilation_cache_dir
     jax.config.update("jax_compilation_cache_dir", None)        # the shapes' file in tmp_path, not there yet
     traces, started, release = [], threading.Event(), threading.Event()
+    escaped = []                               # an exception out of the thread (pytest only warns of those)
+    monkeypatch.setattr(threading, "excepthook", lambda args: escaped.append(args.exc_value))
     trace = convert._trace_params
 
     def slow_trace(networks):
@@ -125,7 +127,7 @@ def test_shapes_traced_ahead_are_traced_once_and_a_bad_folder_is_left_to_the_loa
         assert jax.tree.structure(shapes) == jax.tree.structure(trace(convert.build_networks(folder)))
         bad = convert.trace_ahead(tmp_path / "no_such_folder")
         bad.join(30)
-        assert not bad.is_alive() and traces == ["trace-param-shapes"]
+        assert not bad.is_alive() and traces == ["trace-param-shapes"] and not escaped
     finally:
         release.set()
         jax.config.update("jax_compilation_cache_dir", previous)

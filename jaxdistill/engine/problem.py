@@ -353,18 +353,26 @@ def check_state_fits(num_texels: int, channels: int, config: DistillConfig, full
 def build_problem(config: DistillConfig, *, cache_dir=None, check_scene=None) -> Problem:
     """Reads and precomputes everything for `config`; InputError before any compute if input is bad.
     `check_scene(scene)`, if given, runs as soon as the scene is read, before any ray casting.
-    Images are decoded once: validation's reads are reused by the pipeline (`imageio.cached_reads`)."""
-    with imageio.cached_reads():
-        return _build_problem(config, cache_dir=cache_dir, check_scene=check_scene)
+    Images are decoded once: validation's reads are reused by the pipeline (`imageio.cached_reads`).
+    With the rgbx prior its networks' parameter shapes are traced in a thread from the start
+    (`convert.trace_ahead`), beside reading the scene and casting rays; a set-up that stops early
+    waits for that trace, so no thread is left running into the process's exit or the next call."""
+    tracing = None
+    choice = choose_prior(config)
+    if choice.kind == "rgbx":
+        from jaxdistill.models import convert
+        tracing = convert.trace_ahead(choice.folder, **_network_options(config))
+    try:
+        with imageio.cached_reads():
+            return _build_problem(config, choice, cache_dir=cache_dir, check_scene=check_scene)
+    finally:
+        if tracing is not None:
+            tracing.join()            # done already when the weights were loaded (they wait for it)
 
 
-def _build_problem(config: DistillConfig, *, cache_dir=None, check_scene=None) -> Problem:
+def _build_problem(config: DistillConfig, choice: PriorChoice, *, cache_dir=None, check_scene=None) -> Problem:
     timings = {}
     t0 = time.perf_counter()
-    choice = choose_prior(config)
-    if choice.kind == "rgbx":         # the networks' parameter shapes, traced beside reading the scene and rays
-        from jaxdistill.models import convert
-        convert.trace_ahead(choice.folder, **_network_options(config))
     from jaxdistill.datasets import open_scene
 
     scene = open_scene(config.scene, import_options(config.as_dict()))
