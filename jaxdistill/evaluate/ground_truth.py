@@ -20,7 +20,6 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Iterator, Sequence
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -31,7 +30,7 @@ from jaxdistill.scene.cameras import camera_normals, rgbx_camera_rotation
 from jaxdistill.scene.maps import CHANNELS, MapChannels, model_to_file, png_pixels
 from jaxdistill.render.gather_plan import GatherPlan
 from jaxdistill.io.view_rows import LazyViews
-from jaxdistill.render.sampler import iter_sample_pages, render
+from jaxdistill.render.sampler import iter_sample_pages, render_compiled
 from jaxdistill.scene.mesh import face_normals
 from jaxdistill.scene.gt_file import GT_FORMAT, read_gt_document  # noqa: F401  (moved there; callers read them here)
 from jaxdistill.scene.model import Scene
@@ -161,11 +160,6 @@ def view_ground_truth(scene: Scene, fragments: Sequence, out=None) -> tuple[Grou
     return gt, out
 
 
-@jax.jit
-def _render_batch(texels, plan):
-    return render(texels, plan)
-
-
 def render_views(texels, plan: GatherPlan, cameras: Sequence, channels: MapChannels,
                  chunk: int = 8, lazy: bool = False) -> Sequence[dict[str, np.ndarray]]:
     """Per view, {map: (H, W, C) file-space render} of model-space texels through the batched
@@ -177,7 +171,7 @@ def render_views(texels, plan: GatherPlan, cameras: Sequence, channels: MapChann
     def load(start: int) -> list[dict[str, np.ndarray]]:
         ids = np.arange(start, min(start + chunk, plan.num_views))
         padded = np.pad(ids, (0, chunk - len(ids)), mode="edge")          # one shape: one compilation
-        images = np.asarray(_render_batch(texels, plan.select(padded)))
+        images = np.asarray(render_compiled(texels, plan.select(padded)))
         out = []
         for j, v in enumerate(ids):
             maps = channels.split(images[j])

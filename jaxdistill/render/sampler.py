@@ -310,10 +310,10 @@ def iter_sample_pages(pages, fragments, object_page, *, sampler: str = "bilinear
     texels = jnp.asarray(compact(pages, space))
     for frag in fragments:
         plan = build_gather_plans([frag], space, sampler)
-        yield np.asarray(_render_jitted(texels, plan))[0]
+        yield np.asarray(render_compiled(texels, plan))[0]
 
 
-# `render` as one compiled program (per texel count and view size): run eagerly, its dozen operations
-# compiled one by one, and each first compilation can wait seconds for a large program compiling in
-# another thread (the main job's step, compiled beside the evaluation's ground truth)
-_render_jitted = jax.jit(render)
+# `render` as one compiled program (per texel count and plan shape), for callers outside a jitted function:
+# run eagerly, its dozen operations compile one by one, and each first compilation can wait seconds for a
+# large program compiling in another thread (the main job's step, compiled beside the evaluation context)
+render_compiled = jax.jit(render)
