@@ -258,3 +258,47 @@ def test_auto_estimate_steps_are_the_shipped_models_own_and_the_demos_otherwise(
     shutil.copy(shipped.SHIPPED_DIR / shipped.INFO_FILE, trained / shipped.INFO_FILE)
     assert json.loads((trained / shipped.INFO_FILE).read_text())["name"]
     assert model_estimates.default_steps(trained) == 50
+
+
+def test_estimates_stop_before_their_next_batch_and_leave_nothing_in_the_cache(tmp_path, monkeypatch):
+    """A run's estimates beside its loop (`scoring.baseline_ahead`) are stopped through an event
+    when the loop stops: `estimate_views` samples no batch once it is set, and `cached_estimates`
+    then removes its folder under way, so a later run computes them afresh."""
+    import threading
+    import types
+
+    photo = tmp_path / "view.png"
+    imageio.write_image(photo, np.full((8, 8, 3), 0.5, np.float32))
+    photos = [(f"view_{i}", photo, 0.0) for i in range(3)]
+    vae = types.SimpleNamespace(config=types.SimpleNamespace(downsampling_factor=8))
+    model = types.SimpleNamespace(networks=types.SimpleNamespace(vae=vae),
+                                  loaded=types.SimpleNamespace(folder=tmp_path))
+    stop, sampled = threading.Event(), []
+
+    def sample(model, latents, maps, noise, steps, gamma):
+        sampled.append(list(maps))
+        stop.set()                                   # the caller stops while this batch is sampled
+        return np.full((len(maps), 8, 8, 3), 0.25, np.float32)
+
+    monkeypatch.setattr(rgbx, "encode_photo", lambda model, photo, name: np.zeros((1, 1, 1, 4), np.float32))
+    monkeypatch.setattr(rgbx, "estimate_batch", sample)
+    with pytest.raises(model_estimates.Stopped, match="after 2 of 3"):
+        model_estimates.estimate_views(model, photos, ["albedo"], 8, 8, tmp_path / "out", steps=1, progress=False,
+                                       max_batch=2, stop=stop)
+    assert sampled == [["albedo", "albedo"]]                    # the batch under way was finished, no other
+    assert sorted(p.name for p in (tmp_path / "out" / "albedo").iterdir()) == ["view_0.png", "view_1.png"]
+
+    def stopped_midway(model, photos, maps, height, width, folder, **kwargs):
+        assert kwargs["stop"] is stop
+        (folder / "albedo").mkdir(parents=True)
+        (folder / "albedo" / "view_0.png").write_bytes(b"written before the stop")
+        raise model_estimates.Stopped("stopped after 1 of 3 estimates")
+
+    monkeypatch.setattr(model_estimates, "estimate_views", stopped_midway)
+    monkeypatch.setattr(model_estimates, "FUSED_CUDNN", None)
+    model.loaded.networks = types.SimpleNamespace(unet=types.SimpleNamespace(chunk_size=layers.DEFAULT_ATTENTION_CHUNK))
+    (tmp_path / "model_index.json").write_text("{}")
+    cache = tmp_path / "cache"
+    with pytest.raises(model_estimates.Stopped):
+        model_estimates.cached_estimates(model, photos, ["albedo"], 8, 8, cache_dir=cache, progress=False, stop=stop)
+    assert not cache.exists() or not any(cache.iterdir())
