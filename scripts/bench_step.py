@@ -30,7 +30,10 @@ number of maps per step:
 Fairness: both sides use the same weights (one diffusers folder), scene, views, plans and thread
 count (`--threads`, default all cores: each child is pinned to that many cores, XLA sizes its
 pool by them and torch.set_num_threads gets the count); each does a warm-up (compilation for JAX) before `--repeats` timed runs; figures
-are medians. Each framework runs in a fresh child process so peak RSS is its own.
+are medians. Each framework runs in a fresh child process so peak RSS is its own. Both children
+start with glibc's huge-page tunable (`--huge_pages`, default true), as the package's commands
+start themselves (jaxdistill/huge_pages.py): a user's run of ours has it, and the recipe gets it
+too; each row records its worker's `huge_pages` status.
 On a GPU (`scripts/bench_gpu.sh` runs the thesis's setting there): `--torch_device=cuda` puts the
 recipe on the card (its clocks read after a synchronise), each row reports the device's peak
 memory, and the UNet's FLOP/s is given as a share of the card's dense bf16 peak. FLOPs are XLA's
@@ -58,6 +61,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from jaxdistill import huge_pages
 
 ALL_MAPS = ("albedo", "normal", "roughness", "metallic", "irradiance")
 THESIS_STEPS = 17_000          # the thesis's steps per map (§5.2)
@@ -96,6 +101,9 @@ def parse_args(argv=None):
                         "package's, $JAXDISTILL_CACHE or ~/.cache/jaxdistill)")
     p.add_argument("--peak_tflops", type=float, default=None,
                    help="the card's dense bf16 peak for the utilisation figure (default: from the device name)")
+    p.add_argument("--huge_pages", default="true", choices=("true", "false"),
+                   help="start both workers with glibc's huge-page tunable, as the package's commands run "
+                        "(jaxdistill/huge_pages.py; nothing where the system cannot use it); false: as started")
     p.add_argument("--json", action="store_true")
     p.add_argument("--worker", help=argparse.SUPPRESS)     # jax:<dtype> or torch: a child process
     args = p.parse_args(argv)
@@ -341,6 +349,7 @@ def jax_worker(args, folder: str, dtype_name: str) -> list[dict]:
         del step, outputs
     for row in rows:
         row["peak_rss_gb"] = peak_rss_gb()
+        row["huge_pages"] = huge_pages.status()
     return rows
 
 
@@ -471,10 +480,22 @@ def torch_worker(args, folder: str) -> list[dict]:
               f"(stages {', '.join(f'{k} {v:.2f}' for k, v in stage_s.items())})", file=sys.stderr)
     for row in rows:
         row["peak_rss_gb"] = peak_rss_gb()
+        row["huge_pages"] = huge_pages.status()
     return rows
 
 
 # ----------------------------------------------------------------------------- the parent
+
+def worker_environment(huge: bool) -> dict:
+    """The workers' environment: this process's, with glibc's huge-page tunable added (`huge`) as the
+    package's commands add it to themselves (`huge_pages.tunables_to_add`: nothing where it would do
+    nothing, and a value already given is kept)."""
+    env = dict(os.environ)
+    value = huge_pages.tunables_to_add(env, huge_pages.glibc_version(), huge_pages.thp_mode()) if huge else None
+    if value is not None:
+        env["GLIBC_TUNABLES"] = value
+    return env
+
 
 def run_child(args, folder: str, worker: str) -> list[dict]:
     """Runs one worker in a fresh process; its rows are the last line of its stdout."""
@@ -492,9 +513,13 @@ def run_child(args, folder: str, worker: str) -> list[dict]:
     if args.convert_cache:
         cmd.append(f"--convert_cache={args.convert_cache}")
     cores = sorted(os.sched_getaffinity(0))[:args.threads]
-    print(f"--- {worker} on cores {cores}: {' '.join(cmd[1:])}", file=sys.stderr)
-    # both frameworks see the same cores (XLA sizes its pool by them; torch also gets the count)
-    proc = subprocess.run(cmd, stdout=subprocess.PIPE, text=True, preexec_fn=lambda: os.sched_setaffinity(0, cores))
+    env = worker_environment(args.huge_pages == "true")
+    print(f"--- {worker} on cores {cores}, huge pages {huge_pages.status(env)}: {' '.join(cmd[1:])}",
+          file=sys.stderr)
+    # both frameworks see the same cores (XLA sizes its pool by them; torch also gets the count), and the
+    # same allocator settings: with --huge_pages, glibc's tunable that the package's commands run with
+    proc = subprocess.run(cmd, stdout=subprocess.PIPE, text=True, env=env,
+                          preexec_fn=lambda: os.sched_setaffinity(0, cores))
     if proc.returncode:
         print(f"the {worker} worker failed (exit {proc.returncode}); its log is above; the others still run",
               file=sys.stderr)

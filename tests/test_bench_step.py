@@ -77,3 +77,23 @@ def test_a_step_with_x0_reuse_is_a_row_of_its_own_against_the_same_recipe(bench)
     assert entry["speedup_jax_float32_reuse2"] == pytest.approx(0.09 / 0.012)
     assert entry["jax_float32_reuse2_s"] == 0.012
     assert bench.headline(bench.summarise(rows)).endswith("1 map(s): float32 4.50x, float32_reuse2 7.50x")
+
+
+def test_both_workers_start_with_the_huge_page_tunable_the_package_adds_to_itself(bench, monkeypatch):
+    """--huge_pages (default): the workers' environment gets glibc's tunable exactly where the package's
+    commands would add it to themselves (`huge_pages.tunables_to_add`); a value given is kept; false: as started."""
+    from jaxdistill import huge_pages
+
+    monkeypatch.setattr(huge_pages, "glibc_version", lambda: (2, 36))
+    monkeypatch.setattr(huge_pages, "thp_mode", lambda: "madvise")
+    for name in ("GLIBC_TUNABLES", huge_pages.RAN_AGAIN, huge_pages.OFF):
+        monkeypatch.delenv(name, raising=False)
+    assert bench.worker_environment(True)["GLIBC_TUNABLES"] == "glibc.malloc.hugetlb=1"
+    assert "GLIBC_TUNABLES" not in bench.worker_environment(False)
+    monkeypatch.setenv("GLIBC_TUNABLES", "glibc.malloc.arena_max=2")
+    assert bench.worker_environment(True)["GLIBC_TUNABLES"] == "glibc.malloc.arena_max=2:glibc.malloc.hugetlb=1"
+    monkeypatch.setenv("GLIBC_TUNABLES", "glibc.malloc.hugetlb=0")        # the user's value wins
+    assert bench.worker_environment(True)["GLIBC_TUNABLES"] == "glibc.malloc.hugetlb=0"
+    monkeypatch.delenv("GLIBC_TUNABLES")
+    monkeypatch.setattr(huge_pages, "thp_mode", lambda: "always")         # nothing to add where it does nothing
+    assert "GLIBC_TUNABLES" not in bench.worker_environment(True)
