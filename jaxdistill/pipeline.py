@@ -11,7 +11,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import resource
-import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -56,17 +55,14 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
                 "stopped_by": loop.stopped_by, "exit_status": loop.exit_status}
     steps_left = latest is None or latest < config.steps
     # one thread compiles beside the evaluation's set-up: the step, then the model's per-view
-    # estimates' programs, and computes the estimates (used after the loop), which go on while the
-    # loop runs (XLA compiles on one core, and the steps leave part of one idle); only the step is
-    # waited for here
+    # estimates' programs (used after the loop), which go on while the loop runs (XLA compiles on
+    # one core, which the steps leave partly idle); only the step is waited for here
     pool = ThreadPoolExecutor(max_workers=1)
-    stop_estimates = threading.Event()
     try:
         preparing = pool.submit(loop_lib.prepare_step, config, problem) if steps_left else None
-        estimates_ahead = (pool.submit(scoring.baseline_ahead, config,    # (the fragments not held)
-                                       dataclasses.replace(problem, fragments=None, native_fragments=None),
-                                       stop_estimates)
-                           if steps_left else None)
+        estimates_compiled = (pool.submit(scoring.compile_baseline_ahead, config,    # (the fragments not held)
+                                          dataclasses.replace(problem, fragments=None, native_fragments=None))
+                              if steps_left else None)
         trust = texel_trust(problem)               # once: the texel space file and the exported pages
         run_files.write_texel_space(out, problem.space, trust, problem.channels.maps, json_safe(recorded))
         ctx = scoring.evaluation_context(config, problem)
@@ -75,8 +71,7 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
         waited = time.perf_counter() - waited
         preparing = None
     except BaseException:
-        stop_estimates.set()
-        pool.shutdown(wait=False, cancel_futures=True)          # the estimates are not needed
+        pool.shutdown(wait=False, cancel_futures=True)          # the estimates' programs are not needed
         raise
     pool.shutdown(wait=False)
     problem = problem.without_fragments()         # read by nothing after the evaluation context
@@ -84,18 +79,13 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
         problem.timings.update(step_compiled_s=round(prepared.seconds, 2), step_compile_waited_s=round(waited, 2))
     peaks = {"set-up": peak_host_memory_gb()}
     evaluate = (lambda state: scoring.quick_psnr(state, problem, ctx)) if ctx.gt_maps is not None else None
-    try:
-        loop = loop_lib.run_loop(config, problem, recorded, latest, evaluate=evaluate, progress=progress,
-                                 prepared=prepared)
-    except BaseException:
-        stop_estimates.set()                      # before their next batch; nothing of them left in the cache
-        raise
+    loop = loop_lib.run_loop(config, problem, recorded, latest, evaluate=evaluate, progress=progress,
+                             prepared=prepared)
     prepared = None                               # its step-0 state (a resumed run's, never donated) goes now
     if loop.stopped_by:
-        stop_estimates.set()
-        if estimates_ahead is not None and not estimates_ahead.done():
-            logging.warning("the process ends once the per-view estimates beside the loop stop (after their batch "
-                            "or compilation under way: XLA's cannot be stopped)")
+        if estimates_compiled is not None and not estimates_compiled.done():
+            logging.warning("the process ends once the per-view estimates' programs, compiling since the set-up, "
+                            "are compiled (XLA's compilation cannot be stopped)")
         return {"stopped_by": loop.stopped_by, "step": int(jax.device_get(loop.state.step)),
                 "exit_status": loop.exit_status}
 
@@ -106,16 +96,14 @@ def run(config: DistillConfig, *, progress: bool = True) -> dict:
         gains = np.exp(np.asarray(jax.device_get(align_lib.centred(loop.state.align["log_gains"]))))
     # the state holds AdamW's two moments, each as large as the texels: nothing after the loop reads them
     loop = dataclasses.replace(loop, state=None)
-    if estimates_ahead is not None:
+    if estimates_compiled is not None:
         try:
-            ahead = estimates_ahead.result() or {}
-        except Exception as err:         # noqa: BLE001 -- only a head start: per_view_baseline makes them anyway
-            logging.warning("making the per-view estimates beside the loop failed (%s: %s); they are made "
-                            "after it", type(err).__name__, err)
-            ahead = {}
-        for name in ("compiled", "computed"):
-            seconds = ahead.get(f"{name}_s")
-            problem.timings[f"estimates_{name}_s"] = None if seconds is None else round(seconds, 2)
+            seconds = estimates_compiled.result()
+        except Exception as err:         # noqa: BLE001 -- only a head start: the estimates compile them anyway
+            logging.warning("compiling the per-view estimates' programs ahead failed (%s: %s); they are compiled "
+                            "when they run", type(err).__name__, err)
+            seconds = None
+        problem.timings["estimates_compiled_s"] = None if seconds is None else round(seconds, 2)
     phases = OutputPhases()
     with phases("per-view estimates"):
         baseline = scoring.per_view_baseline(config, problem, ctx.shapes)

@@ -382,9 +382,6 @@ def test_auto_prior_uses_rgbx_weights_end_to_end(tiny_scene, run_rgbx_dir, tmp_p
         (views_run / "metrics.json").read_text())["baseline_per_view_estimates"]["albedo_psnr"]
     assert doc["traces"] == 1 and all(np.isfinite(doc["history"]["loss"]))
     assert (out / "maps" / "albedo" / "room_wall_x0.exr").is_file()
-    # the estimates were computed beside the loop (`scoring.baseline_ahead`), so after it they were read from the cache
-    assert doc["setup_timings"]["estimates_computed_s"] is not None
-    assert doc["output_timings"]["per-view estimates"]["seconds"] < doc["setup_timings"]["estimates_computed_s"]
 
 
 @pytest.mark.skipif(jax.default_backend() == "gpu", reason="checks the refusal on a machine without a GPU")

@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import threading
-import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Sequence
@@ -143,32 +141,18 @@ def per_view_baseline(config: DistillConfig, problem: Problem, shapes: list[tupl
                     f"{folder})", folder, steps)
 
 
-def baseline_ahead(config: DistillConfig, problem: Problem, stop: threading.Event | None = None) -> dict | None:
-    """The model's per-view estimates that `per_view_baseline` will read, made ahead in a thread
-    beside the set-up and the loop: their programs compiled (`model_estimates.compile_ahead`), then,
-    with the views' data in memory, the estimates computed into the cache, where `per_view_baseline`
-    finds them (`model_estimates.cached_estimates`; `stop` set, they stop before their next batch
-    and leave nothing there). Returns {"compiled_s", "computed_s"} (None for what was not done
-    here), or None when nothing is computed (the views prior, or the estimates cached).
-
-    With the views' data on disk (a capture's size) they are only compiled here and computed
-    after the loop, as before: their batches beside the loop would add to its memory peak, which is
-    what sets a large room's limit. The bedroom's steps leave part of a core idle (XLA's gathers and
-    scatters run on one), which the estimates' sampling fills."""
+def compile_baseline_ahead(config: DistillConfig, problem: Problem) -> float | None:
+    """Compiles the programs of the model's per-view estimates that `per_view_baseline` will
+    compute (`model_estimates.compile_ahead`), for a thread beside the set-up and the loop: their
+    seconds, or None when nothing will be computed (the views prior, or the estimates cached)."""
     if problem.rgbx_model is None:
         return None
     steps, photos, maps = _estimate_steps(config, problem), _photos(problem), problem.channels.maps
-    settings = dict(dtype=config.prior_dtype, steps=steps, seed=config.seed)
-    if model_estimates.is_cached(problem.rgbx_model, photos, maps, problem.height, problem.width, **settings):
+    if model_estimates.is_cached(problem.rgbx_model, photos, maps, problem.height, problem.width,
+                                 dtype=config.prior_dtype, steps=steps, seed=config.seed):
         return None
-    compiled = model_estimates.compile_ahead(problem.rgbx_model, maps, len(photos), problem.height, problem.width,
-                                             steps=steps)
-    if problem.views_on_disk:
-        return {"compiled_s": compiled, "computed_s": None}
-    start = time.perf_counter()
-    model_estimates.cached_estimates(problem.rgbx_model, photos, maps, problem.height, problem.width, progress=False,
-                                     stop=stop, **settings)
-    return {"compiled_s": compiled, "computed_s": time.perf_counter() - start}
+    return model_estimates.compile_ahead(problem.rgbx_model, maps, len(photos), problem.height, problem.width,
+                                         steps=steps)
 
 
 def _estimate_steps(config: DistillConfig, problem: Problem) -> int:

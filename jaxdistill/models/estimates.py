@@ -14,7 +14,6 @@ import hashlib
 import json
 import os
 import shutil
-import threading
 import time
 from pathlib import Path
 from typing import Sequence
@@ -81,11 +80,10 @@ def cache_key(model_folder: Path, photos: Sequence[tuple[str, Path, float]], hei
 
 def estimate_views(model: rgbx.RgbxPrior, photos: Sequence[tuple[str, Path, float]], maps: Sequence[str],
                    height: int, width: int, folder: Path, *, steps: int = ESTIMATE_STEPS, seed: int = 0,
-                   progress: bool = True, max_batch: int | None = None, stop: threading.Event | None = None) -> dict:
+                   progress: bool = True, max_batch: int | None = None) -> dict:
     """Writes folder/<map>/<view>.png for every photo (name, path, exposure in stops) resized to
     height x width; returns the summary also written to folder/estimate.json. `max_batch`: at most
-    this many (map, view) pairs a sampling call (default `batch_size`'s). `stop`: once set, raises
-    `Stopped` before the next sampling call (for a thread whose caller no longer needs them)."""
+    this many (map, view) pairs a sampling call (default `batch_size`'s)."""
     key = jax.random.key(seed)
     factor = model.networks.vae.config.downsampling_factor
     latent_shape = (1, height // factor, width // factor, 4)
@@ -102,8 +100,6 @@ def estimate_views(model: rgbx.RgbxPrior, photos: Sequence[tuple[str, Path, floa
     with tqdm(total=len(items), desc="model's per-view estimates", unit="map", disable=not progress,
               dynamic_ncols=True) as bar:
         for i in range(0, len(items), size):
-            if stop is not None and stop.is_set():
-                raise Stopped(f"stopped after {i} of {len(items)} estimates")
             chunk = items[i:i + size]
             padded = chunk + chunk[-1:] * (size - len(chunk))
             noise = np.concatenate([np.asarray(jax.random.normal(rgbx.view_map_key(key, photos[v][0], m), latent_shape))
@@ -155,17 +151,11 @@ def _covers(done: Path, maps: Sequence[str]) -> bool:
     return done.is_file() and set(maps) <= set(json.loads(done.read_text())["maps"])
 
 
-class Stopped(Exception):
-    """`estimate_views` was asked to stop (its `stop` event set) before it had sampled every view."""
-
-
 def cached_estimates(model: rgbx.RgbxPrior, photos: Sequence[tuple[str, Path, float]], maps: Sequence[str],
                      height: int, width: int, *, dtype: str = "float32", steps: int = ESTIMATE_STEPS, seed: int = 0,
-                     cache_dir: Path | None = None, progress: bool = True,
-                     stop: threading.Event | None = None) -> Path:
+                     cache_dir: Path | None = None, progress: bool = True) -> Path:
     """The folder of the model's estimates (see `estimate_views`), computed only when the cache
-    (`cache_dir`, default `default_cache_dir()/estimates`) lacks them. Stopped (`stop`) or failed,
-    nothing of them is left in the cache."""
+    (`cache_dir`, default `default_cache_dir()/estimates`) lacks them."""
     folder = cache_folder(model, photos, height, width, dtype=dtype, steps=steps, seed=seed, cache_dir=cache_dir)
     done = folder / "estimate.json"
     if _covers(done, maps):
@@ -174,12 +164,7 @@ def cached_estimates(model: rgbx.RgbxPrior, photos: Sequence[tuple[str, Path, fl
     # a folder of this process's own, then renamed into place: concurrent runs sharing the cache
     # never see (or write into) a half-written folder
     tmp = folder.with_name(f"{folder.name}.{os.getpid()}.tmp")
-    try:
-        summary = estimate_views(model, photos, maps, height, width, tmp, steps=steps, seed=seed, progress=progress,
-                                 stop=stop)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+    summary = estimate_views(model, photos, maps, height, width, tmp, steps=steps, seed=seed, progress=progress)
     if _covers(done, maps):             # another run finished the same estimates meanwhile: keep those
         shutil.rmtree(tmp)
     else:
