@@ -66,6 +66,12 @@ def render(texels: jnp.ndarray, plan: GatherPlan) -> jnp.ndarray:
     return sample(build_pyramid(texels, plan.chain), plan)
 
 
+# `render` as one compiled program (per texel count and plan shape), for callers outside a jitted function:
+# run eagerly, its dozen operations compile one by one, and each first compilation can wait seconds for a
+# large program compiling in another thread (the main job's step, compiled beside the evaluation context)
+render_compiled = jax.jit(render)
+
+
 def sample(pyramid, plan: GatherPlan) -> jnp.ndarray:
     """`render` from a pyramid already built (`build_pyramid` with the plan's chain): plans that
     share a chain (a step's renders and its photos) share one pyramid, and one transpose of it.
@@ -312,8 +318,3 @@ def iter_sample_pages(pages, fragments, object_page, *, sampler: str = "bilinear
         plan = build_gather_plans([frag], space, sampler)
         yield np.asarray(render_compiled(texels, plan))[0]
 
-
-# `render` as one compiled program (per texel count and plan shape), for callers outside a jitted function:
-# run eagerly, its dozen operations compile one by one, and each first compilation can wait seconds for a
-# large program compiling in another thread (the main job's step, compiled beside the evaluation context)
-render_compiled = jax.jit(render)
