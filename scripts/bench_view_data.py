@@ -1,7 +1,13 @@
 """What holding the per-view arrays in files costs the loop: --view_data=memory against disk.
 
     python scripts/bench_view_data.py --scene=SCENE [--steps=20] [--log_every=5] [--repeats=2] \\
-        [--views_per_step=8] [--max_texture_size=4096] [--prior=views] [--cache=DIR] [--json=FILE]
+        [--views_per_step=8] [--max_texture_size=4096] [--prior=views] [--cache=DIR] [--json=FILE] \\
+        [--cases=memory,disk,disk_copies]
+
+Cases: `memory`, `disk` (--view_data=disk: targets and photos at their files' size read again from
+those files, `view_rows.SourceRows`), and `disk_copies` (--view_data=disk with them copied into
+float32 files instead, as the package did before `SourceRows`: `problem.files_at_size` patched to
+say no in that child).
 
 Each case is a child process (so that its peak RSS is its own): the main job's set-up and loop
 (`build_problem`, `run_loop` with the step compiled ahead, no checkpoints, no outputs), the
@@ -24,6 +30,7 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
+CASES = ("memory", "disk", "disk_copies")
 
 
 def parse_args(argv=None):
@@ -39,8 +46,12 @@ def parse_args(argv=None):
     p.add_argument("--cache", default=None, help="a ray-cast cache that holds the scene's casts already (default: a "
                    "new folder, filled by a warm-up case first)")
     p.add_argument("--json", default=None)
-    p.add_argument("--one", default=None, choices=("memory", "disk"), help=argparse.SUPPRESS)   # a child's case
+    p.add_argument("--cases", default="memory,disk,disk_copies", help="comma-separated, of " + ", ".join(CASES))
+    p.add_argument("--one", default=None, choices=CASES, help=argparse.SUPPRESS)   # a child's case
     args = p.parse_args(argv)
+    args.cases = [c for c in args.cases.split(",") if c]
+    if not args.cases or set(args.cases) - set(CASES):
+        p.error(f"--cases: some of {CASES}, got {args.cases}")
     if args.steps < 2 * args.log_every or args.log_every < 1 or args.repeats < 1:
         p.error("--steps must be at least 2 x --log_every (>= 1), --repeats >= 1")
     return args
@@ -50,14 +61,17 @@ def one_case(args) -> dict:
     """The child: one setting's set-up and loop, timed."""
     import numpy as np
 
-    from jaxdistill.engine import config as config_lib, loop
+    from jaxdistill.engine import config as config_lib, loop, problem as problem_lib
     from jaxdistill.engine.config import DistillConfig
     from jaxdistill.engine.problem import build_problem
 
+    if args.one == "disk_copies":        # targets and photos copied into files, as before `SourceRows`
+        problem_lib.files_at_size = lambda *a, **k: False
     out = tempfile.TemporaryDirectory(prefix="bench_view_data_")       # the loop writes nothing there
     config = config_lib.validate(DistillConfig(
         scene=args.scene, out_dir=out.name, prior=args.prior, steps=args.steps, log_every=args.log_every,
-        views_per_step=args.views_per_step, max_texture_size=args.max_texture_size, view_data=args.one))
+        views_per_step=args.views_per_step, max_texture_size=args.max_texture_size,
+        view_data="memory" if args.one == "memory" else "disk"))
     t0 = time.perf_counter()
     problem = build_problem(config)
     setup_s = time.perf_counter() - t0
@@ -78,11 +92,14 @@ def one_case(args) -> dict:
     return {"view_data": args.one, "on_disk": problem.view_folder is not None, "setup_s": setup_s,
             "s_per_step": float(np.median(windows)), "batch_s": float(np.median(batch_s[2:] or batch_s)),
             "views": problem.num_views, "render_hw": [problem.height, problem.width],
+            "files_gb": problem.view_folder.nbytes / 2 ** 30 if problem.view_folder else 0.0,
+            "targets_in": type(getattr(problem.prior, "target_images", None)).__name__,
             "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20}
 
 
 def run_child(args, view_data: str, cache: str) -> dict:
     cmd = [sys.executable, os.fspath(Path(__file__).resolve()), f"--scene={args.scene}", f"--steps={args.steps}",
+           f"--cases={view_data}",
            f"--log_every={args.log_every}", f"--views_per_step={args.views_per_step}",
            f"--max_texture_size={args.max_texture_size}", f"--prior={args.prior}", f"--one={view_data}"]
     done = subprocess.run(cmd, cwd=REPO, env={**os.environ, "JAXDISTILL_CACHE": cache}, capture_output=True, text=True)
@@ -102,26 +119,31 @@ def main(argv=None) -> int:
     if not args.cache:
         run_child(args, "memory", cache)                       # warm-up: the ray casts into the new cache
     rows = []
-    print(f"{'case':10s} {'set-up s':>9s} {'s/step':>8s} {'batch ms':>9s} {'peak RSS GB':>12s}", flush=True)
+    print(f"{'case':12s} {'set-up s':>9s} {'s/step':>8s} {'batch ms':>9s} {'peak RSS GB':>12s} {'files GiB':>10s} "
+          "targets in", flush=True)
     for _ in range(args.repeats):
-        for view_data in ("memory", "disk"):
-            rows.append(run_child(args, view_data, cache))
+        for case in args.cases:
+            rows.append(run_child(args, case, cache))
             r = rows[-1]
-            print(f"{view_data:10s} {r['setup_s']:9.1f} {r['s_per_step']:8.3f} {1000 * r['batch_s']:9.1f} "
-                  f"{r['peak_rss_gb']:12.2f}", flush=True)
+            print(f"{case:12s} {r['setup_s']:9.1f} {r['s_per_step']:8.3f} {1000 * r['batch_s']:9.1f} "
+                  f"{r['peak_rss_gb']:12.2f} {r['files_gb']:10.3f} {r['targets_in']}", flush=True)
     summary = {}
-    for view_data in ("memory", "disk"):
-        mine = [r for r in rows if r["view_data"] == view_data]
-        summary[view_data] = {k: float(np.median([r[k] for r in mine])) for k in ("setup_s", "s_per_step", "batch_s",
-                                                                                   "peak_rss_gb")}
-    ratio = {k: summary["disk"][k] / summary["memory"][k] for k in summary["disk"]}
+    for case in args.cases:
+        mine = [r for r in rows if r["view_data"] == case]
+        summary[case] = {k: float(np.median([r[k] for r in mine]))
+                         for k in ("setup_s", "s_per_step", "batch_s", "peak_rss_gb", "files_gb")}
+    first = args.cases[0]
+    ratios = {f"{case}_over_{first}": {k: summary[case][k] / summary[first][k] if summary[first][k] else None
+                                       for k in summary[case]} for case in args.cases[1:]}
     print("medians: " + "; ".join(f"{v}: {s['s_per_step']:.3f} s/step, batch {1000 * s['batch_s']:.1f} ms, "
-                                  f"peak {s['peak_rss_gb']:.2f} GB" for v, s in summary.items()))
-    print(f"disk / memory: s/step {ratio['s_per_step']:.3f}x, set-up {ratio['setup_s']:.2f}x, "
-          f"peak RSS {ratio['peak_rss_gb']:.2f}x", flush=True)
+                                  f"peak {s['peak_rss_gb']:.2f} GB, files {s['files_gb']:.3f} GiB"
+                                  for v, s in summary.items()))
+    for name, ratio in ratios.items():
+        print(f"{name.replace('_over_', ' / ')}: s/step {ratio['s_per_step']:.3f}x, set-up {ratio['setup_s']:.2f}x, "
+              f"batch {ratio['batch_s']:.2f}x, peak RSS {ratio['peak_rss_gb']:.2f}x", flush=True)
     if args.json:
         Path(args.json).write_text(json.dumps({"args": {k: v for k, v in vars(args).items() if k != "one"},
-                                               "rows": rows, "median": summary, "disk_over_memory": ratio}, indent=1))
+                                               "rows": rows, "median": summary, "ratios": ratios}, indent=1))
     return 0
 
 

@@ -20,8 +20,9 @@ from jaxdistill.engine.config import DistillConfig
 from jaxdistill.engine.problem import build_problem, view_data_bytes
 from jaxdistill.errors import InputError
 from jaxdistill.io import view_rows
-from jaxdistill.io.view_rows import MapRows, ViewFolder, ViewRows, placement, view_array
-from jaxdistill.render.fragments import ROW_BYTES_PER_PIXEL, ROW_FIELDS, FragmentRows
+from jaxdistill.io.view_rows import MapRows, SourceRows, ViewFolder, ViewRows, placement, view_array
+from jaxdistill.render.fragments import ROW_FIELDS, FragmentRows, row_bytes_per_pixel
+from jaxdistill.render.layout import page_footprints
 from jaxdistill.scene.model import read_scene
 from tiny_scene import write_tiny_scene
 
@@ -160,6 +161,34 @@ def test_seam_pairs_are_held_as_two_bits_a_pixel_and_read_back_from_a_file(tmp_p
         scoring.SeamPairs(rows, shapes)[0]
 
 
+def test_source_rows_read_the_files_again_and_refuse_one_changed_since(tmp_path):
+    """`SourceRows` reads a view's row from its files when asked for, and names a file that changed
+    (or went) after the array was made instead of reading another image."""
+    from jaxdistill.io import images as imageio
+
+    rng = np.random.default_rng(0)
+    paths = [tmp_path / f"view_{v}.png" for v in range(3)]
+    for path in paths:
+        imageio.write_image(path, rng.uniform(size=(5, 7, 3)).astype(np.float32))
+    expected = np.stack([imageio.read_image(p) for p in paths])
+    rows = SourceRows((3, 5, 7, 3), np.float32, lambda v: imageio.read_image(paths[v]), [[p] for p in paths],
+                      name="targets")
+    assert rows.nbytes == 0 and len(rows) == 3 and rows.ndim == 4
+    np.testing.assert_array_equal(rows[np.array([2, 0, 2])], expected[[2, 0, 2]])
+    np.testing.assert_array_equal(rows[1], expected[1])
+    with pytest.raises(IndexError):
+        rows[np.array([3])]
+    imageio.write_image(paths[1], rng.uniform(size=(5, 7, 3)).astype(np.float32))
+    os.utime(paths[1], ns=(time.time_ns(), time.time_ns() + 10 ** 9))     # a new time whatever the clock's grain
+    np.testing.assert_array_equal(rows[np.array([0])], expected[[0]])     # the others still read
+    for gone in (False, True):
+        if gone:
+            paths[1].unlink()
+        with pytest.raises(InputError) as err:
+            rows[np.array([0, 1])]
+        assert str(paths[1]) in str(err.value) and "targets" in str(err.value) and "changed" in str(err.value)
+
+
 def test_view_array_is_numpy_in_memory_and_rows_on_disk(tmp_path):
     memory = view_array("t", (2, 3), np.float32, None)
     assert isinstance(memory, np.ndarray) and not memory.any()
@@ -191,30 +220,56 @@ def test_files_that_would_not_fit_are_refused_naming_the_folder(tmp_path, monkey
     folder.check_space(need, "the per-view images of 3 views")
 
 
-def test_the_set_up_checks_the_files_and_the_ray_casts_together_before_any_cast(tmp_path, monkeypatch):
+def test_the_set_up_checks_the_files_before_any_cast_and_casts_without_caching_what_would_not_fit(
+        tmp_path, monkeypatch, caplog):
+    """Per-view files that would not fit are refused before any ray is cast, naming the folder; ray
+    casts that would not fit beside them are cast and not kept (a warning says how much and where),
+    and are cached where they fit."""
     from jaxdistill.render import fragments as fr
 
     scene = write_tiny_scene(tmp_path / "scene", views=2)
     config = config_lib.validate(DistillConfig(scene=str(scene), out_dir=str(tmp_path / "out"), steps=2,
                                                views_per_step=2, prior="views", view_data="disk"))
+    views = read_scene(scene.parent)
+    cameras = [v.camera for v in views.views]
+    casts = sum(c.height * c.width * fr.CACHE_BYTES_PER_PIXEL + fr.CACHE_BYTES_PER_VIEW for c in cameras)
+    # what the check counts: each distinct view's ray cast once, none once they are cached
+    assert fr.uncached_bytes(views.mesh, cameras + cameras, tmp_path / "cache") == casts
+    assert fr.uncached_bytes(views.mesh, cameras, False) == 0
+    problem = build_problem(config, cache_dir=tmp_path / "unlimited")
+    # the set-up's own files and the evaluation context's, which it makes later
+    files = view_data_bytes(config, problem.scene, problem.choice, problem.channels, (problem.height, problem.width))
+    assert files > problem.view_folder.nbytes > 0
+    assert len(list((tmp_path / "unlimited" / "fragments").glob("*.npz"))) == 2
+    del problem
     usage = namedtuple("usage", "total used free")
-    monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(1 << 40, 0, view_rows.DISK_HEADROOM + 1000))
+
+    def free(nbytes):
+        monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(1 << 40, 0, nbytes))
 
     def poisoned(*args, **kwargs):
         raise AssertionError("rays were cast before the disk space was checked")
 
+    real_cast = fr.cast_view
     monkeypatch.setattr(fr, "cast_view", poisoned)
+    free(files + view_rows.DISK_HEADROOM - 1)
     with pytest.raises(InputError) as err:
         build_problem(config, cache_dir=tmp_path / "cache")
     message = str(err.value)
-    assert "the per-view arrays of 2 views (--view_data=disk) and the ray casts not cached yet" in message
+    assert "the per-view arrays of 2 views (--view_data=disk) need" in message
     assert str(tmp_path / "cache" / "view_rows") in message
-    # what the check counted: each distinct view's ray cast once, none once they are cached
-    views = read_scene(scene.parent)
-    cameras = [v.camera for v in views.views]
-    need = sum(c.height * c.width * fr.CACHE_BYTES_PER_PIXEL + fr.CACHE_BYTES_PER_VIEW for c in cameras)
-    assert fr.uncached_bytes(views.mesh, cameras + cameras, tmp_path / "cache") == need
-    assert fr.uncached_bytes(views.mesh, cameras, False) == 0
+    monkeypatch.setattr(fr, "cast_view", real_cast)
+    free(files + casts + view_rows.DISK_HEADROOM - 1)       # the files fit, the casts beside them do not
+    with caplog.at_level("WARNING"):
+        problem = build_problem(config, cache_dir=tmp_path / "cache")
+    assert problem.view_folder.nbytes > 0
+    assert not list((tmp_path / "cache" / "fragments").glob("*.npz"))
+    assert any("the ray casts are not cached" in r.getMessage() and f"{casts / 2 ** 30:.2f} GB" in r.getMessage()
+               and str(tmp_path / "cache" / "fragments") in r.getMessage() for r in caplog.records)
+    del problem
+    free(files + casts + view_rows.DISK_HEADROOM)           # both fit: cached
+    build_problem(config, cache_dir=tmp_path / "cache")
+    assert len(list((tmp_path / "cache" / "fragments").glob("*.npz"))) == 2
 
 
 @pytest.fixture(scope="module")
@@ -222,37 +277,53 @@ def tiny_scene(tmp_path_factory):
     return write_tiny_scene(tmp_path_factory.mktemp("view_rows"), views=4)
 
 
-@pytest.mark.parametrize("terms", [dict(), dict(photo_weight=1.0, albedo_smoothness=0.1, photo_size=24)],
-                         ids=["targets", "photos"])
+@pytest.mark.parametrize("terms", [dict(), dict(photo_weight=1.0, albedo_smoothness=0.1, photo_size=24),
+                                   dict(photo_weight=1.0, albedo_smoothness=0.1, photo_size=32, render_size=32)],
+                         ids=["targets", "photos", "the files' size"])
 def test_a_problem_on_disk_reads_the_batches_and_scores_of_one_in_memory(tiny_scene, tmp_path, terms):
     """Every per-view array (fragments, plans, pixel weights, targets, photos, guides), and the
-    evaluation's fragments and plans at the photos' size, are files with --view_data=disk; the batches and the
-    evaluation (its renders, seams and masks) are those of --view_data=memory bit for bit."""
+    evaluation's fragments and plans at the photos' size, are files with --view_data=disk, but
+    targets and photos that are their files' pixels (no resampling), which are read again from
+    those files; the batches and the evaluation (its renders, seams and masks) are those of
+    --view_data=memory bit for bit."""
     from jaxdistill.evaluate import ground_truth as evaluation, scoring
 
     def problem(view_data):
         config = config_lib.validate(DistillConfig(scene=str(tiny_scene), out_dir=str(tmp_path / view_data), steps=2,
                                                    views_per_step=2, prior="views", view_data=view_data,
-                                                   render_size=16, **terms))
+                                                   **{"render_size": 16, **terms}))
         built = build_problem(config, cache_dir=tmp_path / "cache")
         return built, scoring.evaluation_context(config, built), config
 
     (memory, memory_ctx, _), (disk, disk_ctx, config) = problem("memory"), problem("disk")
-    on_disk = [disk.plan_index, disk.plan_weight, disk.plan_hit, disk.pixel_weight, disk.prior.target_images,
+    on_disk = [disk.plan_index, disk.plan_weight, disk.plan_hit, disk.pixel_weight,
                disk_ctx.plan.index, disk_ctx.plan.weight, disk_ctx.plan.hit, disk_ctx.masks]
     assert all(isinstance(a, ViewRows) for a in on_disk)
+    # the scene's files are 32 x 24: at that size targets and photos are read from them, else resampled into files
+    at_files_size = terms.get("render_size") == 32
+    assert isinstance(disk.prior.target_images, SourceRows if at_files_size else ViewRows)
     assert isinstance(memory.plan_index, np.ndarray) and isinstance(memory.prior.target_images, np.ndarray)
     assert isinstance(memory.fragments, list) and isinstance(disk.fragments, FragmentRows)
     assert all(isinstance(a, ViewRows) for a in disk.fragments.arrays.values())
-    assert sorted(disk.fragments.arrays) == sorted(ROW_FIELDS) and ROW_BYTES_PER_PIXEL == 32   # no barycentric, depth
+    # no barycentric, depth, object (the mesh's of the triangle) or uv_grad (the bilinear sampler's plans need none)
+    assert sorted(disk.fragments.arrays) == sorted(ROW_FIELDS) == ["triangle", "uv"]
+    assert row_bytes_per_pixel() == 12 and row_bytes_per_pixel(uv_grad=True) == 28
     for frags in ("fragments", "native_fragments"):
         for one, other in zip(getattr(memory, frags), getattr(disk, frags), strict=True):
-            assert other.barycentric is None and other.depth is None and one.depth is not None
-            for name in ROW_FIELDS:
+            assert other.barycentric is None and other.depth is None and other.uv_grad is None
+            assert one.depth is not None and one.uv_grad is not None
+            for name in ROW_FIELDS + ("object_id",):
+                assert getattr(one, name).dtype == getattr(other, name).dtype
                 np.testing.assert_array_equal(getattr(one, name), getattr(other, name), err_msg=name)
+    # the page sizes came from the footprints taken as the fragments were made: the layout of memory's
+    assert memory.space.layout.page_sizes == disk.space.layout.page_sizes
+    np.testing.assert_array_equal(disk.fragments.footprints,
+                                  [page_footprints(f, disk.space.layout.object_page, disk.space.layout.num_pages)
+                                   for f in memory.fragments])
     if terms:
-        assert all(isinstance(a, ViewRows) for a in (disk.photos.photos, disk.photos.guide, disk.photos.index,
-                                                     disk.photos.hit, disk.photos.pixel_weight))
+        assert all(isinstance(a, ViewRows) for a in (disk.photos.guide, disk.photos.index, disk.photos.hit,
+                                                     disk.photos.pixel_weight))
+        assert isinstance(disk.photos.photos, SourceRows if at_files_size else ViewRows)
     # what the set-up checked against the free space before any compute is what the files took, to the byte,
     # the evaluation's seam pairs included (two bits a pixel, whatever the seams)
     checked = view_data_bytes(config, disk.scene, disk.choice, disk.channels, (disk.height, disk.width))

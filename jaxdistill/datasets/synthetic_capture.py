@@ -25,6 +25,7 @@ from jaxdistill.scene import shapes
 from jaxdistill.scene.cameras import Camera, camera_normals
 from jaxdistill.scene.mesh import Mesh, face_normals
 from jaxdistill.scene.model import Scene, View, write_scene
+from jaxdistill.threads import ordered_map
 
 ROOM_SIZE = (6.0, 3.0, 5.0)          # metres, y up
 
@@ -52,11 +53,11 @@ def write_capture_room(folder: str | Path, *, faces_per_side: int = 300, views: 
     metal = (rng.uniform(size=objects) < 0.2).astype(np.float32) * 0.9
     tint = np.array([1.0, 0.95, 0.85], np.float32)
     normals = face_normals(mesh)
-    out_views = []
     caster = fr.RayCaster(mesh)              # the mesh's ray-cast structure, built once
-    # one view at a time: memory does not grow with the views
-    for i, cam in enumerate(tqdm(cams, desc="capture views", unit="view", disable=not progress, dynamic_ncols=True)):
-        frag = fr.derive_fragments(mesh, cam, *fr.cast_view(caster, cam))
+
+    def write_view(item) -> View:
+        i, cam, hits = item
+        frag = fr.derive_fragments(mesh, cam, *hits)
         hit = frag.hit
         obj = np.where(hit, frag.object_id, 0)
         u, v = frag.uv[..., 0], frag.uv[..., 1]
@@ -78,7 +79,13 @@ def write_capture_room(folder: str | Path, *, faces_per_side: int = 300, views: 
         imageio.write_image(paths["irradiance"], irradiance, half=True)
         photo = folder / "photos" / f"{name}.png"
         imageio.write_image(photo, np.clip(albedo * irradiance, 0.0, 1.0))
-        out_views.append(View(name=name, camera=cam, photo=photo, targets=paths))
+        return View(name=name, camera=cam, photo=photo, targets=paths)
+
+    # a view at a time (memory does not grow with the views): cast here, the rest of a view (NumPy and
+    # the image writes, each view's own files) in `ordered_map`'s two threads, the views in order
+    bar = tqdm(cams, desc="capture views", unit="view", disable=not progress, dynamic_ncols=True)
+    casts = ((i, cam, fr.cast_view(caster, cam)) for i, cam in enumerate(bar))
+    out_views = list(ordered_map(write_view, casts))
     write_scene(Scene(name=f"capture_room_{mesh.num_faces}", mesh=mesh, views=tuple(out_views),
                       texture_layout="pages", root=folder), folder)
     return {"faces": int(mesh.num_faces), "objects": objects, "views": len(out_views),

@@ -32,14 +32,15 @@ from jaxdistill.scene.cameras import rgbx_camera_rotation
 from jaxdistill.scene.maps import INITIAL_VALUE, MapChannels, file_to_model
 from jaxdistill.render import fragments as fr
 from jaxdistill.render.gather_plan import TAPS, TexelSpace, build_gather_plans, space_from_needs, texel_needs
-from jaxdistill.render.layout import make_layout, sized_layout
+from jaxdistill.render.layout import make_layout, object_pages, page_footprints, sized_layout
 from jaxdistill.render.visibility import (check_coverage, coverage_summary, hit_fractions, pixel_weights,
                                          texel_evidence, view_counts)
 from jaxdistill.scene.gt_file import check_gt_textures, ground_truth_maps
 from jaxdistill.scene.model import Scene
 from jaxdistill.scene.paths import resolve_scene_path  # noqa: F401  (--scene as a path; scripts use it from here)
 from jaxdistill.io.view_images import read_mask, read_photo_linear, read_target, resize
-from jaxdistill.io.view_rows import ViewFolder, ViewRows, placement, view_array
+from jaxdistill.io.view_rows import (DISK_HEADROOM, SourceRows, ViewFolder, ViewRows, free_bytes, placement,
+                                     view_array)
 
 def rgbx_hint() -> str:
     """How to obtain the RGB<->X weights, and their licence."""
@@ -207,7 +208,7 @@ class Problem:
     def without_fragments(self) -> "Problem":
         """This problem without its fragments (and native fragments): nothing after the evaluation
         context (`scoring.evaluation_context`) reads them, and they grow with views x pixels
-        (44 bytes a pixel in memory, 32 in files: 1.05 GiB at 50 views of 876x584 in memory). Their
+        (44 bytes a pixel in memory, 12 or 28 in files: 1.05 GiB at 50 views of 876x584 in memory). Their
         files (--view_data on disk) are closed here, which frees their disk space now; this problem's
         fragments cannot be read after."""
         for frags in (self.fragments, self.native_fragments):
@@ -274,11 +275,29 @@ def read_view_targets(scene: Scene, maps: Sequence[str], height: int, width: int
     problems.raise_if_any()
     channels = MapChannels(tuple(maps))
     views = scene.views if views is None else views
-    out = view_array("targets", (len(views), height, width, channels.num_channels), np.float32, folder)
+    shape = (len(views), height, width, channels.num_channels)
+
+    def row(view) -> np.ndarray:
+        return np.concatenate([file_to_model(m, resize(read_target(m, view.targets[m]), height, width))
+                               for m in maps], axis=-1)
+
+    sources = [[view.targets[m] for m in maps] for view in views]
+    from_files = folder is not None and files_at_size(itertools.chain(*sources), height, width)
+    out = None if from_files else view_array("targets", shape, np.float32, folder)
     for i, view in enumerate(tqdm(views, desc="targets", unit="view", dynamic_ncols=True)):
-        parts = [file_to_model(m, resize(read_target(m, view.targets[m]), height, width)) for m in maps]
-        out[i] = np.concatenate(parts, axis=-1)
+        image = row(view)                  # read once here either way: a damaged file stops the set-up
+        if out is not None:
+            out[i] = image
+    if from_files:
+        return SourceRows(shape, np.float32, lambda v: row(views[v]), sources, name="targets")
     return out
+
+
+def files_at_size(paths, height: int, width: int) -> bool:
+    """Whether every image file of `paths` is `width` x `height` (headers only): then its rows are
+    its pixels without resampling, and a `SourceRows` array reads them again from the file instead
+    of holding a float32 copy (--view_data on disk)."""
+    return all(imageio.image_size(p)[:2] == (width, height) for p in paths)
 
 
 def _views_prior(scene, views, channels, height, width, folder: ViewFolder | None):
@@ -392,12 +411,18 @@ def _build_problem(config: DistillConfig, choice: PriorChoice, *, cache_dir=None
         logging.info("process %d holds %d of the %d views (share %d of %d: %s)", jax.process_index(), len(views),
                      len(scene.views), jax.process_index(), jax.process_count(),
                      ", ".join(v.name for v in views[:8]) + (", ..." if len(views) > 8 else ""))
-    view_folder = _view_data_folder(config, scene, choice, channels, (height, width), cache_dir, views=views,
-                                    evaluation=held is None)
+    view_folder, cache_dir = _view_data_folder(config, scene, choice, channels, (height, width), cache_dir,
+                                               views=views, evaluation=held is None)
 
     t0 = time.perf_counter()
     cameras = [scaled_camera(v.camera, height, width) for v in views]
-    fragments = functools.partial(_fragments, scene.mesh, cache_dir=cache_dir, folder=view_folder)
+    # on disk, the fragments' files keep uv_grad only for the trilinear sampler's levels; the page sizes'
+    # footprints are taken per view as the fragments are made (texture_size=auto reads nothing else of them)
+    object_page = object_pages(scene.num_objects, scene.texture_layout)
+    fragments = functools.partial(_fragments, scene.mesh, cache_dir=cache_dir, folder=view_folder,
+                                  uv_grad=config.sampler == "trilinear",
+                                  footprints=functools.partial(page_footprints, object_page=object_page,
+                                                               num_pages=max(object_page) + 1))
     frags = fragments(cameras)
     native = all((v.camera.height, v.camera.width) == (height, width) for v in views)
     # the evaluation's fragments, at the photos' own size: the primary's (it evaluates and writes the outputs)
@@ -418,8 +443,10 @@ def _build_problem(config: DistillConfig, choice: PriorChoice, *, cache_dir=None
         check_coverage([v.name for v in views], hit_fractions(frags), cameras, scene.mesh, scene_file)
         size = config.texture_size if config.texture_size == "auto" else int(config.texture_size)
         # pages resolve what the finest fragments the loss sees resolve: the photos' with the re-rendering term
-        layout = make_layout(scene.num_objects, scene.texture_layout, size, photo_frags or frags,
-                             max_size=config.max_texture_size, mipmaps=trilinear)
+        sized_by = photo_frags or frags
+        layout = make_layout(scene.num_objects, scene.texture_layout, size, sized_by,
+                             max_size=config.max_texture_size, mipmaps=trilinear,
+                             footprints=getattr(sized_by, "footprints", None))
         # evaluation renders at the photos' size: its texels must exist too (they get no gradient)
         seen = [frags] + ([] if native else [native_frags])
         if photo_frags is not None and photo_frags is not frags and photo_frags is not native_frags:
@@ -448,7 +475,7 @@ def _build_problem(config: DistillConfig, choice: PriorChoice, *, cache_dir=None
     photos = None
     if photo_frags is not None:
         photos = _photo_data(config, scene, views, photo_frags, space, counts, empty,
-                             plan=plan if photo_frags is frags else None)
+                             plan=plan if photo_frags is frags else None, on_disk=view_folder is not None)
     timings["plans_s"] = time.perf_counter() - t0
     logging.info("texels: %d parameters x %d channels (%s pages, %.1fx fewer than full pages), %d observed",
                  space.num_texels, channels.num_channels, list(layout.page_sizes),
@@ -489,10 +516,11 @@ def _needs_of(arrays: dict, layout) -> list[list[np.ndarray]]:
 
 
 def view_data_bytes(config: DistillConfig, scene: Scene, choice: PriorChoice, channels: MapChannels,
-                    render: tuple[int, int], *, views: Sequence | None = None, evaluation: bool = True) -> int:
+                    render: tuple[int, int], *, views: Sequence | None = None, evaluation: bool = True,
+                    files: bool = True) -> int:
     """Bytes of the per-view arrays the set-up and the evaluation context make for `views` (the
     views this process holds, default all) when they are files (--view_data on disk): the fragments
-    (32 bytes a pixel: `fragments.ROW_FIELDS`) and gather plans (T taps of an int32 index and a
+    (12 bytes a pixel, 28 with the trilinear sampler's uv_grad: `fragments.row_bytes_per_pixel`) and gather plans (T taps of an int32 index and a
     float32 weight, a float32 pixel weight and a 1-byte hit mask) at the render size, the views
     prior's targets (C float32 channels) there, and with the re-rendering term fragments, plans,
     photos (3 float32) and chroma guides (2, --albedo_smoothness) at the photo size; the
@@ -500,14 +528,19 @@ def view_data_bytes(config: DistillConfig, scene: Scene, choice: PriorChoice, ch
     and plans (no pixel weight) there when neither size is theirs, its seam pairs, two bits a pixel
     there (`metrics.seam_edge_bytes`, a view's bits in whole bytes), and its ground-truth maps,
     float32 channels there (`gt_file.ground_truth_maps`: a file per map a view has, all views'
-    rows)."""
+    rows). `files`: the bytes in files, where targets and photos whose files are at their size take
+    none (`SourceRows`: read again from the scene's files); False: the bytes the same arrays take in
+    memory (--view_data=memory), which --view_data=auto weighs."""
     held = scene.views if views is None else views
     taps = TAPS[config.sampler]
-    frag, plan = fr.ROW_BYTES_PER_PIXEL, 8 * taps + 4 + 1
-    per_pixel = {render: frag + plan + (4 * channels.num_channels if choice.kind == "views" else 0)}
+    frag, plan = fr.row_bytes_per_pixel(uv_grad=config.sampler == "trilinear"), 8 * taps + 4 + 1
+    targets = choice.kind == "views" and not (files and files_at_size(
+        (v.targets[m] for v in held for m in channels.maps if m in v.targets), *render))
+    per_pixel = {render: frag + plan + (4 * channels.num_channels if targets else 0)}
     if config.photo_weight > 0:
         photo = render_shape(scene, config.photo_size, flag="--photo_size")
-        images = 4 * (3 + (2 if config.albedo_smoothness > 0 else 0))
+        photos = not (files and files_at_size((v.photo for v in held), *photo))
+        images = 4 * ((3 if photos else 0) + (2 if config.albedo_smoothness > 0 else 0))
         # the photos' own pixel weights even where they share the render size's fragments and plans
         per_pixel[photo] = per_pixel.get(photo, 0) + images + (4 if photo in per_pixel else frag + plan)
     sizes = {(v.camera.height, v.camera.width) for v in scene.views}
@@ -521,22 +554,38 @@ def view_data_bytes(config: DistillConfig, scene: Scene, choice: PriorChoice, ch
 
 def _view_data_folder(config: DistillConfig, scene: Scene, choice: PriorChoice, channels: MapChannels,
                       render: tuple[int, int], cache_dir, *, views: Sequence | None = None,
-                      evaluation: bool = True) -> ViewFolder | None:
-    """Where the per-view arrays are held (--view_data): None for memory, else the cache's
-    `ViewFolder`, its disk space checked before any compute (`view_data_bytes`, with the ray casts
-    not cached yet). `views`: the views this process holds (default all)."""
+                      evaluation: bool = True) -> tuple[ViewFolder | None, Any]:
+    """(folder, casts' cache): where the per-view arrays are held (--view_data: None for memory,
+    else the cache's `ViewFolder`, its disk space checked before any compute, `view_data_bytes`),
+    and the cache the ray casts go to: `cache_dir`, or False (cast, not kept) when those not cached
+    yet would not fit on its disk beside the per-view files (a warning says so; a cache changes no
+    result, and casting is the cheap part of the fragments). `views`: the views this process holds
+    (default all)."""
     held = scene.views if views is None else views
-    nbytes = view_data_bytes(config, scene, choice, channels, render, views=held, evaluation=evaluation)
-    if not placement(config.view_data, nbytes):
-        return None
-    folder = ViewFolder(Path(cache_dir) if cache_dir else fr.default_cache_dir())
-    what = f"the per-view arrays of {len(held)} views (--view_data={config.view_data})"
-    # the ray casts still to be cached go to the same disk: both must fit
-    casts = fr.uncached_bytes(scene.mesh, _cameras_cast(config, scene, render, held, evaluation), cache_dir)
-    folder.check_space(nbytes + casts, what + (f" and the ray casts not cached yet ({casts / 2 ** 30:.2f} GB)"
-                                               if casts else ""))
-    logging.info("%s: %.2f GB on disk in %s, read a batch at a time", what, nbytes / 2 ** 30, folder.root)
-    return folder
+    folder = None
+    nbytes = 0
+    if placement(config.view_data, view_data_bytes(config, scene, choice, channels, render, views=held,
+                                                   evaluation=evaluation, files=False)):
+        nbytes = view_data_bytes(config, scene, choice, channels, render, views=held, evaluation=evaluation)
+        folder = ViewFolder(Path(cache_dir) if cache_dir else fr.default_cache_dir())
+        what = f"the per-view arrays of {len(held)} views (--view_data={config.view_data})"
+        folder.check_space(nbytes, what)
+        logging.info("%s: %.2f GB on disk in %s, read a batch at a time", what, nbytes / 2 ** 30, folder.root)
+    cameras = _cameras_cast(config, scene, render, held, evaluation)
+    casts = fr.uncached_bytes(scene.mesh, cameras, cache_dir)
+    if not casts:
+        return folder, cache_dir
+    where = Path(cache_dir) if cache_dir else fr.default_cache_dir()
+    free = free_bytes(where)
+    if free is not None and nbytes + casts + DISK_HEADROOM > free:
+        gb = 2 ** 30
+        logging.warning("the ray casts are not cached: those of %d views not cached yet (%.2f GB) would not fit in "
+                        "%s beside %.2f GB of per-view files (%.2f GB free, %.2f GB kept free); the set-up casts them "
+                        "without keeping them, and a later run casts them again (point $JAXDISTILL_CACHE at a larger "
+                        "disk to keep them)", len({fr.view_key("", c) for c in cameras}), casts / gb,
+                        where / "fragments", nbytes / gb, free / gb, DISK_HEADROOM / gb)
+        return folder, False
+    return folder, cache_dir
 
 
 def _cameras_cast(config: DistillConfig, scene: Scene, render: tuple[int, int], views: Sequence,
@@ -567,12 +616,15 @@ def _loss_weights(config: DistillConfig, views: Sequence, plan, counts: np.ndarr
     return weights
 
 
-def _fragments(mesh, cameras: Sequence[Camera], *, cache_dir, folder: ViewFolder | None):
+def _fragments(mesh, cameras: Sequence[Camera], *, cache_dir, folder: ViewFolder | None, uv_grad: bool,
+               footprints):
     """The cameras' fragments: a list, or with --view_data on disk (`folder`) and one resolution,
-    `FragmentRows` in files of `folder` (a view at a time in memory, 32 bytes a pixel on disk)."""
+    `FragmentRows` in files of `folder` (a view at a time in memory; 12 bytes a pixel on disk, 28
+    with `uv_grad`), with each view's `footprints(fragments)` (`layout.page_footprints`)."""
     one_size = len({(c.height, c.width) for c in cameras}) == 1
     empty = functools.partial(view_array, folder=folder) if folder is not None and one_size else None
-    return fr.compute_fragments(mesh, cameras, cache_dir=cache_dir, empty=empty)
+    return fr.compute_fragments(mesh, cameras, cache_dir=cache_dir, empty=empty, uv_grad=uv_grad,
+                                footprints=footprints if empty is not None else None)
 
 
 def _photo_fragments(config: DistillConfig, scene: Scene, views: Sequence, render: tuple[int, int], frags,
@@ -592,23 +644,27 @@ def _photo_fragments(config: DistillConfig, scene: Scene, views: Sequence, rende
 
 
 def _photo_data(config: DistillConfig, scene: Scene, views: Sequence, photo_frags, space: TexelSpace, counts,
-                empty=None, *, plan=None) -> PhotoData:
+                empty=None, *, plan=None, on_disk: bool = False) -> PhotoData:
     """The re-rendering term's plans, photos and pixel weights (`PhotoData`) of `views` (the views
     this process holds, of `scene`), at the photo fragments' size, in arrays from
     `empty(name, shape, dtype)` (`view_rows.view_array`: memory or files); `plan`: the photo
-    fragments' plan when the caller has it already (the render size's)."""
+    fragments' plan when the caller has it already (the render size's). `on_disk` (--view_data on
+    disk): photos files of that size are read again from them (`SourceRows`), not copied."""
     empty = empty or functools.partial(view_array, folder=None)
     plan = plan if plan is not None else build_gather_plans(photo_frags, space, config.sampler, empty=empty)
     height, width = plan.height, plan.width
     weights = _loss_weights(config, views, plan, counts, empty)
     count = len(views)
-    photos = empty("photos", (count, height, width, 3), np.float32)
+    # on disk, photos at the photo size are read again from their files a batch at a time (`SourceRows`)
+    from_files = on_disk and files_at_size((view.photo for view in views), height, width)
+    photos = None if from_files else empty("photos", (count, height, width, 3), np.float32)
     guide = empty("guides", (count, height, width, 2), np.float32) if config.albedo_smoothness > 0 else None
     noise = np.zeros(count, np.float64)
     noise_weight = np.ones(count, np.float64)
     for v, view in enumerate(tqdm(views, desc="photos", unit="view", dynamic_ncols=True)):
         photo, usable = read_photo_linear(view.photo, view.exposure, height, width)
-        photos[v] = photo
+        if photos is not None:
+            photos[v] = photo
         if guide is not None:
             guide[v] = photo_lib.chroma_guide(photo, usable)
         noise[v] = photo_lib.log_noise(photo, usable)
@@ -622,6 +678,10 @@ def _photo_data(config: DistillConfig, scene: Scene, views: Sequence, photo_frag
                      "weigh less in the term (weights %.2f-%.2f)", config.photo_noise_ref, float(np.median(noise)),
                      float(noise.min()), float(noise.max()), int(np.sum(noise_weight < 1)), len(noise),
                      float(noise_weight.min()), float(noise_weight.max()))
+    if from_files:
+        photos = SourceRows((count, height, width, 3), np.float32,
+                            lambda v: read_photo_linear(views[v].photo, views[v].exposure, height, width)[0],
+                            [[view.photo] for view in views], name="photos")
     ldr = any(not imageio.is_linear_format(view.photo) for view in scene.views)     # every process's answer
     scale = photo_lib.resolve_scale(config.photo_scale, ldr)
     if scale != config.photo_scale:

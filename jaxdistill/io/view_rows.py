@@ -15,7 +15,9 @@ both support the two operations above; `placement` says which --view_data asks f
 unlinked as soon as it is opened (it has no name in the cache folder): the disk space is the
 open file's, freed when the array is garbage-collected or the process ends, however it ends,
 so a killed run leaves nothing behind. `LazyViews` is the same idea for values that are cheaper
-to make again than to keep (a view's renders, its estimates read from their files).
+to make again than to keep (a view's renders, its estimates read from their files), and
+`SourceRows` for rows that are the scene's own image files (targets and photos at their own size:
+read again from them, not copied into a file at 4 bytes a channel).
 """
 
 from __future__ import annotations
@@ -98,6 +100,20 @@ class _UnlinkedFile:
         self._finalizer()
 
 
+def _read_rows(ids, name: str, row_shape: tuple, dtype, read: Callable) -> np.ndarray:
+    """Rows `ids` (an int: one row; a 1-D int array: a new (len(ids), ...) array), each filled by
+    `read(v, out_row)`."""
+    ids = np.asarray(ids)
+    if ids.ndim == 0:
+        return _read_rows(ids[None], name, row_shape, dtype, read)[0]
+    if ids.dtype.kind not in "iu" or ids.ndim != 1:
+        raise TypeError(f"{name} reads rows by an int or a 1-D int array, got {ids.dtype} {ids.shape}")
+    out = np.empty((len(ids),) + row_shape, dtype)
+    for k, v in enumerate(ids):
+        read(v, out[k])
+    return out
+
+
 class ViewRows(_UnlinkedFile):
     """A (V, ...) array of `dtype` in a file created at `path` and unlinked at once (its space is
     freed when the object is collected or `close`d). `rows[v] = row` writes row v; `rows[ids]`
@@ -150,17 +166,74 @@ class ViewRows(_UnlinkedFile):
             raise OSError(f"wrote {written} of {self.row_bytes} bytes of row {v} to {self.path}")
 
     def __getitem__(self, ids) -> np.ndarray:
-        ids = np.asarray(ids)
-        if ids.ndim == 0:
-            return self[ids[None]][0]
-        if ids.dtype.kind not in "iu" or ids.ndim != 1:
-            raise TypeError(f"{self.path.name} reads rows by an int or a 1-D int array, got {ids.dtype} {ids.shape}")
-        out = np.empty((len(ids),) + self.row_shape, self.dtype)
-        for k, v in enumerate(ids):
-            got = os.preadv(self._fd, [out[k].data.cast("B")], self._row(v) * self.row_bytes)
+        def read(v, out):
+            got = os.preadv(self._fd, [out.data.cast("B")], self._row(v) * self.row_bytes)
             if got != self.row_bytes:
                 raise OSError(f"read {got} of {self.row_bytes} bytes of row {v} from {self.path}")
-        return out
+
+        return _read_rows(ids, self.path.name, self.row_shape, self.dtype, read)
+
+
+def _stamp(path: Path) -> tuple[int, int]:
+    st = os.stat(path)
+    return st.st_size, st.st_mtime_ns
+
+
+class SourceRows:
+    """A (V, ...) per-view array whose rows are the scene's own files, read again when asked for
+    (`rows[ids]`: `read(v)` for each view, into a new array), not copied into a file: the `views`
+    prior's targets and the re-rendering term's photos, float32 images that a `ViewRows` file
+    would hold at 4 bytes a channel (44 bytes a pixel for 11 channels) where their 8-bit or
+    half-float files take a few. Used only where a row is the file's pixels without resampling
+    (`read` is NumPy, a function of the file alone), so a row read in a step is the row the set-up
+    read, bit for bit. Each file's size and modification time are taken when the array is made;
+    a read that finds them changed is an InputError naming the file, never a different image."""
+
+    def __init__(self, shape: tuple[int, ...], dtype, read: Callable[[int], np.ndarray],
+                 sources: Sequence[Sequence[Path]], name: str = "rows"):
+        self.shape = tuple(int(s) for s in shape)
+        self.dtype = np.dtype(dtype)
+        self.row_shape = self.shape[1:]
+        if len(sources) != self.shape[0]:
+            raise ValueError(f"{name}: {len(sources)} views' files for {self.shape[0]} rows")
+        self.read, self.name = read, name
+        self.stamps = [[(Path(p), _stamp(p)) for p in paths] for paths in sources]
+
+    ndim = property(lambda self: len(self.shape))
+    nbytes = 0                  # on disk of its own: none (the scene's files are the rows)
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __iter__(self):
+        return (self[v] for v in range(self.shape[0]))
+
+    def _row(self, v: int) -> np.ndarray:
+        v = int(v)
+        if not -self.shape[0] <= v < self.shape[0]:
+            raise IndexError(f"row {v} of {self.shape[0]}")
+        v %= self.shape[0]
+        for path, stamp in self.stamps[v]:
+            if not path.is_file() or _stamp(path) != stamp:
+                raise InputError.single(str(path), self.name, (
+                    "the file changed (or went) after the set-up read it: the run reads it again for each batch "
+                    "that has its view; restore it, or start the run again to use the new file"))
+        row = self.read(v)
+        if row.shape != self.row_shape:
+            raise ValueError(f"{self.name}: view {v} read as {row.shape}, not {self.row_shape}")
+        return row
+
+    def __getitem__(self, ids) -> np.ndarray:
+        def read(v, out):
+            out[...] = self._row(v)
+
+        return _read_rows(ids, self.name, self.row_shape, self.dtype, read)
+
+
+def free_bytes(path: Path) -> int | None:
+    """Free bytes on the disk that `path` (or its closest existing parent) is on; None if none exists."""
+    existing = next((p for p in (Path(path), *Path(path).parents) if p.exists()), None)
+    return None if existing is None else shutil.disk_usage(existing).free
 
 
 class ViewFolder:
@@ -174,11 +247,8 @@ class ViewFolder:
     def check_space(self, nbytes: int, what: str) -> None:
         """InputError naming the folder, before anything is written, when `nbytes` would not fit
         on its disk with DISK_HEADROOM to spare."""
-        existing = next((p for p in (self.root, *self.root.parents) if p.exists()), None)
-        if existing is None:
-            return
-        free = shutil.disk_usage(existing).free
-        if nbytes + DISK_HEADROOM > free:
+        free = free_bytes(self.root)
+        if free is not None and nbytes + DISK_HEADROOM > free:
             gb = 2 ** 30
             raise InputError.single(str(self.root), "disk space", (
                 f"{what} need {nbytes / gb:.2f} GB here (plus {DISK_HEADROOM / gb:.2f} GB kept free), and its disk "

@@ -42,14 +42,15 @@ class Fragments:
     float32 with uv_grad[..., 0, :] = d(u, v)/dx and uv_grad[..., 1, :] = d(u, v)/dy per
     pixel (0 on miss); object_id (H, W) int32, -1 on miss. Fragments read back from per-view
     files (`FragmentRows`) have no barycentric or depth (None): nothing after the ray casts reads
-    them in a run.
+    them in a run; nor uv_grad where the rows were made without it (only the trilinear sampler's
+    plans read it after the page sizes are chosen).
     """
 
     triangle: np.ndarray
     barycentric: np.ndarray | None
     depth: np.ndarray | None
     uv: np.ndarray
-    uv_grad: np.ndarray
+    uv_grad: np.ndarray | None
     object_id: np.ndarray
 
     @property
@@ -65,21 +66,31 @@ class Fragments:
 FRAGMENT_FIELDS = {"triangle": ((), np.int32), "barycentric": ((2,), np.float32), "depth": ((), np.float32),
                    "uv": ((2,), np.float32), "uv_grad": ((2, 2), np.float32), "object_id": ((), np.int32)}
 BYTES_PER_PIXEL = sum(4 * int(np.prod(shape)) for shape, _ in FRAGMENT_FIELDS.values())     # 44
-# what `FragmentRows` keeps of them: what a run reads after the ray casts (texel needs and gather plans: uv,
-# uv_grad and the hit; the evaluation: triangle and object_id), not barycentric and depth
-ROW_FIELDS = ("triangle", "uv", "uv_grad", "object_id")
-ROW_BYTES_PER_PIXEL = sum(4 * int(np.prod(FRAGMENT_FIELDS[name][0])) for name in ROW_FIELDS)      # 32
+# what `FragmentRows` keeps of them: what a run reads after the ray casts (texel needs, gather plans and the
+# evaluation: the triangle, whose object is the mesh's, and uv; uv_grad for the trilinear sampler's levels),
+# not barycentric and depth; the page sizes' footprints are kept per view and page instead (`footprints`)
+ROW_FIELDS = ("triangle", "uv")
+UV_GRAD_FIELDS = ROW_FIELDS + ("uv_grad",)
+
+
+def row_bytes_per_pixel(uv_grad: bool = False) -> int:
+    """Bytes a pixel of `FragmentRows`' files: 12 (triangle, uv), 28 with uv_grad."""
+    return sum(4 * int(np.prod(FRAGMENT_FIELDS[name][0])) for name in (UV_GRAD_FIELDS if uv_grad else ROW_FIELDS))
 
 
 class FragmentRows(Sequence):
     """Every view's fragments (one resolution) in per-view arrays, one per field of `ROW_FIELDS`
-    (NumPy, or files read a view at a time: `io.view_rows`): `rows[v]` is view v's `Fragments`
-    (barycentric and depth None), read when asked for, so a caller that goes through the views
-    holds a few views' fragments at a time (the set-up's two threads, `threads.ordered_map`: at
-    most three)."""
+    (and uv_grad when asked for; NumPy, or files read a view at a time: `io.view_rows`): `rows[v]`
+    is view v's `Fragments` (barycentric and depth None, uv_grad None without its array; object_id
+    the mesh's `face_object` of the triangle), read when asked for, so a caller that goes through
+    the views holds a few views' fragments at a time (the set-up's two threads,
+    `threads.ordered_map`: at most three). `footprints`: (V, pages) float64, per view and page
+    `layout.page_footprints` (what `layout.make_layout` sizes pages by), or None."""
 
-    def __init__(self, arrays: dict, shape: tuple[int, int]):
-        self.arrays, self.shape = arrays, shape
+    def __init__(self, arrays: dict, shape: tuple[int, int], face_object: np.ndarray,
+                 footprints: np.ndarray | None = None):
+        self.arrays, self.shape, self.footprints = arrays, shape, footprints
+        self.face_object = np.asarray(face_object, np.int32)
 
     def __len__(self) -> int:
         return len(self.arrays["triangle"])
@@ -89,7 +100,11 @@ class FragmentRows(Sequence):
             return [self[i] for i in range(*v.indices(len(self)))]
         if not -len(self) <= v < len(self):
             raise IndexError(f"view {v} of {len(self)}")
-        return Fragments(**{name: a[v] for name, a in self.arrays.items()}, barycentric=None, depth=None)
+        fields = {name: a[v] for name, a in self.arrays.items()}
+        triangle = fields["triangle"]
+        object_id = np.where(triangle >= 0, self.face_object[np.maximum(triangle, 0)], -1).astype(np.int32)
+        return Fragments(triangle=triangle, uv=fields["uv"], uv_grad=fields.get("uv_grad"), object_id=object_id,
+                         barycentric=None, depth=None)
 
 
 class RayCaster:
@@ -343,15 +358,17 @@ def check_cache_space(cache: Path, cameras: Sequence[Camera]) -> None:
 
 
 def compute_fragments(mesh: Mesh, cameras: Sequence[Camera], *, cache_dir: Path | None | bool = None,
-                      progress: bool = True, empty: Callable | None = None) -> Sequence[Fragments]:
+                      progress: bool = True, empty: Callable | None = None, uv_grad: bool = True,
+                      footprints: Callable | None = None) -> Sequence[Fragments]:
     """Fragments for every camera; ray casts are read from / written to the cache (`check_cache_space`
     first: InputError when the views not cached yet would not fit on its disk).
 
     cache_dir: a folder, None for `default_cache_dir()`, or False to disable caching.
     empty: None returns a list; else `empty(name, shape, dtype)` allocates a (V, H, W, ...) array
-    per field of `ROW_FIELDS` (all cameras of one resolution), filled a view at a time, and a `FragmentRows` over
-    them is returned (with file-backed arrays, a few views are in memory at once: the one being
-    cast and at most three being derived).
+    per field of `ROW_FIELDS` (and uv_grad with `uv_grad`; all cameras of one resolution), filled a
+    view at a time, and a `FragmentRows` over them is returned (with file-backed arrays, a few views
+    are in memory at once: the one being cast and at most three being derived), with
+    `footprints(fragments)` of each view (`layout.page_footprints`) when given.
     """
     paths = _cache_paths(mesh, cameras, cache_dir)
     out = []
@@ -360,8 +377,11 @@ def compute_fragments(mesh: Mesh, cameras: Sequence[Camera], *, cache_dir: Path 
         if len(sizes) != 1:
             raise ValueError(f"fragments in per-view arrays need one resolution, got {sorted(sizes)}")
         shape = sizes.pop()
+        fields = UV_GRAD_FIELDS if uv_grad else ROW_FIELDS
         out = FragmentRows({name: empty(f"fragments_{name}", (len(cameras),) + shape + extra, dtype)
-                            for name, (extra, dtype) in FRAGMENT_FIELDS.items() if name in ROW_FIELDS}, shape)
+                            for name, (extra, dtype) in FRAGMENT_FIELDS.items() if name in fields}, shape,
+                           mesh.face_object)
+        summaries = []
     casting = _Casts(mesh)
 
     def cast(camera, path):
@@ -377,4 +397,8 @@ def compute_fragments(mesh: Mesh, cameras: Sequence[Camera], *, cache_dir: Path 
         else:
             for name, array in out.arrays.items():
                 array[v] = getattr(frag, name)
+            if footprints is not None:
+                summaries.append(footprints(frag))
+    if empty is not None and footprints is not None:
+        out.footprints = np.stack(summaries) if summaries else None
     return out

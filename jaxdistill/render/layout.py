@@ -63,26 +63,37 @@ def power_of_two_at_most(x: float) -> int:
     return 1 << max(0, int(round(math.log2(max(x, 1.0)))))
 
 
+def page_footprints(frag, object_page: Sequence[int], num_pages: int) -> np.ndarray:
+    """(num_pages,) float64: per page, how finely this view resolves it, the FOOTPRINT_QUANTILE
+    quantile of its hit pixels' footprints there (`pixel_footprint`, UV units per pixel); inf on
+    pages the view does not see. `auto_page_sizes` takes the smallest over the views."""
+    object_page = np.asarray(object_page)
+    finest = np.full(num_pages, np.inf)
+    hit = frag.object_id >= 0
+    if not hit.any():
+        return finest
+    page = object_page[frag.object_id[hit]]
+    foot = pixel_footprint(frag.uv_grad[hit])
+    keep = np.isfinite(foot) & (foot > 0)
+    for p in np.unique(page[keep]):
+        finest[p] = float(np.quantile(foot[keep & (page == p)], FOOTPRINT_QUANTILE))
+    return finest
+
+
 def auto_page_sizes(fragments: Sequence, object_page: Sequence[int], num_pages: int, max_size: int,
-                    min_size: int = MIN_PAGE_SIZE) -> tuple[int, ...]:
+                    min_size: int = MIN_PAGE_SIZE, footprints: np.ndarray | None = None) -> tuple[int, ...]:
     """Per page, the side at which the closest view sees about one texel per pixel, capped to max_size.
 
     For every hit pixel the footprint (`pixel_footprint`, UV units per pixel) says how finely
     that view resolves the page; the page side is 1 / (robust minimum footprint) rounded to a
-    power of two, clamped to [min_size, max_size]. Pages nobody sees get min_size.
+    power of two, clamped to [min_size, max_size]. Pages nobody sees get min_size. `footprints`:
+    the views' `page_footprints` (V, num_pages) when they were taken as the fragments were made
+    (`fragments.FragmentRows` without uv_grad); else they are taken from `fragments`.
     """
-    object_page = np.asarray(object_page)
     finest = np.full(num_pages, np.inf)
-    for frag in fragments:
-        hit = frag.object_id >= 0
-        if not hit.any():
-            continue
-        page = object_page[frag.object_id[hit]]
-        foot = pixel_footprint(frag.uv_grad[hit])
-        keep = np.isfinite(foot) & (foot > 0)
-        for p in np.unique(page[keep]):
-            values = foot[keep & (page == p)]
-            finest[p] = min(finest[p], float(np.quantile(values, FOOTPRINT_QUANTILE)))
+    rows = footprints if footprints is not None else (page_footprints(f, object_page, num_pages) for f in fragments)
+    for row in rows:
+        finest = np.minimum(finest, row)
     sizes = []
     for p in range(num_pages):
         side = min_size if not np.isfinite(finest[p]) else power_of_two_at_most(1.0 / finest[p])
@@ -91,8 +102,10 @@ def auto_page_sizes(fragments: Sequence, object_page: Sequence[int], num_pages: 
 
 
 def make_layout(num_objects: int, texture_layout: str, texture_size, fragments: Sequence, *,
-                max_size: int = 4096, mipmaps: bool = False, tile_size: int | None = None) -> TextureLayout:
-    """Layout for a scene: `texture_size` is an int (every page that side) or "auto".
+                max_size: int = 4096, mipmaps: bool = False, tile_size: int | None = None,
+                footprints: np.ndarray | None = None) -> TextureLayout:
+    """Layout for a scene: `texture_size` is an int (every page that side) or "auto" (sized by
+    `auto_page_sizes`, from `footprints` when given).
 
     tile_size (parameter allocation granularity) defaults to 1 (texel-exact) without mipmaps
     and 16 with them: scripts/bench_render.py measured these as the smallest and the fastest.
@@ -100,7 +113,7 @@ def make_layout(num_objects: int, texture_layout: str, texture_size, fragments: 
     object_page = object_pages(num_objects, texture_layout)
     num_pages = max(object_page) + 1
     if texture_size == "auto":
-        sizes = auto_page_sizes(fragments, object_page, num_pages, max_size)
+        sizes = auto_page_sizes(fragments, object_page, num_pages, max_size, footprints=footprints)
     else:
         size = int(texture_size)
         if size < 1 or size & (size - 1):
