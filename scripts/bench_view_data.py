@@ -2,12 +2,12 @@
 
     python scripts/bench_view_data.py --scene=SCENE [--steps=20] [--log_every=5] [--repeats=2] \\
         [--views_per_step=8] [--max_texture_size=4096] [--prior=views] [--cache=DIR] [--json=FILE] \\
-        [--cases=memory,disk,disk_copies]
+        [--cases=memory,disk,disk_sources]
 
-Cases: `memory`, `disk` (--view_data=disk: targets and photos at their files' size read again from
-those files, `view_rows.SourceRows`), and `disk_copies` (--view_data=disk with them copied into
-float32 files instead, as the package did before `SourceRows`: `problem.files_at_size` patched to
-say no in that child).
+Cases: `memory`, `disk` (--view_data=disk: targets and photos copied into float32 files, as the
+package does where they fit), and `disk_sources` (--view_data=disk with targets and photos at their
+files' size read again from those files for each batch, `view_rows.SourceRows`, as the package does
+where the copies would not fit on the disk: forced in that child).
 
 Each case is a child process (so that its peak RSS is its own): the main job's set-up and loop
 (`build_problem`, `run_loop` with the step compiled ahead, no checkpoints, no outputs), the
@@ -30,7 +30,7 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-CASES = ("memory", "disk", "disk_copies")
+CASES = ("memory", "disk", "disk_sources")
 
 
 def parse_args(argv=None):
@@ -46,7 +46,7 @@ def parse_args(argv=None):
     p.add_argument("--cache", default=None, help="a ray-cast cache that holds the scene's casts already (default: a "
                    "new folder, filled by a warm-up case first)")
     p.add_argument("--json", default=None)
-    p.add_argument("--cases", default="memory,disk,disk_copies", help="comma-separated, of " + ", ".join(CASES))
+    p.add_argument("--cases", default="memory,disk,disk_sources", help="comma-separated, of " + ", ".join(CASES))
     p.add_argument("--one", default=None, choices=CASES, help=argparse.SUPPRESS)   # a child's case
     args = p.parse_args(argv)
     args.cases = [c for c in args.cases.split(",") if c]
@@ -65,8 +65,14 @@ def one_case(args) -> dict:
     from jaxdistill.engine.config import DistillConfig
     from jaxdistill.engine.problem import build_problem
 
-    if args.one == "disk_copies":        # targets and photos copied into files, as before `SourceRows`
-        problem_lib.files_at_size = lambda *a, **k: False
+    if args.one == "disk_sources":       # as the set-up decides where the copies would not fit
+        decide = problem_lib._view_data_folder
+
+        def sources(*a, **k):
+            folder, _, casts = decide(*a, **k)
+            return folder, True, casts
+
+        problem_lib._view_data_folder = sources
     out = tempfile.TemporaryDirectory(prefix="bench_view_data_")       # the loop writes nothing there
     config = config_lib.validate(DistillConfig(
         scene=args.scene, out_dir=out.name, prior=args.prior, steps=args.steps, log_every=args.log_every,

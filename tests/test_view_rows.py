@@ -220,11 +220,11 @@ def test_files_that_would_not_fit_are_refused_naming_the_folder(tmp_path, monkey
     folder.check_space(need, "the per-view images of 3 views")
 
 
-def test_the_set_up_checks_the_files_before_any_cast_and_casts_without_caching_what_would_not_fit(
-        tmp_path, monkeypatch, caplog):
-    """Per-view files that would not fit are refused before any ray is cast, naming the folder; ray
-    casts that would not fit beside them are cast and not kept (a warning says how much and where),
-    and are cached where they fit."""
+def test_the_set_up_fits_its_files_to_the_disk_before_any_cast(tmp_path, monkeypatch, caplog):
+    """Per-view files that would not fit are refused before any ray is cast, naming the folder;
+    where float32 copies of the targets would not fit and the targets' own files (at the render
+    size) can be read again instead, they are, with a warning; ray casts that would not fit beside
+    the files are cast and not kept (a warning says how much and where), and cached where they fit."""
     from jaxdistill.render import fragments as fr
 
     scene = write_tiny_scene(tmp_path / "scene", views=2)
@@ -237,9 +237,12 @@ def test_the_set_up_checks_the_files_before_any_cast_and_casts_without_caching_w
     assert fr.uncached_bytes(views.mesh, cameras + cameras, tmp_path / "cache") == casts
     assert fr.uncached_bytes(views.mesh, cameras, False) == 0
     problem = build_problem(config, cache_dir=tmp_path / "unlimited")
-    # the set-up's own files and the evaluation context's, which it makes later
-    files = view_data_bytes(config, problem.scene, problem.choice, problem.channels, (problem.height, problem.width))
-    assert files > problem.view_folder.nbytes > 0
+    assert isinstance(problem.prior.target_images, ViewRows)             # copies where they fit
+    # the set-up's own files and the evaluation context's, which it makes later, with and without the copies
+    args = (config, problem.scene, problem.choice, problem.channels, (problem.height, problem.width))
+    copies, sourced = view_data_bytes(*args), view_data_bytes(*args, form="sources")
+    assert copies - sourced == 2 * problem.height * problem.width * 4 * 11 > casts
+    assert copies > problem.view_folder.nbytes > 0
     assert len(list((tmp_path / "unlimited" / "fragments").glob("*.npz"))) == 2
     del problem
     usage = namedtuple("usage", "total used free")
@@ -252,23 +255,27 @@ def test_the_set_up_checks_the_files_before_any_cast_and_casts_without_caching_w
 
     real_cast = fr.cast_view
     monkeypatch.setattr(fr, "cast_view", poisoned)
-    free(files + view_rows.DISK_HEADROOM - 1)
+    free(sourced + view_rows.DISK_HEADROOM - 1)
     with pytest.raises(InputError) as err:
         build_problem(config, cache_dir=tmp_path / "cache")
     message = str(err.value)
-    assert "the per-view arrays of 2 views (--view_data=disk) need" in message
+    assert f"the per-view arrays of 2 views (--view_data=disk) need {sourced / 2 ** 30:.2f} GB" in message
     assert str(tmp_path / "cache" / "view_rows") in message
     monkeypatch.setattr(fr, "cast_view", real_cast)
-    free(files + casts + view_rows.DISK_HEADROOM - 1)       # the files fit, the casts beside them do not
+    free(sourced + casts + view_rows.DISK_HEADROOM - 1)       # the files fit without the copies, the casts not
     with caplog.at_level("WARNING"):
         problem = build_problem(config, cache_dir=tmp_path / "cache")
-    assert problem.view_folder.nbytes > 0
+    assert isinstance(problem.prior.target_images, SourceRows)
     assert not list((tmp_path / "cache" / "fragments").glob("*.npz"))
-    assert any("the ray casts are not cached" in r.getMessage() and f"{casts / 2 ** 30:.2f} GB" in r.getMessage()
-               and str(tmp_path / "cache" / "fragments") in r.getMessage() for r in caplog.records)
+    messages = [r.getMessage() for r in caplog.records]
+    assert any("read again from the scene's files" in m and str(tmp_path / "cache" / "view_rows") in m
+               for m in messages)
+    assert any("the ray casts are not cached" in m and f"{casts / 2 ** 30:.2f} GB" in m
+               and str(tmp_path / "cache" / "fragments") in m for m in messages)
     del problem
-    free(files + casts + view_rows.DISK_HEADROOM)           # both fit: cached
-    build_problem(config, cache_dir=tmp_path / "cache")
+    free(copies + casts + view_rows.DISK_HEADROOM)           # everything fits: copies, and the casts cached
+    problem = build_problem(config, cache_dir=tmp_path / "cache")
+    assert isinstance(problem.prior.target_images, ViewRows)
     assert len(list((tmp_path / "cache" / "fragments").glob("*.npz"))) == 2
 
 
@@ -280,11 +287,11 @@ def tiny_scene(tmp_path_factory):
 @pytest.mark.parametrize("terms", [dict(), dict(photo_weight=1.0, albedo_smoothness=0.1, photo_size=24),
                                    dict(photo_weight=1.0, albedo_smoothness=0.1, photo_size=32, render_size=32)],
                          ids=["targets", "photos", "the files' size"])
-def test_a_problem_on_disk_reads_the_batches_and_scores_of_one_in_memory(tiny_scene, tmp_path, terms):
+def test_a_problem_on_disk_reads_the_batches_and_scores_of_one_in_memory(tiny_scene, tmp_path, terms, monkeypatch):
     """Every per-view array (fragments, plans, pixel weights, targets, photos, guides), and the
     evaluation's fragments and plans at the photos' size, are files with --view_data=disk, but
-    targets and photos that are their files' pixels (no resampling), which are read again from
-    those files; the batches and the evaluation (its renders, seams and masks) are those of
+    targets and photos that are their files' pixels (no resampling) on a disk too small for their
+    copies, which are read again from those files; the batches and the evaluation (its renders, seams and masks) are those of
     --view_data=memory bit for bit."""
     from jaxdistill.evaluate import ground_truth as evaluation, scoring
 
@@ -295,12 +302,22 @@ def test_a_problem_on_disk_reads_the_batches_and_scores_of_one_in_memory(tiny_sc
         built = build_problem(config, cache_dir=tmp_path / "cache")
         return built, scoring.evaluation_context(config, built), config
 
-    (memory, memory_ctx, _), (disk, disk_ctx, config) = problem("memory"), problem("disk")
+    memory, memory_ctx, _ = problem("memory")
+    # the scene's files are 32 x 24: at that size, on a disk too small for float32 copies of targets and
+    # photos, they are read again from those files; resampled ones always go into files
+    at_files_size = terms.get("render_size") == 32
+    if at_files_size:
+        usage = namedtuple("usage", "total used free")
+        config = config_lib.validate(DistillConfig(scene=str(tiny_scene), out_dir=str(tmp_path), prior="views",
+                                                   **terms))
+        args = (config, memory.scene, memory.choice, memory.channels, (memory.height, memory.width))
+        assert view_data_bytes(*args, form="sources") < view_data_bytes(*args)
+        monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(1 << 40, 0, view_data_bytes(*args)
+                                                                           + view_rows.DISK_HEADROOM - 1))
+    disk, disk_ctx, config = problem("disk")
     on_disk = [disk.plan_index, disk.plan_weight, disk.plan_hit, disk.pixel_weight,
                disk_ctx.plan.index, disk_ctx.plan.weight, disk_ctx.plan.hit, disk_ctx.masks]
     assert all(isinstance(a, ViewRows) for a in on_disk)
-    # the scene's files are 32 x 24: at that size targets and photos are read from them, else resampled into files
-    at_files_size = terms.get("render_size") == 32
     assert isinstance(disk.prior.target_images, SourceRows if at_files_size else ViewRows)
     assert isinstance(memory.plan_index, np.ndarray) and isinstance(memory.prior.target_images, np.ndarray)
     assert isinstance(memory.fragments, list) and isinstance(disk.fragments, FragmentRows)
@@ -326,7 +343,8 @@ def test_a_problem_on_disk_reads_the_batches_and_scores_of_one_in_memory(tiny_sc
         assert isinstance(disk.photos.photos, SourceRows if at_files_size else ViewRows)
     # what the set-up checked against the free space before any compute is what the files took, to the byte,
     # the evaluation's seam pairs included (two bits a pixel, whatever the seams)
-    checked = view_data_bytes(config, disk.scene, disk.choice, disk.channels, (disk.height, disk.width))
+    checked = view_data_bytes(config, disk.scene, disk.choice, disk.channels, (disk.height, disk.width),
+                              form="sources" if at_files_size else "copies")
     assert checked == disk.view_folder.nbytes > 0
     for ids in ([0, 1], [3, 3], [2, 0]):
         a, b = memory.batch(np.array(ids)), disk.batch(np.array(ids))

@@ -261,10 +261,11 @@ class Problem:
 
 
 def read_view_targets(scene: Scene, maps: Sequence[str], height: int, width: int, folder: ViewFolder | None = None,
-                      views: Sequence | None = None):
+                      views: Sequence | None = None, sources: bool = False):
     """(V, H, W, C) float32 model-space targets of every view (or of `views`, some of the scene's),
-    in memory, or in a `ViewRows` file of `folder` when one is given; InputError listing missing
-    ones (of every view of the scene)."""
+    in memory, or in a `ViewRows` file of `folder` when one is given, or with `sources` (and a
+    folder) read again from their files when those are at this size (`SourceRows`); InputError
+    listing missing ones (of every view of the scene)."""
     problems = ProblemList()
     for i, view in enumerate(scene.views):
         for m in maps:
@@ -281,30 +282,30 @@ def read_view_targets(scene: Scene, maps: Sequence[str], height: int, width: int
         return np.concatenate([file_to_model(m, resize(read_target(m, view.targets[m]), height, width))
                                for m in maps], axis=-1)
 
-    sources = [[view.targets[m] for m in maps] for view in views]
-    from_files = folder is not None and files_at_size(itertools.chain(*sources), height, width)
+    paths = [[view.targets[m] for m in maps] for view in views]
+    from_files = sources and folder is not None and files_at_size(itertools.chain(*paths), height, width)
     out = None if from_files else view_array("targets", shape, np.float32, folder)
     for i, view in enumerate(tqdm(views, desc="targets", unit="view", dynamic_ncols=True)):
         image = row(view)                  # read once here either way: a damaged file stops the set-up
         if out is not None:
             out[i] = image
     if from_files:
-        return SourceRows(shape, np.float32, lambda v: row(views[v]), sources, name="targets")
+        return SourceRows(shape, np.float32, lambda v: row(views[v]), paths, name="targets")
     return out
 
 
 def files_at_size(paths, height: int, width: int) -> bool:
     """Whether every image file of `paths` is `width` x `height` (headers only): then its rows are
     its pixels without resampling, and a `SourceRows` array reads them again from the file instead
-    of holding a float32 copy (--view_data on disk)."""
+    of holding a float32 copy (--view_data on disk, where the copies would not fit)."""
     return all(imageio.image_size(p)[:2] == (width, height) for p in paths)
 
 
-def _views_prior(scene, views, channels, height, width, folder: ViewFolder | None):
+def _views_prior(scene, views, channels, height, width, folder: ViewFolder | None, sources: bool):
     from jaxdistill.engine.priors import ViewsPrior
 
     return ViewsPrior(channels=channels, target_images=read_view_targets(scene, channels.maps, height, width,
-                                                                         folder, views)), {}
+                                                                         folder, views, sources)), {}
 
 
 def _network_options(config: DistillConfig) -> dict:
@@ -411,8 +412,8 @@ def _build_problem(config: DistillConfig, choice: PriorChoice, *, cache_dir=None
         logging.info("process %d holds %d of the %d views (share %d of %d: %s)", jax.process_index(), len(views),
                      len(scene.views), jax.process_index(), jax.process_count(),
                      ", ".join(v.name for v in views[:8]) + (", ..." if len(views) > 8 else ""))
-    view_folder, cache_dir = _view_data_folder(config, scene, choice, channels, (height, width), cache_dir,
-                                               views=views, evaluation=held is None)
+    view_folder, sources, cache_dir = _view_data_folder(config, scene, choice, channels, (height, width), cache_dir,
+                                                        views=views, evaluation=held is None)
 
     t0 = time.perf_counter()
     cameras = [scaled_camera(v.camera, height, width) for v in views]
@@ -475,7 +476,7 @@ def _build_problem(config: DistillConfig, choice: PriorChoice, *, cache_dir=None
     photos = None
     if photo_frags is not None:
         photos = _photo_data(config, scene, views, photo_frags, space, counts, empty,
-                             plan=plan if photo_frags is frags else None, on_disk=view_folder is not None)
+                             plan=plan if photo_frags is frags else None, sources=sources)
     timings["plans_s"] = time.perf_counter() - t0
     logging.info("texels: %d parameters x %d channels (%s pages, %.1fx fewer than full pages), %d observed",
                  space.num_texels, channels.num_channels, list(layout.page_sizes),
@@ -483,7 +484,7 @@ def _build_problem(config: DistillConfig, choice: PriorChoice, *, cache_dir=None
 
     t0 = time.perf_counter()
     if choice.kind == "views":
-        prior, prior_frozen = _views_prior(scene, views, channels, height, width, view_folder)
+        prior, prior_frozen = _views_prior(scene, views, channels, height, width, view_folder, sources)
         alphas, model = None, None
     else:
         prior, prior_frozen, model = _rgbx_prior(config, choice, views, channels, height, width)
@@ -517,7 +518,7 @@ def _needs_of(arrays: dict, layout) -> list[list[np.ndarray]]:
 
 def view_data_bytes(config: DistillConfig, scene: Scene, choice: PriorChoice, channels: MapChannels,
                     render: tuple[int, int], *, views: Sequence | None = None, evaluation: bool = True,
-                    files: bool = True) -> int:
+                    form: str = "copies") -> int:
     """Bytes of the per-view arrays the set-up and the evaluation context make for `views` (the
     views this process holds, default all) when they are files (--view_data on disk): the fragments
     (12 bytes a pixel, 28 with the trilinear sampler's uv_grad: `fragments.row_bytes_per_pixel`) and gather plans (T taps of an int32 index and a
@@ -528,18 +529,22 @@ def view_data_bytes(config: DistillConfig, scene: Scene, choice: PriorChoice, ch
     and plans (no pixel weight) there when neither size is theirs, its seam pairs, two bits a pixel
     there (`metrics.seam_edge_bytes`, a view's bits in whole bytes), and its ground-truth maps,
     float32 channels there (`gt_file.ground_truth_maps`: a file per map a view has, all views'
-    rows). `files`: the bytes in files, where targets and photos whose files are at their size take
-    none (`SourceRows`: read again from the scene's files); False: the bytes the same arrays take in
-    memory (--view_data=memory), which --view_data=auto weighs."""
+    rows). `form`: "copies", the bytes in files with every image copied into them; "sources", where
+    targets and photos whose files are at their size take none (`SourceRows`: read again from the
+    scene's files); "memory", what the same arrays take in memory (--view_data=memory), which
+    --view_data=auto weighs."""
+    if form not in ("copies", "sources", "memory"):
+        raise ValueError(f"form must be copies, sources or memory, got {form!r}")
+    sources = form == "sources"
     held = scene.views if views is None else views
     taps = TAPS[config.sampler]
     frag, plan = fr.row_bytes_per_pixel(uv_grad=config.sampler == "trilinear"), 8 * taps + 4 + 1
-    targets = choice.kind == "views" and not (files and files_at_size(
+    targets = choice.kind == "views" and not (sources and files_at_size(
         (v.targets[m] for v in held for m in channels.maps if m in v.targets), *render))
     per_pixel = {render: frag + plan + (4 * channels.num_channels if targets else 0)}
     if config.photo_weight > 0:
         photo = render_shape(scene, config.photo_size, flag="--photo_size")
-        photos = not (files and files_at_size((v.photo for v in held), *photo))
+        photos = not (sources and files_at_size((v.photo for v in held), *photo))
         images = 4 * ((3 if photos else 0) + (2 if config.albedo_smoothness > 0 else 0))
         # the photos' own pixel weights even where they share the render size's fragments and plans
         per_pixel[photo] = per_pixel.get(photo, 0) + images + (4 if photo in per_pixel else frag + plan)
@@ -554,27 +559,40 @@ def view_data_bytes(config: DistillConfig, scene: Scene, choice: PriorChoice, ch
 
 def _view_data_folder(config: DistillConfig, scene: Scene, choice: PriorChoice, channels: MapChannels,
                       render: tuple[int, int], cache_dir, *, views: Sequence | None = None,
-                      evaluation: bool = True) -> tuple[ViewFolder | None, Any]:
-    """(folder, casts' cache): where the per-view arrays are held (--view_data: None for memory,
-    else the cache's `ViewFolder`, its disk space checked before any compute, `view_data_bytes`),
-    and the cache the ray casts go to: `cache_dir`, or False (cast, not kept) when those not cached
-    yet would not fit on its disk beside the per-view files (a warning says so; a cache changes no
-    result, and casting is the cheap part of the fragments). `views`: the views this process holds
-    (default all)."""
+                      evaluation: bool = True) -> tuple[ViewFolder | None, bool, Any]:
+    """(folder, sources, casts' cache), decided before any compute from the disk's free space.
+
+    folder: where the per-view arrays are held (--view_data: None for memory, else the cache's
+    `ViewFolder`); sources: whether targets and photos at their files' size are read again from
+    those files (`SourceRows`) instead of copied into float32 files, which is done only where the
+    copies would not fit (reading them back costs each batch its decoding: 1.04 s against 0.23 s
+    for 8 views of 876x584 of the capture room, 2.53 s a step against 2.14; the same values bit for bit);
+    per-view files that would not fit either way are refused, naming the folder. The casts' cache:
+    `cache_dir`, or False (cast, not kept) where the ray casts not cached yet would not fit beside
+    the per-view files (a warning says so; a cache changes no result, and casting is the cheap part
+    of the fragments). `views`: the views this process holds (default all)."""
     held = scene.views if views is None else views
-    folder = None
-    nbytes = 0
-    if placement(config.view_data, view_data_bytes(config, scene, choice, channels, render, views=held,
-                                                   evaluation=evaluation, files=False)):
-        nbytes = view_data_bytes(config, scene, choice, channels, render, views=held, evaluation=evaluation)
+    folder, sources, nbytes = None, False, 0
+    kwargs = dict(views=held, evaluation=evaluation)
+    if placement(config.view_data, view_data_bytes(config, scene, choice, channels, render, form="memory", **kwargs)):
         folder = ViewFolder(Path(cache_dir) if cache_dir else fr.default_cache_dir())
         what = f"the per-view arrays of {len(held)} views (--view_data={config.view_data})"
+        nbytes = view_data_bytes(config, scene, choice, channels, render, form="copies", **kwargs)
+        free = free_bytes(folder.root)
+        if free is not None and nbytes + DISK_HEADROOM > free:
+            sourced = view_data_bytes(config, scene, choice, channels, render, form="sources", **kwargs)
+            if sourced < nbytes:
+                logging.warning("%s: %.2f GB of files would not fit in %s (%.2f GB free); targets and photos are read "
+                                "again from the scene's files for each batch instead of copied (%.2f GB of files; "
+                                "slower batches, the same values)", what, nbytes / 2 ** 30, folder.root,
+                                free / 2 ** 30, sourced / 2 ** 30)
+                sources, nbytes = True, sourced
         folder.check_space(nbytes, what)
         logging.info("%s: %.2f GB on disk in %s, read a batch at a time", what, nbytes / 2 ** 30, folder.root)
     cameras = _cameras_cast(config, scene, render, held, evaluation)
     casts = fr.uncached_bytes(scene.mesh, cameras, cache_dir)
     if not casts:
-        return folder, cache_dir
+        return folder, sources, cache_dir
     where = Path(cache_dir) if cache_dir else fr.default_cache_dir()
     free = free_bytes(where)
     if free is not None and nbytes + casts + DISK_HEADROOM > free:
@@ -584,8 +602,8 @@ def _view_data_folder(config: DistillConfig, scene: Scene, choice: PriorChoice, 
                         "without keeping them, and a later run casts them again (point $JAXDISTILL_CACHE at a larger "
                         "disk to keep them)", len({fr.view_key("", c) for c in cameras}), casts / gb,
                         where / "fragments", nbytes / gb, free / gb, DISK_HEADROOM / gb)
-        return folder, False
-    return folder, cache_dir
+        return folder, sources, False
+    return folder, sources, cache_dir
 
 
 def _cameras_cast(config: DistillConfig, scene: Scene, render: tuple[int, int], views: Sequence,
@@ -644,19 +662,20 @@ def _photo_fragments(config: DistillConfig, scene: Scene, views: Sequence, rende
 
 
 def _photo_data(config: DistillConfig, scene: Scene, views: Sequence, photo_frags, space: TexelSpace, counts,
-                empty=None, *, plan=None, on_disk: bool = False) -> PhotoData:
+                empty=None, *, plan=None, sources: bool = False) -> PhotoData:
     """The re-rendering term's plans, photos and pixel weights (`PhotoData`) of `views` (the views
     this process holds, of `scene`), at the photo fragments' size, in arrays from
     `empty(name, shape, dtype)` (`view_rows.view_array`: memory or files); `plan`: the photo
-    fragments' plan when the caller has it already (the render size's). `on_disk` (--view_data on
-    disk): photos files of that size are read again from them (`SourceRows`), not copied."""
+    fragments' plan when the caller has it already (the render size's). `sources` (--view_data on
+    disk, where copies would not fit): photo files of that size are read again from them
+    (`SourceRows`), not copied."""
     empty = empty or functools.partial(view_array, folder=None)
     plan = plan if plan is not None else build_gather_plans(photo_frags, space, config.sampler, empty=empty)
     height, width = plan.height, plan.width
     weights = _loss_weights(config, views, plan, counts, empty)
     count = len(views)
     # on disk, photos at the photo size are read again from their files a batch at a time (`SourceRows`)
-    from_files = on_disk and files_at_size((view.photo for view in views), height, width)
+    from_files = sources and files_at_size((view.photo for view in views), height, width)
     photos = None if from_files else empty("photos", (count, height, width, 3), np.float32)
     guide = empty("guides", (count, height, width, 2), np.float32) if config.albedo_smoothness > 0 else None
     noise = np.zeros(count, np.float64)
