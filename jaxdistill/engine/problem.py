@@ -538,7 +538,9 @@ def view_data_bytes(config: DistillConfig, scene: Scene, choice: PriorChoice, ch
     sources = form == "sources"
     held = scene.views if views is None else views
     taps = TAPS[config.sampler]
-    frag, plan = fr.row_bytes_per_pixel(uv_grad=config.sampler == "trilinear"), 8 * taps + 4 + 1
+    # fragments: in memory all their fields (a list of `Fragments`), in files what `FragmentRows` keeps
+    frag = fr.BYTES_PER_PIXEL if form == "memory" else fr.row_bytes_per_pixel(uv_grad=config.sampler == "trilinear")
+    plan = 8 * taps + 4 + 1
     targets = choice.kind == "views" and not (sources and files_at_size(
         (v.targets[m] for v in held for m in channels.maps if m in v.targets), *render))
     per_pixel = {render: frag + plan + (4 * channels.num_channels if targets else 0)}
