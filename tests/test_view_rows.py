@@ -244,6 +244,10 @@ def test_the_set_up_fits_its_files_to_the_disk_before_any_cast(tmp_path, monkeyp
     assert copies - sourced == 2 * problem.height * problem.width * 4 * 11 > casts
     assert copies > problem.view_folder.nbytes > 0
     assert len(list((tmp_path / "unlimited" / "fragments").glob("*.npz"))) == 2
+    cached = tmp_path / "unlimited" / "fragments" / f"{fr.view_key(fr.mesh_key(views.mesh), cameras[0])}.npz"
+    cached.unlink()                                           # one of the two cached: the other is counted
+    assert fr.uncached_cameras(views.mesh, cameras + cameras, tmp_path / "unlimited") == [cameras[0]]
+    assert fr.uncached_bytes(views.mesh, cameras, tmp_path / "unlimited") == fr.cast_bytes(cameras[:1]) < casts
     del problem
     usage = namedtuple("usage", "total used free")
 
@@ -270,7 +274,7 @@ def test_the_set_up_fits_its_files_to_the_disk_before_any_cast(tmp_path, monkeyp
     messages = [r.getMessage() for r in caplog.records]
     assert any("read again from the scene's files" in m and str(tmp_path / "cache" / "view_rows") in m
                for m in messages)
-    assert any("the ray casts are not cached" in m and f"{casts / 2 ** 30:.2f} GB" in m
+    assert any("the ray casts are not cached: those of 2 views" in m and f"{casts / 2 ** 30:.2f} GB" in m
                and str(tmp_path / "cache" / "fragments") in m for m in messages)
     del problem
     free(copies + casts + view_rows.DISK_HEADROOM)           # everything fits: copies, and the casts cached

@@ -591,8 +591,8 @@ def _view_data_folder(config: DistillConfig, scene: Scene, choice: PriorChoice, 
                 sources, nbytes = True, sourced
         folder.check_space(nbytes, what)
         logging.info("%s: %.2f GB on disk in %s, read a batch at a time", what, nbytes / 2 ** 30, folder.root)
-    cameras = _cameras_cast(config, scene, render, held, evaluation)
-    casts = fr.uncached_bytes(scene.mesh, cameras, cache_dir)
+    missing = fr.uncached_cameras(scene.mesh, _cameras_cast(config, scene, render, held, evaluation), cache_dir)
+    casts = fr.cast_bytes(missing)
     if not casts:
         return folder, sources, cache_dir
     where = Path(cache_dir) if cache_dir else fr.default_cache_dir()
@@ -602,7 +602,7 @@ def _view_data_folder(config: DistillConfig, scene: Scene, choice: PriorChoice, 
         logging.warning("the ray casts are not cached: those of %d views not cached yet (%.2f GB) would not fit in "
                         "%s beside %.2f GB of per-view files (%.2f GB free, %.2f GB kept free); the set-up casts them "
                         "without keeping them, and a later run casts them again (point $JAXDISTILL_CACHE at a larger "
-                        "disk to keep them)", len({fr.view_key("", c) for c in cameras}), casts / gb,
+                        "disk to keep them)", len(missing), casts / gb,
                         where / "fragments", nbytes / gb, free / gb, DISK_HEADROOM / gb)
         return folder, sources, False
     return folder, sources, cache_dir

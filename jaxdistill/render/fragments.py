@@ -323,19 +323,30 @@ CACHE_BYTES_PER_VIEW = 1024              # the .npz's headers
 CACHE_HEADROOM = 1 << 28                 # 256 MiB left free on the cache's disk after the ray casts are written
 
 
-def uncached_bytes(mesh: Mesh, cameras: Sequence[Camera], cache_dir: Path | None | bool = None) -> int:
-    """Bytes the ray casts of `cameras` not in the cache yet will take there (each distinct view
-    once; 0 without a cache)."""
+def uncached_cameras(mesh: Mesh, cameras: Sequence[Camera], cache_dir: Path | None | bool = None) -> list[Camera]:
+    """The cameras of `cameras` whose ray casts are not in the cache yet, each distinct view once
+    (none without a cache)."""
     if cache_dir is False:
-        return 0
+        return []
     cache = Path(cache_dir or default_cache_dir()) / "fragments"
     geometry_key = mesh_key(mesh)
     missing = {}
     for c in cameras:
         path = cache / f"{view_key(geometry_key, c)}.npz"
         if path not in missing and not path.is_file():
-            missing[path] = c.height * c.width * CACHE_BYTES_PER_PIXEL + CACHE_BYTES_PER_VIEW
-    return sum(missing.values())
+            missing[path] = c
+    return list(missing.values())
+
+
+def uncached_bytes(mesh: Mesh, cameras: Sequence[Camera], cache_dir: Path | None | bool = None) -> int:
+    """Bytes the ray casts of `cameras` not in the cache yet will take there (each distinct view
+    once; 0 without a cache)."""
+    return cast_bytes(uncached_cameras(mesh, cameras, cache_dir))
+
+
+def cast_bytes(cameras: Sequence[Camera]) -> int:
+    """Bytes the ray casts of `cameras` take in the cache (each one counted)."""
+    return sum(c.height * c.width * CACHE_BYTES_PER_PIXEL + CACHE_BYTES_PER_VIEW for c in cameras)
 
 
 def check_cache_space(cache: Path, cameras: Sequence[Camera]) -> None:
@@ -344,7 +355,7 @@ def check_cache_space(cache: Path, cameras: Sequence[Camera]) -> None:
     much is free, and where else to put them."""
     if not cameras:
         return
-    needed = sum(c.height * c.width * CACHE_BYTES_PER_PIXEL + CACHE_BYTES_PER_VIEW for c in cameras)
+    needed = cast_bytes(cameras)
     existing = next((p for p in (cache, *cache.parents) if p.exists()), None)
     if existing is None:
         return
