@@ -14,6 +14,8 @@ import os
 from concurrent.futures import ThreadPoolExecutor
 from typing import Callable, Iterable, Iterator, TypeVar
 
+from tqdm.auto import tqdm
+
 T = TypeVar("T")
 R = TypeVar("R")
 
@@ -40,3 +42,8 @@ def ordered_map(fn: Callable[[T], R], items: Iterable[T], *, workers: int = WORK
         finally:                              # an error or an abandoned generator: start nothing more
             for future in pending:
                 future.cancel()
+
+
+def view_bar(items: Iterable[T], desc: str, total: int | None = None) -> Iterable[T]:
+    """`items` with a progress bar and ETA of views (the set-up's passes over every view)."""
+    return tqdm(items, desc=desc, total=total, unit="view", dynamic_ncols=True)

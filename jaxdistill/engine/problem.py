@@ -452,7 +452,8 @@ def _build_problem(config: DistillConfig, choice: PriorChoice, *, cache_dir=None
         seen = [frags] + ([] if native else [native_frags])
         if photo_frags is not None and photo_frags is not frags and photo_frags is not native_frags:
             seen.append(photo_frags)
-        needs = texel_needs(itertools.chain(*seen), layout, config.sampler)      # a view at a time
+        needs = texel_needs(itertools.chain(*seen), layout, config.sampler,      # a view at a time
+                            count=sum(len(f) for f in seen))
         shared = _needs_arrays(needs) if jax.process_count() > 1 else {}
         built["space"] = space_from_needs(needs, layout)
         check_state_fits(built["space"].num_texels, channels.num_channels, config, layout.full_size())

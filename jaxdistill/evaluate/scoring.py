@@ -21,6 +21,7 @@ from jaxdistill.render.fragments import FragmentRows
 from jaxdistill.render.gather_plan import GatherPlan, build_gather_plans
 from jaxdistill.scene.gt_file import ground_truth_maps
 from jaxdistill.scene.maps import MapChannels
+from jaxdistill.threads import view_bar
 
 
 @dataclasses.dataclass(frozen=True)
@@ -94,7 +95,8 @@ def evaluation_context(config: DistillConfig, problem: Problem) -> EvalContext:
     shapes = [frags.shape] * len(frags) if isinstance(frags, FragmentRows) else [f.shape for f in frags]  # (no read)
     packed = (problem.empty_views("seams", (len(frags), metrics.seam_edge_bytes(*frags.shape)), np.uint8)
               if on_disk else [None] * len(frags))
-    for v, (region, f, m) in enumerate(zip(evaluation.seam_regions(plan, frags, owner), frags, masks)):
+    regions = view_bar(zip(evaluation.seam_regions(plan, frags, owner), frags, masks), "seams", len(frags))
+    for v, (region, f, m) in enumerate(regions):
         packed[v] = metrics.pack_seam_edges(metrics.seam_edges(region, f.object_id, m))
     seams = SeamPairs(packed, shapes)
     return EvalContext(gt, shapes, cameras, gt_maps, masks, plan, seams)

@@ -30,7 +30,7 @@ import numpy as np
 from jaxdistill.io.view_rows import LazyViews
 from jaxdistill.render.fragments import Fragments
 from jaxdistill.render.layout import TextureLayout, pixel_footprint
-from jaxdistill.threads import ordered_map
+from jaxdistill.threads import ordered_map, view_bar
 
 SAMPLERS = ("bilinear", "trilinear")
 TAPS = {"bilinear": 4, "trilinear": 8}        # texel reads per pixel
@@ -273,10 +273,12 @@ def build_texel_space(fragments: Sequence[Fragments], layout: TextureLayout, sam
     return space_from_needs(texel_needs(fragments, layout, sampler), layout)
 
 
-def texel_needs(fragments: Sequence[Fragments], layout: TextureLayout, sampler: str) -> list[list[np.ndarray]]:
+def texel_needs(fragments: Sequence[Fragments], layout: TextureLayout, sampler: str, *,
+                count: int | None = None) -> list[list[np.ndarray]]:
     """need[p][j]: bool grid of the level-(k+j) entries of page p (j = 0: the tile grid) that the
     views' taps read. Views' needs combine by OR (`space_from_needs` takes the union): processes
-    holding different views can take each other's."""
+    holding different views can take each other's. `count`: how many views `fragments` yields,
+    where it has no length (the progress bar's total)."""
     b = layout.tile
     k = int(np.log2(b))
     need = [[np.zeros((s >> (k + j), s >> (k + j)), bool) for j in range(layout.num_levels(p) - k if layout.mipmaps else 1)]
@@ -294,7 +296,8 @@ def texel_needs(fragments: Sequence[Fragments], layout: TextureLayout, sampler: 
             out.append((int(page[group[0]]), int(j[group[0]]), row[group] >> shift[group], col[group] >> shift[group]))
         return out
 
-    for view_marks in ordered_map(marks, fragments):
+    total = len(fragments) if hasattr(fragments, "__len__") else count
+    for view_marks in view_bar(ordered_map(marks, fragments), "texel needs", total):
         for p, j, rows, cols in view_marks:
             need[p][j][rows, cols] = True
     return need
@@ -401,7 +404,8 @@ def build_gather_plans(fragments: Sequence[Fragments], space: TexelSpace, sample
         page, level, row, col, w = view_taps(frag, space.layout, sampler)
         return tap_indices(space, page, level, row, col, w).astype(np.int32), w, frag.object_id.ravel() >= 0
 
-    for v, (view_index, view_weight, view_hit) in enumerate(ordered_map(plan_view, fragments)):   # in order
+    planned = view_bar(ordered_map(plan_view, fragments), "gather plans", len(fragments))
+    for v, (view_index, view_weight, view_hit) in enumerate(planned):   # in order
         index[v], weight[v], hit[v] = view_index, view_weight, view_hit
     chain = MipChain(children=tuple(jnp.asarray(c) for c in space.children), tile=space.tile,
                      in_tile_levels=space.in_tile_levels)

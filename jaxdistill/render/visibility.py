@@ -27,6 +27,7 @@ from jaxdistill.errors import InputError
 from jaxdistill.render.gather_plan import GatherPlan, TexelSpace
 from jaxdistill.render.sampler import expand, render
 from jaxdistill.scene.model import Mesh
+from jaxdistill.threads import view_bar
 
 log = logging.getLogger(__name__)
 
@@ -44,7 +45,7 @@ def visibility_weights(counts):
 def view_counts(plan: GatherPlan, num_texels: int) -> np.ndarray:
     """(N,) int32: number of views whose plan touches each compact texel."""
     counts = np.zeros(num_texels, np.int32)
-    for v in range(plan.num_views):
+    for v in view_bar(range(plan.num_views), "view counts"):
         counts += np.asarray(_evidence(plan.select(v), num_texels=num_texels) > 0)
     return counts
 
@@ -69,7 +70,7 @@ def texel_evidence(plan: GatherPlan, num_texels: int) -> np.ndarray:
     alone at level 0 gets 1; a read through mip level l spreads over 4^l texels, 4^-l each, so
     texels seen only at grazing angles or through coarse levels get little evidence."""
     total = np.zeros(num_texels, np.float64)
-    for v in range(plan.num_views):
+    for v in view_bar(range(plan.num_views), "texel evidence"):
         total += np.asarray(_evidence(plan.select(v), num_texels=num_texels), np.float64)
     return total.astype(np.float32)
 
@@ -191,7 +192,7 @@ def pixel_weights(plan: GatherPlan, counts: np.ndarray, out=None) -> np.ndarray:
     into `out` when given (anything that takes `out[v] = image`, e.g. a file's rows)."""
     counts = jnp.asarray(counts, jnp.float32)[:, None]
     out = np.empty((plan.num_views, plan.height, plan.width), np.float32) if out is None else out
-    for v in range(plan.num_views):
+    for v in view_bar(range(plan.num_views), "pixel weights"):
         one = plan if plan.index.ndim == 2 else plan.select(v)    # (a single view's plan has no view axis)
         out[v] = np.asarray(_pixel_weights(one, counts))
     return out
