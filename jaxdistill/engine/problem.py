@@ -21,7 +21,6 @@ from typing import Any, Sequence
 import jax
 import numpy as np
 from absl import logging
-from tqdm.auto import tqdm
 
 from jaxdistill.io import images as imageio
 from jaxdistill.scene.cameras import Camera
@@ -37,6 +36,7 @@ from jaxdistill.render.visibility import (check_coverage, coverage_summary, hit_
                                          texel_evidence, view_counts)
 from jaxdistill.scene.gt_file import check_gt_textures, ground_truth_maps
 from jaxdistill.scene.model import Scene
+from jaxdistill.threads import view_bar
 from jaxdistill.scene.paths import resolve_scene_path  # noqa: F401  (--scene as a path; scripts use it from here)
 from jaxdistill.io.view_images import read_mask, read_photo_linear, read_target, resize
 from jaxdistill.io.view_rows import (DISK_HEADROOM, SourceRows, ViewFolder, ViewRows, free_bytes, placement,
@@ -285,7 +285,7 @@ def read_view_targets(scene: Scene, maps: Sequence[str], height: int, width: int
     paths = [[view.targets[m] for m in maps] for view in views]
     from_files = sources and folder is not None and files_at_size(itertools.chain(*paths), height, width)
     out = None if from_files else view_array("targets", shape, np.float32, folder)
-    for i, view in enumerate(tqdm(views, desc="targets", unit="view", dynamic_ncols=True)):
+    for i, view in enumerate(view_bar(views, "targets")):
         image = row(view)                  # read once here either way: a damaged file stops the set-up
         if out is not None:
             out[i] = image
@@ -331,8 +331,7 @@ def _rgbx_prior(config: DistillConfig, choice: PriorChoice, views, channels, hei
     guidance = rgbx.Guidance(text=config.w_t, image=config.w_i)
     prior, frozen = make_rgbx_prior(model, channels, photos, guidance=guidance, sample_latent=config.latent == "sample",
                                     latent_space=config.loss_space == "latent",
-                                    progress=lambda it: tqdm(it, total=len(views), desc="photo latents",
-                                                             unit="view", dynamic_ncols=True))
+                                    progress=lambda it: view_bar(it, "photo latents", len(views)))
     frozen["alphas_cumprod"] = np.asarray(rgbx.sched.alphas_cumprod(model.scheduler))
     return prior, frozen, model
 
@@ -577,8 +576,9 @@ def _view_data_folder(config: DistillConfig, scene: Scene, choice: PriorChoice, 
     held = scene.views if views is None else views
     folder, sources, nbytes = None, False, 0
     kwargs = dict(views=held, evaluation=evaluation)
+    where = Path(cache_dir) if cache_dir else fr.default_cache_dir()
     if placement(config.view_data, view_data_bytes(config, scene, choice, channels, render, form="memory", **kwargs)):
-        folder = ViewFolder(Path(cache_dir) if cache_dir else fr.default_cache_dir())
+        folder = ViewFolder(where)
         what = f"the per-view arrays of {len(held)} views (--view_data={config.view_data})"
         nbytes = view_data_bytes(config, scene, choice, channels, render, form="copies", **kwargs)
         free = free_bytes(folder.root)
@@ -596,7 +596,6 @@ def _view_data_folder(config: DistillConfig, scene: Scene, choice: PriorChoice, 
     casts = fr.cast_bytes(missing)
     if not casts:
         return folder, sources, cache_dir
-    where = Path(cache_dir) if cache_dir else fr.default_cache_dir()
     free = free_bytes(where)
     if free is not None and nbytes + casts + DISK_HEADROOM > free:
         gb = 2 ** 30
@@ -683,7 +682,7 @@ def _photo_data(config: DistillConfig, scene: Scene, views: Sequence, photo_frag
     guide = empty("guides", (count, height, width, 2), np.float32) if config.albedo_smoothness > 0 else None
     noise = np.zeros(count, np.float64)
     noise_weight = np.ones(count, np.float64)
-    for v, view in enumerate(tqdm(views, desc="photos", unit="view", dynamic_ncols=True)):
+    for v, view in enumerate(view_bar(views, "photos")):
         photo, usable = read_photo_linear(view.photo, view.exposure, height, width)
         if photos is not None:
             photos[v] = photo

@@ -277,8 +277,8 @@ def texel_needs(fragments: Sequence[Fragments], layout: TextureLayout, sampler: 
                 count: int | None = None) -> list[list[np.ndarray]]:
     """need[p][j]: bool grid of the level-(k+j) entries of page p (j = 0: the tile grid) that the
     views' taps read. Views' needs combine by OR (`space_from_needs` takes the union): processes
-    holding different views can take each other's. `count`: how many views `fragments` yields,
-    where it has no length (the progress bar's total)."""
+    holding different views can take each other's. `count`: how many views `fragments` yields
+    (the progress bar's total), where it has no length (a chain of several sizes' views)."""
     b = layout.tile
     k = int(np.log2(b))
     need = [[np.zeros((s >> (k + j), s >> (k + j)), bool) for j in range(layout.num_levels(p) - k if layout.mipmaps else 1)]
@@ -296,7 +296,7 @@ def texel_needs(fragments: Sequence[Fragments], layout: TextureLayout, sampler: 
             out.append((int(page[group[0]]), int(j[group[0]]), row[group] >> shift[group], col[group] >> shift[group]))
         return out
 
-    total = len(fragments) if hasattr(fragments, "__len__") else count
+    total = count if count is not None else len(fragments)
     for view_marks in view_bar(ordered_map(marks, fragments), "texel needs", total):
         for p, j, rows, cols in view_marks:
             need[p][j][rows, cols] = True
